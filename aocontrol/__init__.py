@@ -1,0 +1,19 @@
+"""aocontrol: adaptive-optics control toolbox.
+
+Layers (imports point down only)::
+
+    study     cases, compare, sweep, cli, plot          (aocontrol.study)
+    sim       atmosphere, modes, WFS, DM, loop, science (aocontrol.sim)
+    control   plant, controllers, synthesis, analysis   (aocontrol.plant, .controllers,
+                                                          .synthesis, .analysis)
+
+Conventions: discrete time at ``fs`` [Hz]; public frequencies in Hz; one-sided PSDs
+[units^2/Hz] (``scipy.signal.welch`` density); wavefronts as optical path in nm; modal
+telemetry shaped ``(n_frames, n_modes)``; randomness only through a passed
+``numpy.random.Generator`` or seed.
+"""
+
+from aocontrol.plant import frequency_response, loop_plant, measured_plant
+
+__version__ = "0.1.0"
+__all__ = ["frequency_response", "loop_plant", "measured_plant", "__version__"]

@@ -1,0 +1,156 @@
+"""Input checks shared by every layer.
+
+Each check raises ``ValueError`` or ``TypeError`` whose message names the argument, the value
+received and what was expected, e.g. ``ValueError("fs must be a finite number > 0, got -1.0")``.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+__all__ = [
+    "check_positive",
+    "check_nonnegative",
+    "check_finite_array",
+    "check_frequency_grid",
+    "check_psd",
+    "check_in_range",
+    "check_int",
+]
+
+
+def _short(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_positive(name: str, value: object) -> float:
+    """Return ``value`` as a float, requiring a finite number > 0."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number > 0, got {_short(value)}")
+    value = float(value)
+    if not np.isfinite(value) or value <= 0.0:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return value
+
+
+def check_nonnegative(name: str, value: object) -> float:
+    """Return ``value`` as a float, requiring a finite number >= 0."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number >= 0, got {_short(value)}")
+    value = float(value)
+    if not np.isfinite(value) or value < 0.0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return value
+
+
+def check_in_range(
+    name: str,
+    value: object,
+    low: float,
+    high: float,
+    *,
+    low_inclusive: bool = True,
+    high_inclusive: bool = False,
+) -> float:
+    """Return ``value`` as a float, requiring it to lie in the stated interval."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {_short(value)}")
+    value = float(value)
+    ok_low = value >= low if low_inclusive else value > low
+    ok_high = value <= high if high_inclusive else value < high
+    if not (np.isfinite(value) and ok_low and ok_high):
+        left = "[" if low_inclusive else "("
+        right = "]" if high_inclusive else ")"
+        raise ValueError(f"{name} must be in {left}{low}, {high}{right}, got {value!r}")
+    return value
+
+
+def check_int(name: str, value: object, *, minimum: int | None = None) -> int:
+    """Return ``value`` as an int, requiring an integer (not bool) >= ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise TypeError(f"{name} must be an integer, got {_short(value)}")
+    value = int(value)
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value}")
+    return value
+
+
+def check_finite_array(name: str, value: object, *, ndim: int | tuple[int, ...] | None = None,
+                       dtype: type = float) -> np.ndarray:
+    """Return ``value`` as an array, requiring finite entries (and ``ndim`` if given)."""
+    try:
+        arr = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be array-like of numbers, got {_short(value)}") from exc
+    if ndim is not None:
+        allowed = (ndim,) if isinstance(ndim, int) else ndim
+        if arr.ndim not in allowed:
+            raise ValueError(
+                f"{name} must have {' or '.join(map(str, allowed))} dimension(s), "
+                f"got shape {arr.shape}"
+            )
+    if not np.all(np.isfinite(arr)):
+        bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+        raise ValueError(f"{name} must contain only finite values, found {bad} NaN/inf")
+    return arr
+
+
+def check_frequency_grid(name: str, freqs: object, fs: float, *,
+                         allow_zero: bool = True) -> np.ndarray:
+    """Return a 1-D, strictly increasing frequency grid in [0, fs/2] [Hz].
+
+    Raises
+    ------
+    ValueError
+        If the grid is empty, not strictly increasing, negative or beyond Nyquist.
+    """
+    arr = check_finite_array(name, freqs, ndim=1)
+    if arr.size == 0:
+        raise ValueError(f"{name} must not be empty")
+    if arr.size > 1 and np.any(np.diff(arr) <= 0):
+        i = int(np.argmax(np.diff(arr) <= 0))
+        raise ValueError(
+            f"{name} must be strictly increasing, got {name}[{i}]={arr[i]!r} "
+            f">= {name}[{i + 1}]={arr[i + 1]!r}"
+        )
+    if arr[0] < 0 or (not allow_zero and arr[0] == 0):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"{name} must be {bound} Hz, got {name}[0]={arr[0]!r}")
+    nyquist = fs / 2.0
+    if arr[-1] > nyquist * (1 + 1e-12):
+        raise ValueError(
+            f"{name} must not exceed the Nyquist frequency fs/2={nyquist!r} Hz, "
+            f"got {name}[-1]={arr[-1]!r}"
+        )
+    return arr
+
+
+def check_psd(name: str, psd: object, n_freqs: int, *, allow_scalar: bool = False,
+              allow_all_zero: bool = True) -> np.ndarray:
+    """Return a one-sided PSD [units^2/Hz] of shape ``(n_freqs,)`` or ``(n_modes, n_freqs)``.
+
+    A scalar (white PSD) is accepted when ``allow_scalar`` and returned as a 0-d array.
+
+    Raises
+    ------
+    ValueError
+        NaN/inf or negative values, a last axis that does not match the frequency grid,
+        or (unless ``allow_all_zero``) a PSD that is zero everywhere.
+    """
+    arr = check_finite_array(name, psd, ndim=(0, 1, 2) if allow_scalar else (1, 2))
+    if arr.ndim >= 1 and arr.shape[-1] != n_freqs:
+        raise ValueError(
+            f"{name} must have {n_freqs} values along its last axis (one per frequency), "
+            f"got shape {arr.shape}"
+        )
+    if np.any(arr < 0):
+        raise ValueError(f"{name} must be >= 0 everywhere (a PSD), found min {arr.min()!r}")
+    if not allow_all_zero:
+        zero_rows = ~np.any(arr > 0, axis=-1) if arr.ndim >= 1 else np.array(arr == 0)
+        if np.any(zero_rows):
+            where = f" (rows {np.flatnonzero(zero_rows)[:10].tolist()})" if arr.ndim == 2 else ""
+            raise ValueError(f"{name} must not be zero everywhere{where}")
+    return arr

@@ -1,0 +1,42 @@
+"""Loop analysis: closed-loop responses, margins, stability, residual variance.
+
+Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the variance.
+"""
+
+from aocontrol.analysis._loop import (
+    LoopResponse,
+    command_transfer,
+    complementary_sensitivity,
+    controller_response,
+    loop_response,
+    noise_transfer,
+    sensitivity,
+    white_noise_psd,
+)
+from aocontrol.analysis._margins import (
+    Margins,
+    closed_loop_poles,
+    is_stable,
+    margins,
+    winding_stability,
+)
+from aocontrol.analysis._residual import residual_psd, residual_variance
+
+__all__ = [
+    "LoopResponse",
+    "Margins",
+    "closed_loop_poles",
+    "command_transfer",
+    "complementary_sensitivity",
+    "controller_response",
+    "is_stable",
+    "loop_response",
+    "margins",
+    "noise_transfer",
+    "residual_psd",
+    "residual_variance",
+    "sensitivity",
+    "white_noise_psd",
+    "winding_stability",
+]

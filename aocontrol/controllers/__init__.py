@@ -1,0 +1,9 @@
+"""Controllers: one interface (:class:`ControllerBank`) for every controller of the project.
+
+Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+"""
+
+from aocontrol.controllers._base import ControllerBank, IIRBank
+from aocontrol.controllers._integrator import Integrator
+
+__all__ = ["ControllerBank", "IIRBank", "Integrator"]

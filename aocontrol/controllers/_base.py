@@ -1,0 +1,241 @@
+"""The one controller interface of the project and the general IIR bank.
+
+Every controller is a bank of ``n_modes`` independent SISO controllers (modal control):
+
+* ``step(measurement) -> command``: the real-time path, vectorised over modes
+  (arrays of shape ``(n_modes,)``), with internal state;
+* ``reset()``: back to the zero initial state;
+* ``transfer_function(mode=0) -> control.TransferFunction``: the linear controller of one mode,
+  ``dt = 1/fs``. The real-time path and the transfer function agree (impulse responses equal
+  to rounding; tested for every controller).
+"""
+
+from __future__ import annotations
+
+import abc
+import logging
+
+import control
+import numpy as np
+
+from aocontrol._validation import check_finite_array, check_int, check_positive
+from aocontrol.plant import tf_from_z_inverse, z_inverse_coefficients
+
+__all__ = ["ControllerBank", "IIRBank"]
+
+logger = logging.getLogger(__name__)
+
+
+class ControllerBank(abc.ABC):
+    """Abstract bank of per-mode SISO controllers running at ``fs`` [Hz]."""
+
+    @property
+    @abc.abstractmethod
+    def n_modes(self) -> int:
+        """Number of controlled modes."""
+
+    @property
+    @abc.abstractmethod
+    def fs(self) -> float:
+        """Loop rate [Hz]."""
+
+    @abc.abstractmethod
+    def step(self, measurement: np.ndarray) -> np.ndarray:
+        """Advance one frame: modal measurement ``(n_modes,)`` -> modal command ``(n_modes,)``."""
+
+    @abc.abstractmethod
+    def reset(self) -> None:
+        """Reset the internal state to zero."""
+
+    @abc.abstractmethod
+    def transfer_function(self, mode: int = 0) -> control.TransferFunction:
+        """Linear controller of ``mode`` (measurement to command), ``dt = 1/fs``."""
+
+    # -- shared helpers -------------------------------------------------------------------
+    def _check_mode(self, mode: int) -> int:
+        mode = check_int("mode", mode, minimum=0)
+        if mode >= self.n_modes:
+            raise ValueError(f"mode must be in [0, {self.n_modes - 1}], got {mode}")
+        return mode
+
+    def _check_measurement(self, measurement: object) -> np.ndarray:
+        m = np.asarray(measurement, dtype=float)
+        if m.shape != (self.n_modes,):
+            raise ValueError(
+                f"measurement must have shape ({self.n_modes},) (one value per mode), "
+                f"got {m.shape}"
+            )
+        return m
+
+    def impulse_response(self, n_samples: int) -> np.ndarray:
+        """Response of ``step()`` to a unit impulse on every mode, shape ``(n_samples, n_modes)``.
+
+        The controller is reset before and after.
+        """
+        n_samples = check_int("n_samples", n_samples, minimum=1)
+        self.reset()
+        out = np.empty((n_samples, self.n_modes))
+        x = np.ones(self.n_modes)
+        for k in range(n_samples):
+            out[k] = self.step(x)
+            x = np.zeros(self.n_modes)
+        self.reset()
+        return out
+
+
+class IIRBank(ControllerBank):
+    """Bank of IIR filters in Direct-Form I, one per mode (the paper's command equation)::
+
+        u[k] = sum_{i=0}^{nb-1} b_i m[k-i] - sum_{i=1}^{na-1} a_i u[k-i]
+
+    with ``a_0 = 1``. With a stroke limit the command is clipped to ``[-stroke, stroke]`` and
+    the *applied* command is what enters the recursion (anti-windup: the filter state stays
+    consistent with what the DM did).
+
+    Parameters
+    ----------
+    b : array_like, shape (n_modes, nb) or (nb,)
+        Numerator coefficients in powers of ``z^-1`` (a 1-D array is shared by every mode).
+    a : array_like, shape (n_modes, na) or (na,)
+        Denominator coefficients in powers of ``z^-1``; ``a[:, 0]`` must be nonzero and is
+        normalised to 1.
+    fs : float
+        Loop rate [Hz].
+    n_modes : int, optional
+        Number of modes when both ``b`` and ``a`` are 1-D (default 1).
+    stroke : float or array of shape (n_modes,), optional
+        Command limit (same unit as the command); ``None`` for no limit.
+
+    Attributes
+    ----------
+    n_saturated : numpy.ndarray of int, shape (n_modes,)
+        Number of frames each mode's command was clipped since the last reset.
+
+    Examples
+    --------
+    >>> bank = IIRBank(b=[0.5], a=[1.0, -1.0], fs=1000.0, n_modes=2)  # integrators, g = 0.5
+    >>> bank.step(np.array([1.0, 2.0]))
+    array([0.5, 1. ])
+    >>> bank.step(np.array([1.0, 2.0]))
+    array([1., 2.])
+    """
+
+    def __init__(self, b: object, a: object, fs: float, *, n_modes: int | None = None,
+                 stroke: float | np.ndarray | None = None) -> None:
+        self._fs = check_positive("fs", fs)
+        b = check_finite_array("b", b, ndim=(1, 2))
+        a = check_finite_array("a", a, ndim=(1, 2))
+        rows = {x.shape[0] for x in (b, a) if x.ndim == 2}
+        if len(rows) > 1:
+            raise ValueError(f"b and a must have the same number of modes, got {sorted(rows)}")
+        if rows:
+            n = rows.pop()
+            if n_modes is not None and check_int("n_modes", n_modes, minimum=1) != n:
+                raise ValueError(f"n_modes={n_modes} disagrees with coefficient rows {n}")
+        else:
+            n = 1 if n_modes is None else check_int("n_modes", n_modes, minimum=1)
+        if n < 1:
+            raise ValueError(f"n_modes must be >= 1, got {n}")
+        b = np.broadcast_to(b, (n, b.shape[-1])).astype(float)
+        a = np.broadcast_to(a, (n, a.shape[-1])).astype(float)
+        if b.shape[1] < 1 or a.shape[1] < 1:
+            raise ValueError("b and a must each have at least one coefficient per mode")
+        if np.any(a[:, 0] == 0):
+            bad = np.flatnonzero(a[:, 0] == 0)[:10].tolist()
+            raise ValueError(f"a[:, 0] must be nonzero (causal filter), zero for modes {bad}")
+        b = b / a[:, :1]
+        a = a / a[:, :1]
+        b.setflags(write=False)
+        a.setflags(write=False)
+        self._b, self._a = b, a
+        self._n = n
+        if stroke is None:
+            self._stroke = None
+        else:
+            s = check_finite_array("stroke", stroke, ndim=(0, 1))
+            s = np.broadcast_to(s, (n,)).astype(float)
+            if np.any(s <= 0):
+                raise ValueError(f"stroke must be > 0, got min {s.min()!r}")
+            s.setflags(write=False)
+            self._stroke = s
+        self.reset()
+
+    # -- interface ------------------------------------------------------------------------
+    @property
+    def n_modes(self) -> int:
+        return self._n
+
+    @property
+    def fs(self) -> float:
+        return self._fs
+
+    @property
+    def b(self) -> np.ndarray:
+        """Numerator coefficients, shape ``(n_modes, nb)`` (read-only)."""
+        return self._b
+
+    @property
+    def a(self) -> np.ndarray:
+        """Denominator coefficients, shape ``(n_modes, na)``, ``a[:, 0] == 1`` (read-only)."""
+        return self._a
+
+    @property
+    def stroke(self) -> np.ndarray | None:
+        """Command limit per mode, or ``None``."""
+        return self._stroke
+
+    def reset(self) -> None:
+        self._m_hist = np.zeros((self._n, self._b.shape[1]))
+        self._u_hist = np.zeros((self._n, max(self._a.shape[1] - 1, 0)))
+        self.n_saturated = np.zeros(self._n, dtype=np.int64)
+
+    def step(self, measurement: np.ndarray) -> np.ndarray:
+        m = self._check_measurement(measurement)
+        mh, uh = self._m_hist, self._u_hist
+        if mh.shape[1] > 1:
+            mh[:, 1:] = mh[:, :-1]
+        mh[:, 0] = m
+        u = np.einsum("ij,ij->i", self._b, mh)
+        if uh.shape[1]:
+            u -= np.einsum("ij,ij->i", self._a[:, 1:], uh)
+        if self._stroke is not None:
+            clipped = np.abs(u) > self._stroke
+            if clipped.any():
+                self.n_saturated += clipped
+                u = np.clip(u, -self._stroke, self._stroke)
+        if uh.shape[1]:
+            if uh.shape[1] > 1:
+                uh[:, 1:] = uh[:, :-1]
+            uh[:, 0] = u
+        if not np.all(np.isfinite(u)):
+            bad = np.flatnonzero(~np.isfinite(u))[:10].tolist()
+            raise FloatingPointError(f"controller command is not finite for modes {bad}")
+        return u
+
+    def transfer_function(self, mode: int = 0) -> control.TransferFunction:
+        mode = self._check_mode(mode)
+        return tf_from_z_inverse(self._b[mode], self._a[mode], 1.0 / self._fs)
+
+    # -- constructors ---------------------------------------------------------------------
+    @classmethod
+    def from_transfer_functions(cls, tfs: list[control.TransferFunction], *,
+                                stroke: float | np.ndarray | None = None) -> IIRBank:
+        """Bank from one discrete SISO transfer function per mode (same ``dt``)."""
+        if len(tfs) == 0:
+            raise ValueError("tfs must contain at least one transfer function")
+        dts = {float(t.dt) for t in tfs}
+        if len(dts) != 1 or not dts.pop() > 0:
+            raise ValueError("tfs must all be discrete-time with the same dt > 0")
+        coeffs = [z_inverse_coefficients(t) for t in tfs]
+        nb = max(c[0].size for c in coeffs)
+        na = max(c[1].size for c in coeffs)
+        b = np.zeros((len(tfs), nb))
+        a = np.zeros((len(tfs), na))
+        for i, (bi, ai) in enumerate(coeffs):
+            b[i, : bi.size] = bi
+            a[i, : ai.size] = ai
+        return cls(b, a, 1.0 / float(tfs[0].dt), stroke=stroke)
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(n_modes={self._n}, fs={self._fs}, "
+                f"nb={self._b.shape[1]}, na={self._a.shape[1]})")
