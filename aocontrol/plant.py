@@ -105,7 +105,7 @@ def loop_plant(fs: float, latency_frames: float) -> control.TransferFunction:
     Examples
     --------
     >>> G = loop_plant(fs=1000.0, latency_frames=1.0)      # G = z^-2
-    >>> abs(complex(G(np.exp(1j * 0.3))) - np.exp(-2j * 0.3)) < 1e-12
+    >>> bool(abs(complex(G(np.exp(1j * 0.3))) - np.exp(-2j * 0.3)) < 1e-12)
     True
     """
     fs = check_positive("fs", fs)

@@ -105,8 +105,8 @@ def loop_response(plant: control.TransferFunction | control.FRD, controller: obj
     --------
     >>> from aocontrol.plant import loop_plant
     >>> from aocontrol.controllers import Integrator
-    >>> r = loop_response(loop_plant(1000.0, 1.0), Integrator(0.5, fs=1000.0), [0.0, 500.0])
-    >>> np.round(np.abs(r.sensitivity), 6)   # S(1) = 0 for an integrator; S(-1) = 1/(1-g/2)
+    >>> r = loop_response(loop_plant(1000.0, 0.0), Integrator(0.5, fs=1000.0), [0.0, 500.0])
+    >>> np.round(np.abs(r.sensitivity), 6)   # G = z^-1: S(1) = 0; S(-1) = 1/(1 - g/2)
     array([[0.      , 1.333333]])
     """
     fs_ = plant_fs(plant, fs)

@@ -63,7 +63,8 @@ def residual_variance(plant: object, controller: object, freqs: object, psd: obj
 
     Returns
     -------
-    float, or ndarray of shape (n_modes,) for a bank or a 2-D ``psd``.
+    float for a SISO TF/FRD controller and a 1-D ``psd``; ndarray of shape (n_modes,) for a
+    ControllerBank (even with one mode) or a 2-D ``psd``.
 
     Examples
     --------
@@ -72,8 +73,9 @@ def residual_variance(plant: object, controller: object, freqs: object, psd: obj
     >>> G, fs = loop_plant(1000.0, 0.0), 1000.0
     >>> f = np.linspace(0, 500, 20001)
     >>> # Oracle: white noise through T of g/(z-1) plant z^-1 -> variance g/(2-g) per unit.
-    >>> v = residual_variance(G, Integrator(0.5, fs=fs), f, np.zeros_like(f), 2.0 / fs)
-    >>> round(float(v), 6)
+    >>> K = Integrator(0.5, fs=fs).transfer_function()
+    >>> v = residual_variance(G, K, f, np.zeros_like(f), 2.0 / fs)
+    >>> round(v, 6)
     0.333333
     """
     fs_ = plant_fs(plant, fs)

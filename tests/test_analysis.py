@@ -1,0 +1,238 @@
+"""Loop analysis against analytic oracles, and where python-control 0.10.2 is wrong."""
+
+import control
+import numpy as np
+import pytest
+
+from aocontrol import frequency_response, loop_plant, measured_plant
+from aocontrol.analysis import (
+    closed_loop_poles,
+    complementary_sensitivity,
+    is_stable,
+    loop_response,
+    margins,
+    noise_transfer,
+    residual_psd,
+    residual_variance,
+    sensitivity,
+    white_noise_psd,
+    winding_stability,
+)
+from aocontrol.controllers import IIRBank, Integrator
+
+FS = 1000.0
+# Crossings are refined by brentq to 1e-13 rad: margins agree with closed forms to ~1e-9.
+REFINED = 1e-8
+# Trapezoid on 20001 points of smooth integrands.
+QUADRATURE = 1e-5
+
+
+def _stability_limit(d: int) -> float:
+    # Integrator g/(1 - z^-1) with total delay z^-d is stable iff g < 2 sin(pi / (2 (2d - 1))).
+    return 2 * np.sin(np.pi / (2 * (2 * d - 1)))
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 4])
+def test_integrator_stability_limit(d):
+    plant = loop_plant(FS, latency_frames=d - 1)
+    g = _stability_limit(d)
+    assert is_stable(plant, Integrator(0.99 * g, fs=FS))
+    assert not is_stable(plant, Integrator(1.01 * g, fs=FS))
+    # The gain margin of an integrator of gain g0 is the stability limit / g0.
+    m = margins(plant, Integrator(0.5 * g, fs=FS))
+    assert m.gain_margin == pytest.approx(2.0, rel=REFINED)
+    assert m.stable
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # python-control evaluates 1/0 at z = 1
+@pytest.mark.parametrize("g", [0.3, 0.5, 1.0, 1.5])
+def test_gain_margin_at_nyquist_one_frame_delay(g):
+    # Oracle: L = g/(z-1) crosses -180 deg exactly at z = -1 where L = -g/2: GM = 2/g.
+    plant = loop_plant(FS, 0.0)
+    m = margins(plant, Integrator(g, fs=FS))
+    assert m.gain_margin == pytest.approx(2.0 / g, rel=REFINED)
+    assert m.phase_crossover_hz == pytest.approx(FS / 2, rel=REFINED)
+    # python-control 0.10.2 misses this crossover (reports inf) -- the reason we compute it.
+    gm_pc = control.stability_margins(plant * Integrator(g, fs=FS).transfer_function())[0]
+    assert not np.isfinite(gm_pc) or abs(gm_pc - 2.0 / g) > 1e-3
+
+
+@pytest.mark.parametrize("g", [0.2, 0.5, 1.2])
+def test_phase_and_delay_margin_closed_form(g):
+    # Oracle for L = g/(z-1): |L| = 1 at theta_c = 2 asin(g/2); arg L = -(pi/2 + theta_c/2);
+    # PM = pi/2 - theta_c/2; delay margin = PM / theta_c frames.
+    m = margins(loop_plant(FS, 0.0), Integrator(g, fs=FS))
+    theta_c = 2 * np.arcsin(g / 2)
+    pm = np.pi / 2 - theta_c / 2
+    assert m.phase_margin == pytest.approx(np.degrees(pm), rel=REFINED)
+    assert m.delay_margin == pytest.approx(pm / theta_c, rel=REFINED)
+    assert m.gain_crossover_hz == pytest.approx(theta_c * FS / (2 * np.pi), rel=REFINED)
+
+
+def test_delay_margin_is_the_delay_that_destabilises():
+    # Invariant: adding exactly the delay margin (as a pure delay on an FRD) is marginal.
+    fs = 3000.0
+    plant = loop_plant(fs, 0.83)
+    ctrl = Integrator(0.45, fs=fs)
+    dm = margins(plant, ctrl).delay_margin
+    f = np.linspace(0, fs / 2, 20001)
+    G = frequency_response(plant, f)
+    w = 2 * np.pi * f / fs
+    for factor, stable in [(0.97, True), (1.03, False)]:
+        delayed = measured_plant(f, G * np.exp(-1j * w * dm * factor), fs)
+        assert winding_stability(delayed, ctrl) is stable
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.83, 1.5])
+def test_modulus_margin_against_brute_force(latency):
+    # Oracle: min |1 + L| on a 2e6-point grid (brute force).
+    fs = 3000.0
+    plant = loop_plant(fs, latency)
+    ctrl = Integrator(0.3, fs=fs, leak=0.01)
+    f = np.linspace(0, fs / 2, 2_000_001)
+    brute = np.min(np.abs(1 + loop_response(plant, ctrl, f).loop))
+    assert margins(plant, ctrl).modulus_margin == pytest.approx(brute, rel=1e-9)
+
+
+def test_unstable_loop_says_unstable():
+    plant = loop_plant(FS, 1.0)
+    m = margins(plant, Integrator(1.2, fs=FS))  # limit is 1.0 for d = 2
+    assert not m.stable
+    assert m.gain_margin < 1.0
+    assert m.phase_margin < 0.0
+    # python-control reports positive-looking numbers without a stability verdict.
+    assert len(control.stability_margins(plant * Integrator(1.2, fs=FS).transfer_function())) == 6
+
+
+def test_closed_loop_poles_of_integrator_one_frame():
+    # Oracle: 1 + g/(z-1) = 0  ->  z = 1 - g.
+    poles = closed_loop_poles(loop_plant(FS, 0.0), Integrator(0.3, fs=FS))
+    np.testing.assert_allclose(poles, [0.7], atol=1e-12)
+
+
+def test_hidden_unstable_cancellation_is_caught():
+    # K has a pole at z = 1.5 and the plant a zero there: L looks fine, the loop is not.
+    dt = 1 / FS
+    plant = control.tf([1, -1.5], [1, 0, 0], dt)
+    ctrl = control.tf([0.1, 0.0], [1, -1.5], dt)
+    assert not is_stable(plant, ctrl)
+
+
+def test_pole_and_winding_stability_agree_on_random_controllers():
+    # Two implementations: characteristic-polynomial roots vs winding number of Y + G X.
+    rng = np.random.default_rng(3)
+    plant = loop_plant(3000.0, 0.83)
+    agree = 0
+    for _ in range(40):
+        a = np.poly(rng.uniform(-0.95, 0.95, size=3))
+        b = rng.normal(scale=0.3, size=4)
+        ctrl = IIRBank(b, a, fs=3000.0)
+        assert is_stable(plant, ctrl) == winding_stability(plant, ctrl)
+        agree += 1
+    assert agree == 40
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.83, 2.0])
+def test_frd_plant_gives_same_analysis_as_tf(latency):
+    fs = 3000.0
+    plant = loop_plant(fs, latency)
+    f = np.linspace(0, fs / 2, 30001)
+    frd = measured_plant(f, frequency_response(plant, f), fs)
+    ctrl = Integrator(0.35, fs=fs)
+    mt, mf = margins(plant, ctrl), margins(frd, ctrl)
+    assert mf.stable == mt.stable
+    # FRD crossings are interpolated linearly between 0.05 Hz-spaced points.
+    for name in ("gain_margin", "phase_margin", "modulus_margin", "delay_margin"):
+        assert getattr(mf, name) == pytest.approx(getattr(mt, name), rel=1e-4), name
+    unstable = Integrator(_stability_limit(int(np.ceil(1 + latency))) * 1.5, fs=fs)
+    assert is_stable(frd, unstable) == is_stable(plant, unstable) is False
+    fr = np.linspace(1, 1400, 50)
+    np.testing.assert_allclose(sensitivity(frd, ctrl, fr), sensitivity(plant, ctrl, fr),
+                               atol=1e-6)
+
+
+def test_frd_that_lost_dt_works_with_fs():
+    fs = 1000.0
+    f = np.linspace(0, fs / 2, 5001)
+    frd = measured_plant(f, frequency_response(loop_plant(fs, 0.0), f), fs) * 1.0
+    assert frd.dt == 0  # python-control dropped it
+    m = margins(frd, Integrator(0.5, fs=fs), fs=fs)
+    assert m.gain_margin == pytest.approx(4.0, rel=1e-6)
+
+
+def test_sensitivity_identities():
+    # S + T = 1 and noise transfer = -T, everywhere.
+    plant = loop_plant(3000.0, 0.83)
+    ctrl = IIRBank([0.4, -0.1], [1.0, -1.2, 0.25], fs=3000.0)
+    f = np.linspace(0, 1500, 301)
+    S = sensitivity(plant, ctrl, f)
+    T = complementary_sensitivity(plant, ctrl, f)
+    np.testing.assert_allclose(S + T, 1.0, atol=1e-12)
+    np.testing.assert_allclose(noise_transfer(plant, ctrl, f), -T, atol=1e-15)
+
+
+def test_integrator_rejects_dc_completely():
+    r = loop_response(loop_plant(FS, 0.83), Integrator(0.4, fs=FS), [0.0, 1.0])
+    assert abs(r.sensitivity[0, 0]) == 0.0
+    assert abs(r.complementary[0, 0]) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("g", [0.2, 0.5, 1.0])
+def test_noise_variance_through_integrator_closed_form(g):
+    # Oracle: plant z^-1, C = g/(1-z^-1): white noise of variance s2 gives residual variance
+    # s2 * g / (2 - g)  (sum of squared impulse response of T = g z^-1 / (1 - (1-g) z^-1)).
+    f = np.linspace(0, FS / 2, 20001)
+    s2 = 3.0
+    v = residual_variance(loop_plant(FS, 0.0), Integrator(g, fs=FS), f, np.zeros_like(f),
+                          white_noise_psd(s2, FS))
+    assert v == pytest.approx(s2 * g / (2 - g), rel=QUADRATURE)
+
+
+def test_ar1_disturbance_residual_closed_form():
+    # Oracle: plant z^-1 and "integrator" gain 1 (deadbeat): e[k] = d[k] - d[k-1]; for AR(1)
+    # d with coefficient a and unit innovation: var(e) = 2 (1 - a) / (1 - a^2) = 2 / (1 + a).
+    a = 0.9
+    f = np.linspace(0, FS / 2, 200001)
+    w = 2 * np.pi * f / FS
+    psd = 2.0 / FS / np.abs(1 - a * np.exp(-1j * w)) ** 2
+    v = residual_variance(loop_plant(FS, 0.0), Integrator(1.0, fs=FS), f, psd)
+    assert v == pytest.approx(2 / (1 + a), rel=QUADRATURE)
+
+
+def test_residual_variance_of_bank_is_per_mode_and_unstable_is_inf():
+    f = np.linspace(0, FS / 2, 2001)
+    psd = np.vstack([np.ones_like(f), 2 * np.ones_like(f)]) * 1e-3
+    bank = Integrator([0.5, 2.5], fs=FS)  # second mode unstable with plant z^-2
+    v = residual_variance(loop_plant(FS, 1.0), bank, f, psd)
+    assert v.shape == (2,)
+    assert np.isfinite(v[0]) and np.isinf(v[1])
+    p = residual_psd(loop_plant(FS, 1.0), bank, f, psd)
+    assert p.shape == (2, f.size)
+
+
+@pytest.mark.parametrize(
+    ("freqs", "psd", "match"),
+    [
+        ([0.0, 10.0, 5.0], [1, 1, 1], "strictly increasing"),
+        ([0.0, 10.0, 600.0], [1, 1, 1], "Nyquist"),
+        ([-1.0, 10.0], [1, 1], ">= 0 Hz"),
+        ([0.0, 10.0], [1, np.nan], "finite"),
+        ([0.0, 10.0], [1, -1], "PSD"),
+        ([0.0, 10.0], [1, 1, 1], "one per frequency"),
+    ],
+)
+def test_residual_variance_bad_input(freqs, psd, match):
+    with pytest.raises(ValueError, match=match):
+        residual_variance(loop_plant(FS, 0.0), Integrator(0.5, fs=FS), freqs, psd)
+
+
+def test_analysis_rejects_wrong_types_and_rates():
+    plant = loop_plant(FS, 0.0)
+    with pytest.raises(TypeError, match="plant must be a control.TransferFunction"):
+        margins("plant", Integrator(0.5, fs=FS))
+    with pytest.raises(TypeError, match="controller must be"):
+        margins(plant, 0.5)
+    with pytest.raises(ValueError, match="controller runs at fs=2000.0"):
+        margins(plant, Integrator(0.5, fs=2000.0))
+    with pytest.raises(ValueError, match="discrete"):
+        margins(plant, control.tf([1], [1, 1]))

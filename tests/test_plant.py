@@ -1,0 +1,126 @@
+"""Loop models: the fractional-delay plant and measured (FRD) plants."""
+
+import control
+import numpy as np
+import pytest
+
+from aocontrol import frequency_response, loop_plant, measured_plant
+from aocontrol.plant import plant_delay_frames, plant_fs, tf_from_z_inverse, z_inverse_coefficients
+
+# Exact polynomial evaluation on the unit circle: only rounding error.
+EXACT = 1e-12
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.3, 0.83, 1.0, 1.5, 2.7])
+def test_fractional_delay_plant_matches_formula(latency):
+    # Oracle: G(e^{jw}) = e^{-jw} ((1-f) e^{-jkw} + f e^{-j(k+1)w}), k = floor, f = frac.
+    fs = 3000.0
+    G = loop_plant(fs, latency)
+    f = np.linspace(0, fs / 2, 257)
+    w = 2 * np.pi * f / fs
+    k, fr = np.floor(latency), latency - np.floor(latency)
+    expected = np.exp(-1j * w) * ((1 - fr) * np.exp(-1j * k * w) + fr * np.exp(-1j * (k + 1) * w))
+    np.testing.assert_allclose(frequency_response(G, f), expected, atol=EXACT)
+    # python-control's own evaluation agrees with ours.
+    np.testing.assert_allclose(G(np.exp(1j * w[1:-1])), expected[1:-1], atol=1e-10)
+
+
+def test_plant_is_discrete_with_dt():
+    G = loop_plant(1250.0, 0.83)
+    assert isinstance(G, control.TransferFunction)
+    assert G.dt == pytest.approx(1 / 1250.0, rel=EXACT)
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.5, 0.83, 2.0])
+def test_low_frequency_delay_is_one_plus_latency(latency):
+    # Oracle: group delay at DC of z^-1((1-f)z^-k + f z^-(k+1)) is 1 + k + f frames.
+    assert plant_delay_frames(loop_plant(1000.0, latency)) == pytest.approx(1 + latency, abs=1e-6)
+
+
+def test_integer_latency_from_float_noise_is_integer():
+    # 0.1 * 3 = 0.30000000000000004: f must not become a spurious 1e-17 extra tap.
+    G = loop_plant(1000.0, 3 * (1.0 / 3.0))
+    b, _ = z_inverse_coefficients(G)
+    assert np.count_nonzero(b) == 1
+
+
+def test_tf_coefficients_round_trip():
+    b, a = [0.2, 0.1, 0.05], [1.0, -0.9, 0.1, 0.02]
+    bb, aa = z_inverse_coefficients(tf_from_z_inverse(b, a, 1e-3))
+    np.testing.assert_allclose(bb[: len(b)], b, atol=EXACT)
+    np.testing.assert_allclose(aa, a, atol=EXACT)
+
+
+def test_measured_plant_keeps_dt_and_reproduces_tf():
+    fs = 2000.0
+    G = loop_plant(fs, 0.83)
+    f = np.linspace(0, fs / 2, 401)
+    P = measured_plant(f, frequency_response(G, f), fs)
+    assert isinstance(P, control.FRD)
+    assert plant_fs(P) == pytest.approx(fs)
+    np.testing.assert_allclose(frequency_response(P, f), frequency_response(G, f), atol=EXACT)
+    # Between grid points: log-magnitude/phase interpolation of a smooth response.
+    fm = 0.5 * (f[1:] + f[:-1])
+    np.testing.assert_allclose(frequency_response(P, fm), frequency_response(G, fm), atol=1e-3)
+
+
+def test_frd_that_lost_dt_needs_fs():
+    # python-control 0.10.2 resets dt to 0 on FRD arithmetic: we must notice, not guess.
+    fs = 1000.0
+    f = np.linspace(0, fs / 2, 11)
+    P = measured_plant(f, np.exp(-2j * np.pi * f / fs), fs) * 1.0
+    with pytest.raises(ValueError, match="pass fs explicitly"):
+        frequency_response(P, f)
+    np.testing.assert_allclose(frequency_response(P, f, fs=fs), np.exp(-2j * np.pi * f / fs),
+                               atol=EXACT)
+
+
+def test_frd_outside_measured_range_raises():
+    fs = 1000.0
+    P = measured_plant(np.linspace(10, 400, 20), np.ones(20), fs)
+    with pytest.raises(ValueError, match="measured range"):
+        frequency_response(P, [450.0])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"fs": 0.0, "latency_frames": 0.5}, "fs must be a finite number > 0, got 0.0"),
+        ({"fs": -10.0, "latency_frames": 0.5}, "fs must be a finite number > 0"),
+        ({"fs": float("nan"), "latency_frames": 0.5}, "fs must be a finite number > 0"),
+        ({"fs": 1000.0, "latency_frames": -0.1}, "latency_frames must be a finite number >= 0"),
+        ({"fs": 1000.0, "latency_frames": float("inf")}, "latency_frames"),
+    ],
+)
+def test_loop_plant_bad_input(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        loop_plant(**kwargs)
+
+
+def test_loop_plant_type_errors():
+    with pytest.raises(TypeError, match="fs must be a real number"):
+        loop_plant("1000", 0.5)
+
+
+def test_continuous_time_plant_rejected():
+    Gc = control.tf([1], [1, 1])
+    with pytest.raises(ValueError, match="discrete-time"):
+        frequency_response(Gc, [1.0])
+    with pytest.raises(ValueError, match="continuous"):
+        frequency_response(Gc, [1.0], fs=1000.0)
+
+
+def test_frequency_beyond_nyquist_rejected():
+    with pytest.raises(ValueError, match="fs/2"):
+        frequency_response(loop_plant(1000.0, 0.0), [600.0])
+
+
+def test_measured_plant_bad_input():
+    with pytest.raises(ValueError, match="strictly increasing"):
+        measured_plant([1.0, 1.0, 2.0], [1, 1, 1], 100.0)
+    with pytest.raises(ValueError, match="Nyquist"):
+        measured_plant([1.0, 60.0], [1, 1], 100.0)
+    with pytest.raises(ValueError, match="finite"):
+        measured_plant([1.0, 2.0], [1, np.nan], 100.0)
+    with pytest.raises(ValueError, match="shape of freqs"):
+        measured_plant([1.0, 2.0], [1, 1, 1], 100.0)
