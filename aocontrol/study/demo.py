@@ -1,0 +1,96 @@
+"""The main job's short demo: design controllers for one SAXO+ stage-2 mode, check margins,
+write the rejection plot.
+
+Run with ``python -m aocontrol demo --output DIR`` (or ``make demo``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from aocontrol.analysis import Margins, margins, residual_variance, sensitivity
+from aocontrol.controllers import Integrator
+from aocontrol.plant import loop_plant
+
+__all__ = ["DemoResult", "run_demo"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DemoResult:
+    """What the demo designed and measured."""
+
+    fs: float
+    latency_frames: float
+    controllers: dict
+    margins: dict[str, Margins]
+    residual_rms: dict[str, float]
+    plot_path: str
+
+
+def _demo_psd(freqs: np.ndarray) -> np.ndarray:
+    """A turbulence-like modal PSD [nm^2/Hz] (the project's model when available)."""
+    try:
+        from aocontrol.disturbance import synthetic_turbulence_psd
+    except ImportError:  # pragma: no cover - the disturbance module ships with the package
+        fc = 20.0
+        return 50.0 / (1 + (freqs / fc) ** 2) ** (17 / 12)
+    return synthetic_turbulence_psd(freqs, 10)[5]
+
+
+def run_demo(output: str, *, fs: float = 3000.0, latency_frames: float = 0.83,
+             noise_rms: float = 2.0) -> DemoResult:
+    """Design an integrator for one mode of a SAXO+-like stage 2 and write its rejection plot.
+
+    Parameters
+    ----------
+    output : str
+        Folder for ``rejection.png`` (created if needed).
+    fs : float
+        Loop rate [Hz].
+    latency_frames : float
+        RTC latency beyond WFS integration [frames].
+    noise_rms : float
+        Modal measurement noise per frame [nm RMS].
+    """
+    from aocontrol.analysis import white_noise_psd
+    from aocontrol.study.plot import plot_rejection, save_figure
+
+    plant = loop_plant(fs, latency_frames)
+    freqs = np.linspace(0.0, fs / 2, 4001)
+    psd = _demo_psd(freqs)
+    noise = float(white_noise_psd(noise_rms**2, fs))
+    ctrls: dict = {"integrator g=0.5 (hand-tuned)": Integrator(0.5, fs=fs)}
+    try:
+        from aocontrol.synthesis import optimal_modal_gain
+    except ImportError:  # pragma: no cover
+        optimal_modal_gain = None
+    if optimal_modal_gain is not None:
+        ctrls["optimal-gain integrator"] = optimal_modal_gain(plant, freqs, psd, noise,
+                                                               modulus_margin=0.5)
+    try:
+        from aocontrol.synthesis import datadriven
+    except ImportError:  # pragma: no cover
+        datadriven = None
+    if datadriven is not None:
+        ctrls["data-driven (order 5)"] = _controller_of(
+            datadriven(plant, freqs, psd, noise_psd=noise, order=5, progress=False))
+    mar = {k: margins(plant, c) for k, c in ctrls.items()}
+    rms = {k: float(np.sqrt(np.atleast_1d(residual_variance(plant, c, freqs, psd, noise))[0]))
+           for k, c in ctrls.items()}
+    os.makedirs(output, exist_ok=True)
+    fig = plot_rejection(freqs, {k: sensitivity(plant, c, freqs)[0] for k, c in ctrls.items()},
+                         psd=psd, title=f"rejection, fs = {fs:g} Hz, latency {latency_frames} "
+                                         "frame")
+    path = save_figure(fig, os.path.join(output, "rejection.png"))
+    return DemoResult(fs, latency_frames, ctrls, mar, rms, path)
+
+
+def _controller_of(result: object) -> object:
+    """The controller bank of a synthesis result (or the bank itself)."""
+    return getattr(result, "controller", result)
