@@ -7,6 +7,24 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 ``numpy.random.Generator``.
 """
 
+from aocontrol.sim.loop import (
+    LinearModalSensor,
+    LoopDivergedError,
+    LoopResult,
+    ModalTimeSeries,
+    Stage,
+    TurbulenceSource,
+    run_loop,
+)
 from aocontrol.sim.pupil import Pupil, vlt_pupil
 
-__all__ = ["Pupil", "vlt_pupil"]
+__all__ = [
+    "LinearModalSensor",
+    "LoopDivergedError",
+    "LoopResult",
+    "ModalTimeSeries",
+    "Stage",
+    "TurbulenceSource",
+    "run_loop",
+    "Pupil",
+    "vlt_pupil"]
