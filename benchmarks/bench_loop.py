@@ -18,7 +18,8 @@ import time
 import numpy as np
 
 from aocontrol.controllers import Integrator
-from aocontrol.sim.atmosphere import Atmosphere, eso_median_profile, scale_to_tau0
+from aocontrol.sim.atmosphere import Atmosphere
+from aocontrol.sim.profiles import eso_median_profile, scale_to_tau0
 from aocontrol.sim.dm import SAXO_PLUS_N_ACTUATORS, DeformableMirror
 from aocontrol.sim.loop import LinearModalSensor, Stage, TurbulenceSource, run_loop
 from aocontrol.sim.modes import kl_basis
