@@ -22,6 +22,7 @@ from aocontrol.analysis._margins import (
     winding_stability,
 )
 from aocontrol.analysis._residual import residual_psd, residual_variance
+from aocontrol.analysis._wiener import wiener_bound
 
 __all__ = [
     "LoopResponse",
@@ -38,5 +39,6 @@ __all__ = [
     "residual_variance",
     "sensitivity",
     "white_noise_psd",
+    "wiener_bound",
     "winding_stability",
 ]

@@ -1,0 +1,240 @@
+"""Wiener bound: the smallest residual variance of any causal linear controller.
+
+Also the shared PSD-pair validation :func:`mode_psds` used by the synthesis routines.
+PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the variance.
+"""
+
+from __future__ import annotations
+
+import control
+import numpy as np
+
+from aocontrol._validation import check_finite_array, check_frequency_grid, check_int, check_psd
+from aocontrol.plant import frequency_response, plant_fs, z_inverse_coefficients
+
+__all__ = ["mode_psds", "wiener_bound"]
+
+
+def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray, np.ndarray,
+                                                                      bool]:
+    """Validate a disturbance and a noise PSD and broadcast both to ``(n_modes, n_freqs)``.
+
+    Parameters
+    ----------
+    psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
+        Disturbance PSD, one-sided [units^2/Hz], >= 0, finite.
+    noise_psd : float or array_like
+        Noise PSD, one-sided [units^2/Hz]: a scalar (white, every mode), shape ``(n_freqs,)``
+        (every mode), ``(n_modes, n_freqs)``, ``(n_modes, 1)`` or ``(n_modes,)`` (one white
+        level per mode; a 1-D array of length ``n_freqs`` is read per frequency).
+    n_freqs : int
+        Number of frequencies.
+
+    Returns
+    -------
+    psd, noise : ndarray, shape (n_modes, n_freqs)
+    squeeze : bool
+        True when the inputs describe a single mode given as 1-D (callers return a scalar).
+    """
+    psd = check_psd("psd", psd, n_freqs)
+    noise = check_finite_array("noise_psd", noise_psd, ndim=(0, 1, 2))
+    if np.any(noise < 0):
+        raise ValueError(f"noise_psd must be >= 0 everywhere (a PSD), found min {noise.min()!r}")
+    n_modes = psd.shape[0] if psd.ndim == 2 else None
+    if noise.ndim == 1 and noise.size != n_freqs:
+        if n_modes is None or noise.size != n_modes:
+            raise ValueError(
+                f"noise_psd of shape {noise.shape} must have {n_freqs} values (one per "
+                f"frequency) or {n_modes if n_modes is not None else 'n_modes'} (one white "
+                "level per mode, with a 2-D psd)")
+        noise = noise[:, None]
+    if noise.ndim == 2:
+        if noise.shape[1] not in (1, n_freqs):
+            raise ValueError(f"noise_psd must have 1 or {n_freqs} columns, got {noise.shape}")
+        if n_modes is None:
+            n_modes = noise.shape[0]
+        elif noise.shape[0] != n_modes:
+            raise ValueError(f"noise_psd has {noise.shape[0]} modes, psd has {n_modes}")
+    squeeze = psd.ndim == 1 and noise.ndim < 2
+    n_modes = 1 if n_modes is None else n_modes
+    psd2 = np.broadcast_to(psd, (n_modes, n_freqs))
+    noise2 = np.broadcast_to(noise if noise.ndim else noise[None, None], (n_modes, n_freqs))
+    return psd2, noise2, squeeze
+
+
+# Default size of the full-circle FFT grid (frequency step fs / n_fft).
+_N_FFT = 2**15
+# PSDs are floored at this fraction of their maximum before taking logarithms (the cepstral
+# factorisation needs a PSD > 0 everywhere).
+_PSD_FLOOR = 1e-14
+# Plant zeros with |z| > 1 + _ZERO_TOL are non-minimum phase (moved to the inner factor).
+_ZERO_TOL = 1e-9
+# Largest number of (mode x grid point) values processed at once (memory).
+_CHUNK = 2**22
+
+
+def _minimum_phase_log(log_mag2: np.ndarray) -> np.ndarray:
+    """Log of the minimum-phase factor ``M`` with ``|M|^2 = exp(log_mag2)`` on the circle.
+
+    ``log_mag2`` is sampled at ``theta_k = 2 pi k / N`` (last axis, ``N`` even). Cepstral
+    method: with ``c = ifft(log |M|^2)`` (coefficients of ``e^{-j n theta}``), ``log M`` keeps
+    ``c_0 / 2``, ``c_n`` for ``0 < n < N/2`` and ``c_{N/2} / 2``.
+    """
+    n = log_mag2.shape[-1]
+    c = np.fft.ifft(log_mag2, axis=-1).real
+    fold = np.zeros_like(c)
+    fold[..., 0] = c[..., 0] / 2
+    fold[..., 1:n // 2] = c[..., 1:n // 2]
+    fold[..., n // 2] = c[..., n // 2] / 2
+    return np.fft.fft(fold, axis=-1)
+
+
+def _inner_factor(plant: object, theta: np.ndarray, fs: float) -> np.ndarray:
+    """Inner (all-pass) factor ``G_i`` of a stable plant on ``theta`` (full circle, rad).
+
+    Transfer function: exact. ``G = z^-D B(z) / A(z)``; every zero ``zeta`` of ``B`` outside
+    the unit circle contributes the Blaschke factor
+    ``(1 - zeta z^-1) / (|zeta| (1 - z^-1 / conj(zeta)))``: ``G_i = z^-D prod(...)``.
+    FRD: ``G / G_o`` with ``G_o`` the cepstral minimum-phase factor of ``|G|``.
+    """
+    zi = np.exp(-1j * theta)
+    if isinstance(plant, control.TransferFunction):
+        b, a = z_inverse_coefficients(plant)
+        poles = np.roots(np.trim_zeros(a, "b")) if np.trim_zeros(a, "b").size > 1 else []
+        if np.size(poles) and np.max(np.abs(poles)) >= 1.0:
+            raise ValueError(
+                "plant must be stable (the Wiener bound uses the Youla parametrisation of a "
+                f"stable plant), got a pole of modulus {np.max(np.abs(poles))!r}")
+        scale = np.max(np.abs(b))
+        if scale == 0:
+            raise ValueError("plant must not be identically zero")
+        nz = np.flatnonzero(np.abs(b) > 1e-14 * scale)
+        delay, b = int(nz[0]), np.trim_zeros(b[nz[0]:], "b")
+        out = zi**delay
+        for zeta in (np.roots(b) if b.size > 1 else []):
+            if abs(zeta) > 1.0 + _ZERO_TOL:
+                out = out * (1 - zeta * zi) / (abs(zeta) * (1 - zi / np.conj(zeta)))
+        return out
+    n = theta.size
+    half = theta[: n // 2 + 1] * fs / (2 * np.pi)
+    try:
+        g_half = frequency_response(plant, np.clip(half, 0.0, fs / 2), fs)
+    except ValueError as exc:
+        raise ValueError("a measured (FRD) plant must cover [0, fs/2] for the Wiener bound: "
+                         f"{exc}") from exc
+    g = np.concatenate([g_half, np.conj(g_half[-2:0:-1])])
+    mag = np.abs(g)
+    log_m2 = 2 * np.log(np.maximum(mag, _PSD_FLOOR * mag.max()))
+    return g / np.exp(_minimum_phase_log(log_m2))
+
+
+def wiener_bound(plant: object, freqs: object, psd: object, noise_psd: object = 0.0, *,
+                 fs: float | None = None, n_fft: int = _N_FFT) -> float | np.ndarray:
+    """Smallest residual variance any causal linear controller can reach [units^2].
+
+    For a stable plant ``G``, every stabilising controller is ``K = Q / (1 - G Q)`` with
+    ``Q`` stable and causal (Youla), and the residual is ``e = (1 - G Q) d - G Q n`` up to a
+    unit-modulus delay on the noise path. This returns, per mode,
+
+        min_Q E[e^2] = int Sd Sn / (Sd + Sn) + || [conj(G_i) Sd / conj(M)]_- ||^2
+
+    (Wiener-Hopf; ``|M|^2 = Sd + Sn`` with ``M`` minimum phase, ``G = G_i G_o`` the
+    inner-outer factorisation, ``[.]_-`` the strictly anticausal part). With no noise and an
+    integer delay ``d`` this is the ``d``-step prediction error of the disturbance
+    (``s_w^2 (1 - a^(2d)) / (1 - a^2)`` for an AR(1)); for white disturbance it is its variance.
+
+    The delay is handled exactly: ``loop_plant`` has ``G = z^-(k+1) ((1-f) + f z^-1)``; for
+    ``f < 0.5`` the interpolation factor is minimum phase (no cost beyond the ``k + 1``
+    frames), for ``f > 0.5`` its zero ``-f/(1-f)`` lies outside the unit circle and the
+    all-pass ``((1-f) + f z^-1) / (f + (1-f) z^-1)`` joins the inner factor (it costs extra).
+    For any stable TF plant, every zero outside the unit circle is treated that way; for an
+    FRD plant the inner factor is ``G / G_o`` with ``G_o`` the cepstral minimum-phase factor
+    of ``|G|`` (the FRD must cover ``[0, fs/2]``).
+
+    Numerics and assumptions:
+
+    * ``d`` and ``n`` are independent, zero-mean, stationary; PSDs are one-sided
+      [units^2/Hz] on ``freqs``, linearly interpolated onto ``n_fft/2 + 1`` uniform points of
+      ``[0, fs/2]`` (held constant beyond the given range) and mirrored to the full circle.
+    * Spectral factorisation by the cepstrum (FFT of size ``n_fft``): the total PSD must be
+      > 0; it is floored at ``1e-14`` of its maximum (Paley-Wiener), and ``n_fft`` must
+      resolve its sharpest feature (a resonance of damping ``z`` at ``f0`` needs
+      ``fs / n_fft << z f0``).
+    * ``G`` is stable and causal; zeros on the unit circle (``f = 0.5``: a zero at Nyquist)
+      count as outer, so the bound is an infimum that no stable ``Q`` attains.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Stable discrete SISO plant (e.g. :func:`aocontrol.loop_plant`).
+    freqs : array_like, shape (n_freqs,)
+        Strictly increasing grid in [0, fs/2] [Hz].
+    psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
+        Disturbance PSD, one-sided [units^2/Hz].
+    noise_psd : float or array_like, default 0.0
+        Measurement-noise PSD, one-sided [units^2/Hz]: scalar (white), like ``psd``, or one
+        white level per mode ``(n_modes,)``.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    n_fft : int, default 32768
+        Size of the full-circle FFT grid (even, >= 64).
+
+    Returns
+    -------
+    float, or ndarray of shape (n_modes,) for 2-D inputs
+        Minimum residual variance [units^2].
+
+    Raises
+    ------
+    ValueError
+        Bad grid or PSDs (NaN, negative, wrong shape), unstable plant, FRD not covering
+        ``[0, fs/2]``.
+
+    Examples
+    --------
+    >>> from aocontrol.plant import loop_plant
+    >>> fs, a = 1000.0, 0.9
+    >>> f = np.linspace(0.0, fs / 2, 20001)
+    >>> ar1 = 2 / fs / np.abs(1 - a * np.exp(-2j * np.pi * f / fs)) ** 2  # s_w^2 = 1
+    >>> # two-frame delay: prediction error 1 + a^2 = 1.81
+    >>> round(float(wiener_bound(loop_plant(fs, 1.0), f, ar1)), 4)
+    1.81
+    """
+    fs_ = plant_fs(plant, fs)
+    freqs = check_frequency_grid("freqs", freqs, fs_)
+    psd2, noise2, squeeze = mode_psds(psd, noise_psd, freqs.size)
+    n_fft = check_int("n_fft", n_fft, minimum=64)
+    if n_fft % 2:
+        raise ValueError(f"n_fft must be even, got {n_fft}")
+    theta = 2 * np.pi * np.arange(n_fft) / n_fft
+    gi_conj = np.conj(_inner_factor(plant, theta, fs_))
+    f_half = theta[: n_fft // 2 + 1] * fs_ / (2 * np.pi)
+    n_modes = psd2.shape[0]
+    out = np.empty(n_modes)
+    block = max(1, _CHUNK // n_fft)
+    for start in range(0, n_modes, block):
+        sl = slice(start, min(start + block, n_modes))
+        # Two-sided per-sample spectra: S(theta) = one-sided PSD * fs / 2, so that
+        # mean over the circle = variance.
+        sd = _to_circle(psd2[sl], freqs, f_half) * (fs_ / 2)
+        sn = _to_circle(noise2[sl], freqs, f_half) * (fs_ / 2)
+        total = sd + sn
+        peak = total.max(axis=1, keepdims=True)
+        zero = peak[:, 0] == 0
+        total = np.maximum(total, _PSD_FLOOR * np.where(zero[:, None], 1.0, peak))
+        log_m = _minimum_phase_log(np.log(total))
+        F = gi_conj * sd / np.conj(np.exp(log_m))
+        coef = np.fft.ifft(F, axis=1)
+        h = n_fft // 2
+        anticausal = (np.sum(np.abs(coef[:, h + 1:]) ** 2, axis=1)
+                      + 0.5 * np.abs(coef[:, h]) ** 2)
+        unpredictable = np.mean(sd * sn / total, axis=1)
+        out[sl] = np.where(zero, 0.0, unpredictable + anticausal)
+    return float(out[0]) if squeeze else out
+
+
+def _to_circle(psd: np.ndarray, freqs: np.ndarray, f_half: np.ndarray) -> np.ndarray:
+    """Interpolate one-sided PSD rows onto ``f_half`` and mirror to the full circle."""
+    half = np.stack([np.interp(f_half, freqs, row) for row in psd]) if psd.shape[0] > 1 \
+        else np.interp(f_half, freqs, psd[0])[None, :]
+    return np.concatenate([half, half[:, -2:0:-1]], axis=1)
