@@ -236,3 +236,17 @@ def test_analysis_rejects_wrong_types_and_rates():
         margins(plant, Integrator(0.5, fs=2000.0))
     with pytest.raises(ValueError, match="discrete"):
         margins(plant, control.tf([1], [1, 1]))
+
+
+def test_residual_variance_accepts_one_white_noise_level_per_mode():
+    # Same as giving the full (n_modes, n_freqs) noise PSD: the per-mode form that
+    # aocontrol.synthesis.disturbance_from_telemetry returns.
+    f = np.linspace(0, FS / 2, 2001)
+    psd = np.vstack([np.ones_like(f), 2 * np.ones_like(f)]) * 1e-3
+    levels = np.array([1e-4, 3e-4])
+    bank = Integrator([0.3, 0.4], fs=FS)
+    a = residual_variance(loop_plant(FS, 0.83), bank, f, psd, levels)
+    b = residual_variance(loop_plant(FS, 0.83), bank, f, psd, levels[:, None] * np.ones_like(f))
+    np.testing.assert_allclose(a, b, rtol=1e-14)
+    with pytest.raises(ValueError, match="one white level per mode"):
+        residual_variance(loop_plant(FS, 0.83), bank, f, psd, np.ones(3))

@@ -6,9 +6,10 @@ import logging
 
 import numpy as np
 
-from aocontrol._validation import check_frequency_grid, check_psd
+from aocontrol._validation import check_frequency_grid
 from aocontrol.analysis._loop import loop_response
 from aocontrol.analysis._margins import is_stable
+from aocontrol.analysis._wiener import mode_psds
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import plant_fs
 
@@ -36,8 +37,9 @@ def residual_psd(plant: object, controller: object, freqs: object, psd: object,
         Increasing grid in [0, fs/2] [Hz].
     psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
         Disturbance PSD, one-sided [units^2/Hz] (``scipy.signal.welch`` density).
-    noise_psd : float or array_like like ``psd``
-        Measurement-noise PSD, one-sided [units^2/Hz]; a scalar is white.
+    noise_psd : float or array_like
+        Measurement-noise PSD, one-sided [units^2/Hz]: a scalar (white), ``(n_freqs,)``,
+        ``(n_modes, n_freqs)`` or ``(n_modes,)`` (one white level per mode, 2-D ``psd``).
         White noise of per-frame variance ``s2`` has ``noise_psd = 2 s2 / fs``.
 
     Returns
@@ -46,10 +48,10 @@ def residual_psd(plant: object, controller: object, freqs: object, psd: object,
     """
     fs_ = plant_fs(plant, fs)
     freqs = check_frequency_grid("freqs", freqs, fs_)
-    psd = check_psd("psd", psd, freqs.size)
-    noise = check_psd("noise_psd", noise_psd, freqs.size, allow_scalar=True)
+    psd_b, noise_b, single = mode_psds(psd, noise_psd, freqs.size)
     r = loop_response(plant, controller, freqs, fs_)
-    return np.abs(r.sensitivity) ** 2 * psd + np.abs(r.complementary) ** 2 * noise
+    out = np.abs(r.sensitivity) ** 2 * psd_b + np.abs(r.complementary) ** 2 * noise_b
+    return out[0] if single and r.sensitivity.ndim == 1 else out
 
 
 def residual_variance(plant: object, controller: object, freqs: object, psd: object,
