@@ -19,10 +19,10 @@ import numpy as np
 
 from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere
-from aocontrol.sim.profiles import eso_median_profile, scale_to_tau0
 from aocontrol.sim.dm import SAXO_PLUS_N_ACTUATORS, DeformableMirror
 from aocontrol.sim.loop import LinearModalSensor, Stage, TurbulenceSource, run_loop
 from aocontrol.sim.modes import kl_basis
+from aocontrol.sim.profiles import eso_median_profile, scale_to_tau0
 from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.sim.science import ScienceCamera
 from aocontrol.sim.turbulence import r0_from_seeing
@@ -82,15 +82,14 @@ def main() -> None:
     # Parts measured separately in the same run (fresh atmosphere, same sizes).
     atm2 = Atmosphere(pupil, r0, layers, fs, rng=1)
     t0 = time.perf_counter()
-    maps = atm2.phase(1000)
+    maps = atm2.phase_vectors(1000)
     t_atm = (time.perf_counter() - t0) * args.frames / 1000
     t0 = time.perf_counter()
     d = basis.project(maps)
     t_proj = (time.perf_counter() - t0) * args.frames / 1000
     t0 = time.perf_counter()
     exp = camera.long_exposure()
-    dm_maps = pupil.to_map(basis.synthesize(d[::args.science_every]))
-    exp.add(maps[::args.science_every] - dm_maps)
+    exp.add(pupil.to_map(maps[::args.science_every] - basis.synthesize(d[::args.science_every])))
     t_sci = (time.perf_counter() - t0) * args.frames / 1000
 
     n_ref = 300

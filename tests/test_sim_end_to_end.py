@@ -8,7 +8,7 @@ from aocontrol import loop_plant
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import Integrator
 from aocontrol.plant import z_inverse_coefficients
-from aocontrol.sim import LinearModalSensor, Stage, TurbulenceSource, run_loop
+from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, TurbulenceSource, run_loop
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.modes import kl_basis
@@ -80,3 +80,44 @@ def test_strehl_consistent_with_residual_phase(run):
     # Lower bound: modal residual alone; the fitting error only lowers the Strehl further.
     upper = float(marechal_strehl(res.residual_rms))
     assert sci.strehl < upper * 1.02
+
+
+def test_actuator_stroke_clips_dm_commands_and_counts():
+    # With dm_stroke the actuator commands are clipped (counted per actuator), the DM cannot
+    # follow a tip beyond its stroke, and a loop with ample stroke is unaffected.
+    pupil = vlt_pupil(24)
+    dm = DeformableMirror(pupil, n_actuators=9)
+    basis = kl_basis(dm, 20, r0=0.15)
+    d = np.zeros((400, basis.n_modes))
+    d[:, 0] = 800.0  # a large tip the DM cannot follow with a 300 nm stroke
+    d[:, 5] = 20.0
+
+    def run(stroke):
+        stage = Stage(Integrator(0.5, fs=FS, n_modes=basis.n_modes), latency_frames=0.5,
+                      dm_stroke=stroke, m2c=basis.m2c)
+        return run_loop(stage, ModalTimeSeries(d), 400)
+
+    clipped, free = run(300.0), run(1e6)
+    assert clipped.actuator_saturation.sum() > 0 and free.actuator_saturation.sum() == 0
+    assert np.max(np.abs(clipped.telemetry["dm"][:, 0])) < 0.9 * 800.0
+    assert np.max(np.abs(free.telemetry["dm"][-1, 0] - 800.0)) < 1e-3
+    assert free.residual_variance[0] < 1e-6 * 800.0**2
+    assert clipped.residual_variance[0] > 1e3
+
+
+def test_same_seed_same_run_with_atmosphere_and_noise():
+    # Reproducibility bit for bit through atmosphere, noise and science.
+    pupil = vlt_pupil(24)
+    basis = kl_basis(DeformableMirror(pupil, n_actuators=9), 20, r0=0.15)
+
+    def run(seed):
+        atm = Atmosphere(pupil, 0.15, [Layer(0.0, 1.0, 10.0, 30.0)], FS, rng=seed)
+        cam = ScienceCamera(pupil, field_of_view=6.0)
+        return run_loop(Stage(Integrator(0.4, fs=FS, n_modes=20), LinearModalSensor(1.0, 2.0),
+                              LATENCY), TurbulenceSource(atm, basis), 500, rng=seed,
+                        science=cam.long_exposure(), basis=basis, science_every=5)
+
+    a, b, c = run(7), run(7), run(8)
+    np.testing.assert_array_equal(a.telemetry["residuals"], b.telemetry["residuals"])
+    assert a.science.strehl == b.science.strehl
+    assert not np.array_equal(a.telemetry["residuals"], c.telemetry["residuals"])

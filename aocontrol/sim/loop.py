@@ -27,7 +27,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from aocontrol._validation import check_int, check_nonnegative
+from aocontrol._validation import check_int, check_nonnegative, check_positive
 from aocontrol.controllers import ControllerBank
 
 __all__ = [
@@ -35,6 +35,7 @@ __all__ = [
     "ModalTimeSeries",
     "TurbulenceSource",
     "LinearModalSensor",
+    "DiffractiveSensor",
     "Stage",
     "LoopResult",
     "LoopDivergedError",
@@ -45,8 +46,8 @@ logger = logging.getLogger(__name__)
 
 #: Telemetry that can be recorded, each ``(n_frames, n_modes)`` float32 [nm].
 TELEMETRY = ("disturbance", "measurements", "commands", "dm", "residuals")
-# A residual larger than this factor times the largest disturbance (or 10 sigma of the
-# measurement noise, plus 1 nm) seen so far is taken as a diverging loop.
+# A residual larger than this factor times the largest disturbance of any mode (or 10 sigma
+# of the measurement noise, plus 1 nm) seen so far is taken as a diverging loop.
 _DIVERGENCE_FACTOR = 1e3
 
 
@@ -72,8 +73,8 @@ class DisturbanceSource(Protocol):
     n_modes: int
 
     def next(self, n_frames: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """Return modal disturbance ``(n_frames, n_modes)`` [nm] and phase maps
-        ``(n_frames, n_pix, n_pix)`` [nm] (or ``None`` for a purely modal source)."""
+        """Return modal disturbance ``(n_frames, n_modes)`` [nm] and the phase on the valid
+        pupil pixels ``(n_frames, n_valid)`` [nm] (or ``None`` for a purely modal source)."""
 
 
 class ModalTimeSeries:
@@ -106,8 +107,8 @@ class TurbulenceSource:
 
     Parameters
     ----------
-    atmosphere : object with ``phase(n_frames) -> (n_frames, n_pix, n_pix)`` [nm]
-    basis : object with ``project(maps) -> (..., n_modes)`` and ``n_modes``
+    atmosphere : object with ``phase_vectors(n_frames) -> (n_frames, n_valid)`` [nm]
+    basis : object with ``project(vectors) -> (..., n_modes)``, ``synthesize`` and ``n_modes``
     additive : DisturbanceSource, optional
         A modal disturbance added on top (e.g. a vibration), same modes.
     """
@@ -122,13 +123,13 @@ class TurbulenceSource:
         self.additive = additive
 
     def next(self, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
-        maps = self.atmosphere.phase(n_frames)
-        modal = self.basis.project(maps)
+        phase = self.atmosphere.phase_vectors(n_frames)
+        modal = self.basis.project(phase)
         if self.additive is not None:
             extra, _ = self.additive.next(n_frames)
             modal = modal + extra
-            maps = maps + self.basis.pupil.to_map(self.basis.synthesize(extra))
-        return modal, maps
+            phase = phase + self.basis.synthesize(extra)
+        return modal, phase
 
 
 @dataclass(frozen=True)
@@ -156,14 +157,71 @@ class LinearModalSensor:
         return og, ns
 
 
+@dataclass(frozen=True)
+class DiffractiveSensor:
+    """A diffractive WFS in the loop: ``m = R s(residual phase map)`` with detector noise.
+
+    Each frame the residual OPD map (turbulence minus DM shape, fitting error included) goes
+    through the WFS model (pyramid or Shack-Hartmann), with Poisson and read-out noise on the
+    detector pixels when ``photons`` is given, then through the reconstructor.
+
+    Parameters
+    ----------
+    wfs : object with ``signals(opd)`` and ``measure(opd, photons, read_noise, rng)``
+        E.g. :class:`aocontrol.sim.wfs.PyramidWFS`; signals are reference-subtracted.
+    reconstructor : ndarray, shape (n_modes, n_signals)
+        Signals to modal measurements [nm] (e.g. :func:`aocontrol.sim.wfs.reconstructor`).
+    photons : float, optional
+        Photo-electrons per frame in the WFS; ``None`` for a noise-free sensor.
+    read_noise : float
+        Read-out noise [e- RMS per pixel].
+    """
+
+    wfs: Any
+    reconstructor: Any
+    photons: float | None = None
+    read_noise: float = 0.0
+
+    def __post_init__(self) -> None:
+        r = np.asarray(self.reconstructor, dtype=float)
+        if r.ndim != 2 or not np.all(np.isfinite(r)):
+            raise ValueError(f"reconstructor must be a finite (n_modes, n_signals) matrix, "
+                             f"got shape {r.shape}")
+        n_signals = getattr(self.wfs, "n_signals", r.shape[1])
+        if r.shape[1] != n_signals:
+            raise ValueError(f"reconstructor has {r.shape[1]} columns, the WFS gives "
+                             f"{n_signals} signals")
+        object.__setattr__(self, "reconstructor", r)
+        if self.photons is not None:
+            check_positive("photons", self.photons)
+        check_nonnegative("read_noise", self.read_noise)
+
+    @property
+    def n_modes(self) -> int:
+        return int(self.reconstructor.shape[0])
+
+    def measure_map(self, opd: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Modal measurement ``(n_modes,)`` [nm] of one residual OPD map ``(n_pix, n_pix)``."""
+        if self.photons is None:
+            sig = self.wfs.signals(opd)
+        else:
+            sig = self.wfs.measure(opd, self.photons, self.read_noise, rng)
+        return self.reconstructor @ sig
+
+
 def _sensor_arrays(sensor: Any, n_modes: int) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(sensor, DiffractiveSensor):
+        if sensor.n_modes != n_modes:
+            raise ValueError(f"the sensor reconstructs {sensor.n_modes} modes, the controller "
+                             f"has {n_modes}")
+        return np.ones(n_modes), np.zeros(n_modes)
     if isinstance(sensor, LinearModalSensor):
         return sensor.arrays(n_modes)
     if hasattr(sensor, "optical_gain") and hasattr(sensor, "noise_std"):
         return LinearModalSensor(sensor.optical_gain, sensor.noise_std).arrays(n_modes)
     raise TypeError(
         "sensor must be a LinearModalSensor or have optical_gain and noise_std attributes "
-        f"(a linear modal WFS), got {type(sensor).__name__}"
+        f"(a linear modal WFS), or a DiffractiveSensor, got {type(sensor).__name__}"
     )
 
 
@@ -180,6 +238,14 @@ class Stage:
         RTC latency beyond the one-frame WFS integration [frames] (as in ``loop_plant``).
     stroke : float or ndarray (n_modes,), optional
         Modal command limit [nm]: the applied command is clipped (counted as saturation).
+    dm_stroke : float, optional
+        Actuator stroke [nm] (e.g. 3200 for the SAXO+ stage-2 DM, +-3.2 um): the actuator
+        commands ``m2c @ u`` are clipped and projected back on the modes (least squares in
+        actuator space); clipped actuator-frames are counted. Needs ``m2c``. Approximation
+        of the modal simulator: the part of the clipped shape outside the controlled modes is
+        dropped.
+    m2c : ndarray (n_act, n_modes), optional
+        Modes-to-commands matrix of the DM (``ModalBasis.m2c``).
     name : str
     """
 
@@ -187,6 +253,8 @@ class Stage:
     sensor: Any = field(default_factory=LinearModalSensor)
     latency_frames: float = 0.0
     stroke: Any = None
+    dm_stroke: float | None = None
+    m2c: Any = None
     name: str = "stage"
 
     def __post_init__(self) -> None:
@@ -196,6 +264,15 @@ class Stage:
             )
         check_nonnegative("latency_frames", self.latency_frames)
         _sensor_arrays(self.sensor, self.controller.n_modes)
+        if self.dm_stroke is not None:
+            check_positive("dm_stroke", self.dm_stroke)
+            m2c = np.asarray(self.m2c, dtype=float) if self.m2c is not None else None
+            if m2c is None or m2c.ndim != 2 or m2c.shape[1] != self.controller.n_modes:
+                raise ValueError(
+                    "dm_stroke needs m2c of shape (n_act, n_modes) with n_modes="
+                    f"{self.controller.n_modes}, got "
+                    f"{None if m2c is None else m2c.shape}")
+            object.__setattr__(self, "m2c", m2c)
 
     @property
     def fs(self) -> float:
@@ -229,6 +306,8 @@ class LoopResult:
         Science-camera result (Strehl, contrast) if a camera was given.
     metadata : dict
         Case and controller settings (JSON-serialisable), saved with the result.
+    actuator_saturation : ndarray (n_act,) of int or None
+        Frames in which each DM actuator was clipped (with ``Stage.dm_stroke``).
     """
 
     fs: float
@@ -240,6 +319,7 @@ class LoopResult:
     settle_frames: int
     science: Any = None
     metadata: dict = field(default_factory=dict)
+    actuator_saturation: np.ndarray | None = None
 
     @property
     def residual_rms(self) -> float:
@@ -268,6 +348,8 @@ class LoopResult:
         arrays.update(residual_variance=self.residual_variance,
                       disturbance_variance=self.disturbance_variance,
                       saturation=self.saturation)
+        if self.actuator_saturation is not None:
+            arrays["actuator_saturation"] = self.actuator_saturation
         science = None
         if self.science is not None and hasattr(self.science, "to_dict"):
             science = self.science.to_dict()
@@ -295,7 +377,9 @@ class LoopResult:
                        residual_variance=data["residual_variance"],
                        disturbance_variance=data["disturbance_variance"],
                        saturation=data["saturation"], settle_frames=meta["settle_frames"],
-                       science=meta["science"], metadata=meta["metadata"])
+                       science=meta["science"], metadata=meta["metadata"],
+                       actuator_saturation=(data["actuator_saturation"]
+                                            if "actuator_saturation" in data.files else None))
 
 
 def _json_default(obj: Any) -> Any:
@@ -325,6 +409,8 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
         Long-exposure accumulator; fed every ``science_every`` frames with the residual phase
         ``phase - DM shape`` (needs ``basis`` and phase maps from the source).
     basis : object with ``synthesize(coeffs) -> (..., n_valid)`` and ``pupil``, optional
+        Needed for the science camera and for a :class:`DiffractiveSensor` (which measures
+        the residual map ``phase - DM shape`` every frame).
     record : tuple of str
         Telemetry to keep (float32), among ``disturbance, measurements, commands, dm,
         residuals``. Statistics are computed regardless.
@@ -357,8 +443,11 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
         )
     if science is not None and basis is None:
         raise ValueError("a science camera needs basis= to form the DM shape")
+    diffractive = isinstance(stage.sensor, DiffractiveSensor)
+    if diffractive and basis is None:
+        raise ValueError("a DiffractiveSensor needs basis= to form the residual phase map")
     og, noise_std = _sensor_arrays(stage.sensor, n)
-    noisy = bool(np.any(noise_std > 0))
+    noisy = bool(np.any(noise_std > 0)) or (diffractive and stage.sensor.photons is not None)
     if noisy and rng is None:
         raise ValueError("rng is required with a noisy sensor (reproducibility)")
     rng = np.random.default_rng(rng)
@@ -376,6 +465,12 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
     stroke = None if stage.stroke is None else np.broadcast_to(
         np.asarray(stage.stroke, dtype=float), (n,))
     saturation = np.zeros(n, dtype=np.int64)
+    act_stroke = stage.dm_stroke
+    if act_stroke is not None:
+        m2c = stage.m2c
+        c2m = np.linalg.pinv(m2c)
+        act_saturation = np.zeros(m2c.shape[0], dtype=np.int64)
+    resid_map = None
 
     tele = {name: np.empty((n_frames, n), dtype=np.float32) for name in record}
     sum_e2 = np.zeros(n)
@@ -396,24 +491,37 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
             m_chunk = min(chunk, n_frames - k)
             d, maps = disturbance.next(m_chunk)
             d = np.asarray(d, dtype=float)
-            if science is not None and maps is None:
-                raise ValueError("the disturbance source gives no phase maps for the science "
-                                 "camera")
+            if (science is not None or diffractive) and maps is None:
+                raise ValueError("the disturbance source gives no phase maps (needed by the "
+                                 "science camera and a DiffractiveSensor)")
+            if diffractive and resid_map is None:
+                resid_map = basis.pupil.to_map(np.zeros(maps.shape[1]))
             noise = (rng.standard_normal((m_chunk, n)) * noise_std if noisy
                      else np.zeros((m_chunk, n)))
             np.maximum(dmax, np.abs(d).max(axis=0), out=dmax)
-            # Scale of a healthy residual: the disturbance, or the noise (through T) if larger.
-            limit = _DIVERGENCE_FACTOR * (dmax + 10.0 * noise_std / og) + 1.0
+            # Scale of a healthy residual: the largest disturbance or noise (through T) of any
+            # mode (modes couple through stroke clipping and diffractive sensing).
+            limit = _DIVERGENCE_FACTOR * (dmax.max() + 10.0 * np.max(noise_std / og)) + 1.0
             out = {name: np.empty((m_chunk, n)) for name in record}
             sci_idx, sci_dm = [], []
             for j in range(m_chunk):
-                m = og * e_prev + noise[j]
+                if diffractive:
+                    m = stage.sensor.measure_map(resid_map, rng)
+                else:
+                    m = og * e_prev + noise[j]
                 u = ctrl.step(m)
                 if stroke is not None:
                     over = np.abs(u) > stroke
                     if over.any():
                         saturation += over
                         u = np.clip(u, -stroke, stroke)
+                if act_stroke is not None:
+                    a = m2c @ u
+                    over = np.abs(a) > act_stroke
+                    if over.any():
+                        act_saturation += over
+                        saturation += np.abs(c2m[:, over]).sum(axis=1) > 0
+                        u = c2m @ np.clip(a, -act_stroke, act_stroke)
                 hist[k % depth] = u
                 y = (1.0 - frac) * hist[(k - k0) % depth]
                 if frac:
@@ -432,13 +540,15 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
                     sci_idx.append(j)
                     sci_dm.append(y)
                 e_prev = e
+                if diffractive:
+                    resid_map = basis.pupil.to_map(maps[j] - basis.synthesize(y))
                 k += 1
             base = k - m_chunk
             for name in record:
                 tele[name][base:k] = d if name == "disturbance" else out[name]
             if sci_idx:
-                dm_maps = basis.pupil.to_map(basis.synthesize(np.asarray(sci_dm)))
-                science.add(maps[np.asarray(sci_idx)] - dm_maps)
+                dm_shape = basis.synthesize(np.asarray(sci_dm))
+                science.add(basis.pupil.to_map(maps[np.asarray(sci_idx)] - dm_shape))
             if bar is not None:
                 bar.update(m_chunk)
     finally:
@@ -456,4 +566,5 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
         saturation=saturation, settle_frames=settle, science=result_science,
         metadata=dict(metadata or {}, stage=stage.name, latency_frames=stage.latency_frames,
                       controller=repr(stage.controller)),
+        actuator_saturation=act_saturation if act_stroke is not None else None,
     )
