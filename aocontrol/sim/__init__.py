@@ -7,6 +7,8 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 ``numpy.random.Generator``.
 """
 
+from aocontrol.sim.atmosphere import Atmosphere, Layer
+from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
 from aocontrol.sim.loop import (
     LinearModalSensor,
     LoopDivergedError,
@@ -16,9 +18,44 @@ from aocontrol.sim.loop import (
     TurbulenceSource,
     run_loop,
 )
+from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
+from aocontrol.sim.noise import add_detector_noise, photons_per_frame, snr
+from aocontrol.sim.profiles import (
+    compress_profile,
+    eso_atmosphere,
+    eso_median_profile,
+    scale_to_tau0,
+)
 from aocontrol.sim.pupil import Pupil, vlt_pupil
+from aocontrol.sim.science import (
+    LongExposure,
+    ScienceCamera,
+    ScienceResult,
+    marechal_strehl,
+    mean_contrast,
+    opd_rms,
+    opd_to_phase,
+    radial_profile,
+    strehl,
+)
+from aocontrol.sim.wfs import (
+    LinearModalWFS,
+    PyramidWFS,
+    ShackHartmannWFS,
+    WFSCalibration,
+    calibrate,
+    interaction_matrix,
+    optical_gains,
+    reconstructor,
+)
 
 __all__ = [
+    "Atmosphere",
+    "Layer",
+    "eso_median_profile",
+    "compress_profile",
+    "scale_to_tau0",
+    "eso_atmosphere",
     "LinearModalSensor",
     "LoopDivergedError",
     "LoopResult",
@@ -27,4 +64,31 @@ __all__ = [
     "TurbulenceSource",
     "run_loop",
     "Pupil",
-    "vlt_pupil"]
+    "vlt_pupil",
+    "DeformableMirror",
+    "SAXO_N_ACTUATORS",
+    "SAXO_PLUS_N_ACTUATORS",
+    "ModalBasis",
+    "kl_basis",
+    "fitting_error",
+    "ScienceCamera",
+    "LongExposure",
+    "ScienceResult",
+    "opd_to_phase",
+    "opd_rms",
+    "marechal_strehl",
+    "strehl",
+    "radial_profile",
+    "mean_contrast",
+    "PyramidWFS",
+    "ShackHartmannWFS",
+    "LinearModalWFS",
+    "WFSCalibration",
+    "calibrate",
+    "interaction_matrix",
+    "reconstructor",
+    "optical_gains",
+    "photons_per_frame",
+    "add_detector_noise",
+    "snr",
+]

@@ -1,0 +1,31 @@
+"""Controller synthesis: optimised modal gains, disturbance estimation from telemetry, the
+data-driven controller.
+
+Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+PSDs are one-sided [units^2/Hz]; telemetry is shaped ``(n_frames, n_modes)``.
+"""
+
+from aocontrol.synthesis._datadriven import (
+    DataDrivenError,
+    DataDrivenResult,
+    ModeReport,
+    datadriven,
+)
+from aocontrol.synthesis._modal_gain import integrator_gain_limit, optimal_modal_gain
+from aocontrol.synthesis._telemetry import (
+    TelemetryPSD,
+    disturbance_from_telemetry,
+    pseudo_open_loop,
+)
+
+__all__ = [
+    "DataDrivenError",
+    "DataDrivenResult",
+    "ModeReport",
+    "TelemetryPSD",
+    "datadriven",
+    "disturbance_from_telemetry",
+    "integrator_gain_limit",
+    "optimal_modal_gain",
+    "pseudo_open_loop",
+]

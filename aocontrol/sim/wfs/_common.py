@@ -1,0 +1,24 @@
+"""Helpers shared by the wavefront sensor models (private)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def opd_to_phase(opd: np.ndarray, wavelength: float) -> np.ndarray:
+    """Phase [rad] at ``wavelength`` [m] of an optical path difference [nm]."""
+    return np.asarray(opd) * (2.0 * np.pi / (wavelength * 1e9))
+
+
+def bin_matrix(n_in: int, n_out: int) -> np.ndarray:
+    """Area-weighted 1-D rebinning matrix ``(n_out, n_in)``.
+
+    Entry ``(i, j)`` is the length of input sample ``j`` (``[j, j+1)``) inside output bin
+    ``i`` (``[i, i+1) * n_in / n_out``), in input samples: ``B @ x`` sums ``x`` over each bin
+    (fractional overlaps when ``n_in`` is not a multiple of ``n_out``), so ``B @ I @ B.T``
+    rebins an image conserving its flux.
+    """
+    edges = np.arange(n_out + 1) * (n_in / n_out)
+    lo = np.maximum(edges[:-1, None], np.arange(n_in)[None, :])
+    hi = np.minimum(edges[1:, None], np.arange(n_in)[None, :] + 1.0)
+    return np.clip(hi - lo, 0.0, None)

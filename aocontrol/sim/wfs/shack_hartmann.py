@@ -1,0 +1,283 @@
+"""Shack-Hartmann wavefront sensor: diffractive (per-subaperture FFT, centre of gravity) or
+geometric (average gradient per subaperture).
+
+Signals are the average OPD gradient over each valid subaperture times the subaperture size,
+i.e. the OPD difference across a subaperture [nm], ``[sx, sy]`` of shape
+``(2 n_valid_sub,)``: ``sx`` along ``+x`` (columns), ``sy`` along ``+y`` (rows). A pure tilt
+``OPD = a x`` gives ``sx = a d`` in both models (``d = D / n_sub``).
+
+``model="geometric"`` (the fast model): the mean of the finite differences of the OPD between
+neighbouring pupil samples that are both inside the pupil and inside the subaperture, one
+sparse matrix product. It is exact for tilts and ignores diffraction, spot truncation and
+aliasing through the spot shape.
+
+``model="diffractive"``: each subaperture field (``p = n_pix / n_sub`` samples across) is
+zero-padded to ``oversampling * p`` and Fourier transformed (one batched FFT for all
+subapertures); the spot, sampled at ``lambda / (oversampling d)`` per pixel with a
+field of view of ``p`` lambda/d, is centred on the corner of 4 pixels for a flat wavefront;
+the slope is its centre of gravity minus the flat-wavefront reference, converted to nm. Needs
+``p >= 4`` for a meaningful spot. The detector pixels are the spot pixels (no extra rebinning).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.fft
+import scipy.sparse
+
+from aocontrol._validation import check_finite_array, check_in_range, check_int, check_positive
+from aocontrol.sim.noise import add_detector_noise
+from aocontrol.sim.pupil import Pupil
+from aocontrol.sim.wfs._common import bin_matrix, opd_to_phase
+
+__all__ = ["ShackHartmannWFS"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ShackHartmannWFS:
+    """Shack-Hartmann WFS (see the module docstring for the models and sign conventions).
+
+    Parameters
+    ----------
+    pupil : Pupil
+        Pupil grid, OPD maps ``(..., n_pix, n_pix)`` [nm]; ``n_pix`` must be a multiple of
+        ``n_subapertures`` (>= 2 samples per subaperture, >= 4 for the diffractive model).
+    wavelength : float
+        Sensing wavelength [m] (0.69e-6 for SAXO).
+    n_subapertures : int, default 40
+        Lenslets across the diameter.
+    model : {"geometric", "diffractive"}
+    oversampling : int, default 2
+        Spot sampling, pixels per lambda/d (diffractive model).
+    valid_threshold : float, default 0.5
+        Minimum geometric illumination of a valid subaperture, in (0, 1].
+    """
+
+    pupil: Pupil
+    wavelength: float
+    n_subapertures: int = 40
+    model: str = "geometric"
+    oversampling: int = 2
+    valid_threshold: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.pupil, Pupil):
+            raise TypeError(f"pupil must be a Pupil, got {type(self.pupil).__name__}")
+        check_positive("wavelength", self.wavelength)
+        n_sub = check_int("n_subapertures", self.n_subapertures, minimum=1)
+        if self.model not in ("geometric", "diffractive"):
+            raise ValueError(f"model must be 'geometric' or 'diffractive', got {self.model!r}")
+        min_p = 4 if self.model == "diffractive" else 2
+        n_pix = self.pupil.n_pix
+        if n_pix % n_sub or n_pix // n_sub < min_p:
+            raise ValueError(
+                f"pupil.n_pix must be a multiple of n_subapertures={n_sub} with >= {min_p} "
+                f"samples per subaperture for the {self.model} model, got pupil.n_pix={n_pix}: "
+                "sampling too coarse or not commensurate"
+            )
+        check_int("oversampling", self.oversampling, minimum=1)
+        check_in_range("valid_threshold", self.valid_threshold, 0.0, 1.0,
+                       low_inclusive=False, high_inclusive=True)
+
+    @property
+    def samples_per_subaperture(self) -> int:
+        """Pupil samples across a subaperture."""
+        return self.pupil.n_pix // self.n_subapertures
+
+    @property
+    def subaperture_size(self) -> float:
+        """Subaperture size ``d`` [m]."""
+        return self.pupil.diameter / self.n_subapertures
+
+    @cached_property
+    def valid_subapertures(self) -> np.ndarray:
+        """Boolean map ``(n_sub, n_sub)`` of the valid subapertures (geometric illumination)."""
+        b = bin_matrix(self.pupil.n_pix, self.n_subapertures)
+        illum = b @ self.pupil.mask.astype(float) @ b.T / self.samples_per_subaperture**2
+        valid = illum >= self.valid_threshold * (1 - 1e-9)
+        valid.setflags(write=False)
+        return valid
+
+    @property
+    def n_valid_subapertures(self) -> int:
+        return int(np.count_nonzero(self.valid_subapertures))
+
+    @property
+    def n_signals(self) -> int:
+        return 2 * self.n_valid_subapertures
+
+    # ------------------------------------------------------------------ geometric model
+    @cached_property
+    def _gradient_matrix(self) -> scipy.sparse.csr_matrix:
+        """Sparse ``(n_signals, n_pix^2)``: mean finite difference per subaperture times d."""
+        n_pix, p = self.pupil.n_pix, self.samples_per_subaperture
+        mask = self.pupil.mask
+        sub = np.arange(n_pix) // p
+        valid = self.valid_subapertures
+        vindex = -np.ones(valid.shape, dtype=int)
+        vindex[valid] = np.arange(self.n_valid_subapertures)
+        rows, cols, vals = [], [], []
+        flat = np.arange(n_pix * n_pix).reshape(n_pix, n_pix)
+        for axis, offset in ((1, 0), (0, self.n_valid_subapertures)):
+            a = flat[:, :-1] if axis == 1 else flat[:-1, :]
+            b = flat[:, 1:] if axis == 1 else flat[1:, :]
+            ok = mask.ravel()[a] & mask.ravel()[b]
+            ra, ca = np.divmod(a, n_pix)
+            rb, cb = np.divmod(b, n_pix)
+            same = (sub[ra] == sub[rb]) & (sub[ca] == sub[cb])
+            ok &= same & valid[sub[ra], sub[ca]]
+            idx = vindex[sub[ra[ok]], sub[ca[ok]]]
+            counts = np.bincount(idx, minlength=self.n_valid_subapertures).astype(float)
+            w = self.subaperture_size / self.pupil.pixel_scale / counts[idx]
+            rows += [idx + offset, idx + offset]
+            cols += [b[ok], a[ok]]
+            vals += [w, -w]
+        return scipy.sparse.csr_matrix(
+            (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(self.n_signals, n_pix * n_pix))
+
+    # ------------------------------------------------------------------ diffractive model
+    @property
+    def spot_size(self) -> int:
+        """Pixels across a subaperture image (diffractive model)."""
+        return self.oversampling * self.samples_per_subaperture
+
+    @cached_property
+    def _centring(self) -> np.ndarray:
+        m = self.spot_size
+        x = np.arange(self.samples_per_subaperture)
+        return np.exp(-1j * np.pi * (x[:, None] + x[None, :]) / m)
+
+    def spots(self, opd: np.ndarray) -> np.ndarray:
+        """Spot images ``(..., n_valid_sub, m, m)`` (fraction of the pupil flux; ``m`` =
+        :attr:`spot_size`) of OPD maps ``(..., n_pix, n_pix)`` [nm]."""
+        opd = self._check_opd(opd)
+        n_sub, p, m = self.n_subapertures, self.samples_per_subaperture, self.spot_size
+        phase = opd_to_phase(opd, self.wavelength)
+        field = self.pupil.mask * np.exp(1j * phase) / np.sqrt(self.pupil.n_valid)
+        lead = field.shape[:-2]
+        f = field.reshape(*lead, n_sub, p, n_sub, p).swapaxes(-3, -2)
+        f = f[..., self.valid_subapertures, :, :] * self._centring
+        g = scipy.fft.fftshift(scipy.fft.fft2(f, s=(m, m)), axes=(-2, -1))
+        return (g.real**2 + g.imag**2) / m**2
+
+    @cached_property
+    def _coordinates(self) -> np.ndarray:
+        m = self.spot_size
+        return np.arange(m) - (m - 1) / 2.0
+
+    def _raw_signals(self, spots: np.ndarray) -> np.ndarray:
+        c = self._coordinates
+        tot = spots.sum(axis=(-2, -1))
+        tot = np.where(tot > 0, tot, np.inf)
+        cx = np.einsum("...ij,j->...", spots, c) / tot
+        cy = np.einsum("...ij,i->...", spots, c) / tot
+        # centroid [pixel] * lambda / (oversampling d) [rad] * d [m] -> OPD difference [nm]
+        scale = self.wavelength * 1e9 / self.oversampling
+        return np.concatenate([cx, cy], axis=-1) * scale
+
+    @cached_property
+    def reference_spots(self) -> np.ndarray:
+        """Spots of a flat wavefront ``(n_valid_sub, m, m)``."""
+        ref = self.spots(np.zeros((self.pupil.n_pix, self.pupil.n_pix)))
+        ref.setflags(write=False)
+        return ref
+
+    @cached_property
+    def reference_signals(self) -> np.ndarray:
+        ref = self._raw_signals(self.reference_spots)
+        ref.setflags(write=False)
+        return ref
+
+    # ------------------------------------------------------------------ public
+    def _check_opd(self, opd: np.ndarray) -> np.ndarray:
+        opd = check_finite_array("opd", opd)
+        n_pix = self.pupil.n_pix
+        if opd.shape[-2:] != (n_pix, n_pix):
+            raise ValueError(f"opd must end with shape ({n_pix}, {n_pix}), got {opd.shape}")
+        return opd
+
+    def signals(self, opd: np.ndarray) -> np.ndarray:
+        """Noise-free signals ``(..., n_signals)`` [nm of OPD across a subaperture]."""
+        if self.model == "geometric":
+            opd = self._check_opd(opd)
+            lead = opd.shape[:-2]
+            flat = opd.reshape(-1, self.pupil.n_pix**2)
+            out = (self._gradient_matrix @ flat.T).T
+            return out.reshape(*lead, self.n_signals)
+        return self._raw_signals(self.spots(opd)) - self.reference_signals
+
+    def detector_image(self, opd: np.ndarray) -> np.ndarray:
+        """Spot images (diffractive model only), see :meth:`spots`."""
+        if self.model != "diffractive":
+            raise ValueError("detector_image needs model='diffractive' (the geometric model "
+                             f"has no detector), got model={self.model!r}")
+        return self.spots(opd)
+
+    @property
+    def reference_frame(self) -> np.ndarray:
+        """Flat-wavefront detector image (diffractive model)."""
+        if self.model != "diffractive":
+            raise ValueError("reference_frame needs model='diffractive', got "
+                             f"model={self.model!r}")
+        return self.reference_spots
+
+    def signals_from_frame(self, frames: np.ndarray) -> np.ndarray:
+        """Signals of spot images ``(..., n_valid_sub, m, m)`` (any flux unit)."""
+        return self._raw_signals(np.asarray(frames, dtype=float)) - self.reference_signals
+
+    def pixel_values(self, frames: np.ndarray) -> np.ndarray:
+        """Pixels entering the signals, ``(..., n_valid_sub * m * m)``."""
+        f = np.asarray(frames, dtype=float)
+        return f.reshape(*f.shape[:-3], -1)
+
+    @property
+    def normalisation(self) -> tuple[int, float]:
+        """``(pixels, flux fraction)`` of one subaperture's normalisation (median subaperture)."""
+        flux = self.reference_spots.sum(axis=(-2, -1))
+        return self.spot_size**2, float(np.median(flux))
+
+    def pixel_jacobian_product(self, frame: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+        """``matrix @ J``, ``J`` the derivative of the centroids w.r.t. the pixel values.
+
+        Parameters
+        ----------
+        frame : array_like, shape (n_valid_sub, m, m)
+            Noise-free spots in photo-electrons.
+        matrix : array_like, shape (n_out, n_signals)
+
+        Returns
+        -------
+        ndarray, shape (n_out, n_valid_sub * m * m)
+            For subaperture ``i``: ``dsx_i / dp_j = scale (c_j - cx_i) / N_i``.
+        """
+        f = np.asarray(frame, dtype=float)
+        m_ = np.atleast_2d(np.asarray(matrix, dtype=float))
+        nv, m = self.n_valid_subapertures, self.spot_size
+        if m_.shape[-1] != self.n_signals:
+            raise ValueError(f"matrix must have n_signals={self.n_signals} columns, "
+                             f"got shape {m_.shape}")
+        scale = self.wavelength * 1e9 / self.oversampling
+        c = self._coordinates
+        tot = f.sum(axis=(-2, -1))
+        cx = np.einsum("kij,j->k", f, c) / tot
+        cy = np.einsum("kij,i->k", f, c) / tot
+        jx = (c[None, None, :] - cx[:, None, None]) / tot[:, None, None] * scale
+        jy = (c[None, :, None] - cy[:, None, None]) / tot[:, None, None] * scale
+        jx = np.broadcast_to(jx, (nv, m, m))
+        jy = np.broadcast_to(jy, (nv, m, m))
+        out = m_[:, :nv, None, None] * jx + m_[:, nv:, None, None] * jy
+        return out.reshape(m_.shape[0], -1)
+
+    def measure(self, opd: np.ndarray, photons: float, read_noise: float,
+                rng: np.random.Generator) -> np.ndarray:
+        """Noisy signals (diffractive model): Poisson + read noise on the spot pixels."""
+        n_ph = check_positive("photons", photons)
+        frames = add_detector_noise(self.detector_image(opd) * n_ph, read_noise, rng)
+        return self.signals_from_frame(frames)

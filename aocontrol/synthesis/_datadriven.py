@@ -1,0 +1,768 @@
+"""Frequency-based data-driven controller synthesis (the paper's "Data-driven controller").
+
+Per mode, an IIR controller ``K = X / Y`` (powers of ``z^-1``) minimises on a frequency grid
+
+    J(K) = ( ||W1 S||_2^2 + ||Wn T||_2^2 ) / v_ref  +  stroke_weight * ||T||_inf^2
+    subject to ||S||_inf <= 1 / modulus_margin,
+
+with ``S = Y/P``, ``T = G X / P``, ``P = Y + G X``, ``W1^2 = psd`` and ``Wn^2 = noise_psd``.
+The non-convex problem is solved by convex-concave iterations around the previous controller
+(second-order cone programs, cvxpy + Clarabel, see :mod:`aocontrol.synthesis._socp`).
+PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the variance
+(``scipy.signal.welch(..., scaling="density")``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+
+import control
+import numpy as np
+
+from aocontrol._validation import (
+    check_finite_array,
+    check_frequency_grid,
+    check_in_range,
+    check_int,
+    check_nonnegative,
+    check_psd,
+)
+from aocontrol.analysis import is_stable, residual_psd, winding_stability
+from aocontrol.controllers import IIRBank
+from aocontrol.plant import frequency_response, plant_fs, tf_from_z_inverse, z_inverse_coefficients
+from aocontrol.synthesis._socp import GridData, SolveFailure, ccp, get_problem, true_objective
+
+__all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport", "datadriven"]
+
+logger = logging.getLogger(__name__)
+
+# Verification grid: at least this many times denser than the design grid, and at least
+# _MIN_DENSE points over [0, fs/2].
+_DENSE_FACTOR = 10
+_MIN_DENSE = 4096
+# Points of the fine grid on which each step keeps the winding number (linear constraints).
+_N_WIND = 256
+# Modes per work item; within a chunk each mode may start from the previous mode's design.
+_CHUNK = 8
+# Free grid slots for the constraint-only points added by the dense checks.
+_SPARE_SLOTS = 16
+# The design enforces the margin with this relative safety; the dense check enforces it exactly.
+_MARGIN_SAFETY = 0.05
+# Relative prominence of a PSD peak (in decades) for its frequency to join the design grid.
+_PEAK_PROMINENCE_DECADES = 0.5
+_MAX_PEAKS = 12
+
+
+class DataDrivenError(RuntimeError):
+    """Synthesis failed for some modes.
+
+    Attributes
+    ----------
+    failed : dict[int, str]
+        Mode index -> reason.
+    result : DataDrivenResult
+        Every mode: designed controllers for the modes that succeeded, the initial controller
+        for the failed ones (``result.ok`` tells which).
+    """
+
+    def __init__(self, failed: dict[int, str], result: DataDrivenResult) -> None:
+        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
+        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
+        super().__init__(
+            f"data-driven synthesis failed for {len(failed)} of {result.controller.n_modes} "
+            f"modes: {lines}{more}. The other modes are in this error's .result")
+        self.failed = failed
+        self.result = result
+
+
+@dataclass(frozen=True)
+class ModeReport:
+    """Diagnostics of one mode's design.
+
+    Attributes
+    ----------
+    mode : int
+        Mode index.
+    ok : bool
+        True if the design succeeded and passed verification.
+    message : str
+        Failure reason (empty when ``ok``).
+    objective_history : ndarray, shape (n_accepted + 1,)
+        Normalised objective ``J`` on the design grid, the initial controller first
+        (non-increasing when the initial controller lies in the parameter set).
+    solves : int
+        Number of convex problems solved (all grid refinements included).
+    converged : bool
+        The last iterations lowered ``J`` by less than ``tol``.
+    modulus_margin : float
+        ``min |1 + G K|`` verified on the dense grid.
+    stable : bool
+        Closed-loop stability (:func:`aocontrol.analysis.is_stable`).
+    refinements : int
+        Constraint-only points added to the design grid by the dense checks.
+    start : str
+        ``"initial"`` (the initial controller) or ``"previous mode"`` (the design of the
+        previous mode of the same chunk, used when it is feasible and better for this mode).
+    """
+
+    mode: int
+    ok: bool
+    message: str
+    objective_history: np.ndarray
+    solves: int
+    converged: bool
+    modulus_margin: float
+    stable: bool
+    refinements: int
+    start: str
+
+
+@dataclass(frozen=True)
+class DataDrivenResult:
+    """Result of :func:`datadriven`.
+
+    Attributes
+    ----------
+    controller : IIRBank
+        One row of coefficients per mode (powers of ``z^-1``, ``a[:, 0] == 1``).
+    initial : IIRBank
+        The starting controllers (by default the optimal modal-gain integrators).
+    reports : tuple of ModeReport
+        Per-mode diagnostics.
+    residual_variance : ndarray, shape (n_modes,)
+        Predicted residual variance ``int (|S|^2 psd + |T|^2 noise_psd) df`` [units^2] on the
+        input grid (trapezoid, as :func:`aocontrol.analysis.residual_variance`).
+    initial_residual_variance : ndarray, shape (n_modes,)
+        The same for ``initial``.
+    design_freqs : ndarray, shape (n_design,)
+        Design grid [Hz] (before refinements).
+    """
+
+    controller: IIRBank
+    initial: IIRBank
+    reports: tuple[ModeReport, ...]
+    residual_variance: np.ndarray
+    initial_residual_variance: np.ndarray
+    design_freqs: np.ndarray = field(repr=False)
+
+    @property
+    def ok(self) -> np.ndarray:
+        """Per-mode success flags, shape ``(n_modes,)``."""
+        return np.array([r.ok for r in self.reports])
+
+    @property
+    def modulus_margin(self) -> np.ndarray:
+        """Verified modulus margins, shape ``(n_modes,)``."""
+        return np.array([r.modulus_margin for r in self.reports])
+
+    @property
+    def stable(self) -> np.ndarray:
+        """Closed-loop stability per mode, shape ``(n_modes,)``."""
+        return np.array([r.stable for r in self.reports])
+
+    @property
+    def solves(self) -> np.ndarray:
+        """Convex solves per mode, shape ``(n_modes,)``."""
+        return np.array([r.solves for r in self.reports])
+
+    @property
+    def objective_history(self) -> list[np.ndarray]:
+        """Normalised objective per iteration, one array per mode."""
+        return [r.objective_history for r in self.reports]
+
+
+# ---------------------------------------------------------------------------------------------
+# Grids and weights
+# ---------------------------------------------------------------------------------------------
+def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
+    """Weights ``t`` with ``sum(t * y) == np.trapezoid(y, f)``."""
+    t = np.zeros_like(f)
+    df = np.diff(f)
+    t[:-1] += df / 2
+    t[1:] += df / 2
+    return t
+
+
+def _design_indices(freqs: np.ndarray, psd: np.ndarray, n_grid: int) -> np.ndarray:
+    """Indices of the input grid used for design: log + linear spread and the PSD peaks."""
+    n = freqs.size
+    if n <= n_grid:
+        return np.arange(n)
+    fpos = freqs[freqs > 0]
+    n_log = int(round(0.6 * n_grid))
+    targets = [np.geomspace(fpos[0], freqs[-1], n_log),
+               np.linspace(freqs[0], freqs[-1], n_grid - n_log)]
+    idx = [np.clip(np.searchsorted(freqs, t), 0, n - 1) for t in targets]
+    idx.append(np.array([0, n - 1]))
+    # Resonances (vibrations): the local maxima that stand out of the smoothed log-PSD.
+    from scipy.signal import find_peaks
+
+    logp = np.log10(np.maximum(psd, 1e-300 + psd.max(axis=-1, keepdims=True) * 1e-30))
+    for row in np.atleast_2d(logp):
+        peaks, props = find_peaks(row, prominence=_PEAK_PROMINENCE_DECADES)
+        if peaks.size:
+            keep = peaks[np.argsort(props["prominences"])[::-1][:_MAX_PEAKS]]
+            idx.append(np.clip((keep[:, None] + np.arange(-2, 3)).ravel(), 0, n - 1))
+    return np.unique(np.concatenate(idx))
+
+
+def _interp_matrix(f_design: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Hat-function matrix ``H`` (n_design, n): linear interpolation from design points."""
+    H = np.zeros((f_design.size, f.size))
+    j = np.clip(np.searchsorted(f_design, f, side="right") - 1, 0, f_design.size - 2)
+    lo, hi = f_design[j], f_design[j + 1]
+    t = np.clip((f - lo) / (hi - lo), 0.0, 1.0)
+    cols = np.arange(f.size)
+    H[j, cols] += 1.0 - t
+    H[j + 1, cols] += t
+    return H
+
+
+def _dense_grid(f_design: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Verification grid over [lo, hi]: linear and log-spaced, >= 10x the design grid."""
+    n = max(_DENSE_FACTOR * f_design.size, _MIN_DENSE)
+    lin = np.linspace(lo, hi, n)
+    # Log-spaced down to 1e-6 fs/2: a near pole-zero cancellation close to z = 1 can hide a
+    # closed-loop pole pair crossing the circle at a tiny frequency.
+    log = np.geomspace(max(lo, hi * 2e-6), hi, n // 2)
+    return np.unique(np.concatenate([lin, log, f_design]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-mode design (runs in worker processes)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Context:
+    """Data shared by every mode of one call (pickled once per chunk)."""
+
+    plant: object
+    fs: float
+    f_design: np.ndarray
+    g_design: np.ndarray
+    f_dense: np.ndarray
+    g_dense: np.ndarray
+    fixed: np.ndarray
+    nq: int
+    mu: float
+    stroke_weight: float
+    wind_index: np.ndarray
+    g_scale: float
+    plant_poly: tuple | None
+    max_iter: int
+    tol: float
+    extrapolate: bool
+
+
+def _grid_data(ctx: _Context, f: np.ndarray, g: np.ndarray, mu: float) -> GridData:
+    w = np.exp(-2j * np.pi * f / ctx.fs)
+    powers = w[:, None] ** np.arange(ctx.nq + 1)
+    F = np.polyval(ctx.fixed[::-1], w)
+    nv = 2 * ctx.nq + 1
+    AX = np.zeros((f.size, nv), complex)
+    AY = np.zeros((f.size, nv), complex)
+    AX[:, : ctx.nq + 1] = (g / ctx.g_scale)[:, None] * powers
+    AY[:, ctx.nq + 1:] = F[:, None] * powers[:, 1:]
+    return GridData(AY, AX, F.astype(complex), mu, ctx.stroke_weight)
+
+
+def _to_v(ctx: _Context, b: np.ndarray, a: np.ndarray) -> np.ndarray | None:
+    """Parameter vector of ``K = b/a`` if it lies in the parameter set, else None."""
+    b = np.trim_zeros(np.asarray(b, float), "b")
+    a = np.trim_zeros(np.asarray(a, float), "b")
+    if b.size > ctx.nq + 1 or a.size > ctx.nq + ctx.fixed.size:
+        return None
+    quot, rem = np.polynomial.polynomial.polydiv(a, ctx.fixed)
+    if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a))):
+        return None
+    quot = np.concatenate([quot, np.zeros(ctx.nq + 1 - quot.size)])
+    x = np.concatenate([b, np.zeros(ctx.nq + 1 - b.size)]) * ctx.g_scale
+    return np.concatenate([x, quot[1:]])
+
+
+def _from_v(ctx: _Context, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    b = v[: ctx.nq + 1] / ctx.g_scale
+    a = np.polynomial.polynomial.polymul(ctx.fixed, np.concatenate([[1.0], v[ctx.nq + 1:]]))
+    return b, a
+
+
+def _p_of(ctx: _Context, f: np.ndarray, g: np.ndarray, b: np.ndarray,
+          a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``Y`` and ``P = Y + G X`` of ``K = b/a`` at ``f`` [Hz] (plant response ``g``)."""
+    w = np.exp(-2j * np.pi * f / ctx.fs)
+    Y = np.polyval(np.asarray(a)[::-1], w)
+    return Y, Y + g * np.polyval(np.asarray(b)[::-1], w)
+
+
+def _verify(ctx: _Context, b: np.ndarray, a: np.ndarray) -> tuple[float, bool]:
+    """Modulus margin on the dense grid and closed-loop stability of ``K = b/a``.
+
+    Stability: closed-loop poles (:func:`aocontrol.analysis.is_stable`) for a transfer
+    function plant; the winding number of ``Y + G X`` on the dense grid
+    (:func:`aocontrol.analysis.winding_stability`) for a measured (FRD) plant.
+    """
+    Y, P = _p_of(ctx, ctx.f_dense, ctx.g_dense, b, a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_abs = np.abs(Y) / np.abs(P)
+    margin = float(1.0 / np.max(s_abs)) if np.all(np.isfinite(s_abs)) else 0.0
+    K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
+    try:
+        if isinstance(ctx.plant, control.FRD):
+            # The winding number on the dense grid (the FRD's own grid may be too coarse to
+            # follow the phase of Y + G X near a sharp resonance of the controller).
+            stable = winding_stability(ctx.plant, K, fs=ctx.fs, freqs=ctx.f_dense)
+        else:
+            stable = is_stable(ctx.plant, K, fs=ctx.fs)
+    except ValueError:  # winding number not resolved by the grid
+        stable = False
+    return margin, stable
+
+
+def _stable_fast(ctx: _Context, dense: GridData, v: np.ndarray) -> bool:
+    """Closed-loop stability of ``v``: poles (TF plant) or winding number of ``P`` (FRD)."""
+    b, a = _from_v(ctx, v)
+    if ctx.plant_poly is not None:
+        bg, ag = ctx.plant_poly
+        pp = np.polynomial.polynomial
+        char = np.trim_zeros(pp.polyadd(pp.polymul(ag, a), pp.polymul(bg, b)), "b")
+        return bool(char.size <= 1 or np.max(np.abs(np.roots(char))) < 1.0 - 1e-9)
+    # FRD: P = Y + G X has no zero in |z^-1| <= 1 iff its phase does not wind (G stable).
+    P = dense.A @ v + dense.F
+    if np.min(np.abs(P)) <= 1e-12 * np.max(np.abs(P)):
+        return False
+    dphi = np.angle(P[1:] / P[:-1])
+    start = np.angle(P[0] * np.sign(P[0].real or 1.0))
+    end = -np.angle(P[-1] * np.sign(P[-1].real or 1.0))
+    return bool(abs(2.0 * (start + np.sum(dphi) + end)) < np.pi)
+
+
+def _design_mode(ctx: _Context, q1: np.ndarray, qn: np.ndarray, b0: np.ndarray,
+                 a0: np.ndarray, warm: tuple | None = None) -> dict:
+    """Design one mode; returns the coefficients and diagnostics (raises on failure).
+
+    ``warm`` is an optional second start (the previous mode's design): it replaces the
+    initial controller as the starting point if it passes the dense checks and has a lower
+    objective for this mode, so the result is never worse than the initial controller.
+    """
+    mu_d = min(ctx.mu * (1 + _MARGIN_SAFETY), 0.999)
+    f, g = ctx.f_design, ctx.g_design
+    total = q1 + qn
+    Y0, P0 = _p_of(ctx, f, g, b0, a0)
+    v_ref = float(np.sum((q1 * np.abs(Y0) ** 2 + qn * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2))
+    if not v_ref > 1e-12 * np.sum(total):
+        v_ref = float(np.sum(total))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r1 = np.where(total > 0, np.sqrt(q1 / total), 0.0)
+        rn = np.where(total > 0, np.sqrt(qn / total), 0.0)
+    h = total / v_ref
+    grid = _grid_data(ctx, f, g, mu_d)
+    dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
+    wind = dense.take(ctx.wind_index)
+    problem = get_problem(f.size + _SPARE_SLOTS, 2 * ctx.nq + 1, ctx.stroke_weight > 0,
+                          ctx.wind_index.size)
+    v0 = _to_v(ctx, b0, a0)
+    start = "initial"
+    if warm is not None:
+        vw = _to_v(ctx, *warm)
+        Yw, Pw = _p_of(ctx, ctx.f_dense, ctx.g_dense, *warm)
+        if (vw is not None and np.all(ctx.mu * np.abs(Yw) <= np.abs(Pw))
+                and _stable_fast(ctx, dense, vw)):
+            J0 = true_objective(grid, v0, r1, rn, h)[0] if v0 is not None else np.inf
+            Jw, Pw_grid = true_objective(grid, vw, r1, rn, h)
+            # (The design grid's margin holds to the solver's accuracy.)
+            Yg = grid.AY @ vw + grid.F
+            if Jw < J0 and np.all(mu_d * (1 - 1e-4) * np.abs(Yg) <= np.abs(Pw_grid)):
+                b0, a0, v0, P0, start = warm[0], warm[1], vw, Pw_grid, "previous mode"
+    _, Pd0 = _p_of(ctx, ctx.f_dense, ctx.g_dense, b0, a0)
+    J_start = float(np.sum(h * (r1**2 * np.abs(Y0) ** 2 + rn**2 * np.abs(P0 - Y0) ** 2)
+                           / np.abs(P0) ** 2))
+    if start == "initial" and ctx.stroke_weight > 0:
+        J_start += ctx.stroke_weight * float(np.max(np.abs(P0 - Y0) ** 2 / np.abs(P0) ** 2))
+    out = ccp(problem, grid, (r1, rn, h), dense, v0, P0, Pd0,
+              lambda v: _stable_fast(ctx, dense, v), (wind, Pd0[ctx.wind_index]),
+              max_iter=ctx.max_iter, tol=ctx.tol, extrapolate=ctx.extrapolate,
+              J_start=J_start)
+    # Final verification: closed-loop poles and the dense modulus margin. The dense checks in
+    # the iterations make a failure unlikely; if it happens, the newest accepted iterate that
+    # passes is returned.
+    for v in reversed(out.iterates):
+        if v is None:
+            continue
+        b, a = _from_v(ctx, v)
+        margin, stable = _verify(ctx, b, a)
+        if stable and margin >= ctx.mu * (1 - 1e-9):
+            if v is not out.iterates[-1]:
+                logger.warning("final iterate failed verification; an earlier verified "
+                               "iterate is returned")
+            break
+    else:
+        raise RuntimeError(f"no iterate passed verification (dense modulus margin "
+                           f"{margin:.4g}, required {ctx.mu}; closed-loop stable: {stable})")
+    return {"b": b, "a": a, "history": out.history, "solves": out.solves,
+            "converged": out.converged, "margin": margin, "stable": stable,
+            "refinements": out.added, "start": start}
+
+
+def _design_chunk(ctx: _Context, items: list) -> list:
+    """Design a chunk of modes in one worker; failures are returned, not raised."""
+    out = []
+    warm = None
+    for mode, q1, qn, b0, a0 in items:
+        try:
+            res = _design_mode(ctx, q1, qn, b0, a0, warm)
+            res["mode"], res["error"] = mode, ""
+            warm = (res["b"], res["a"])
+        except (SolveFailure, RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+            msg = str(exc)
+            if isinstance(exc, SolveFailure) and "infeasible" in exc.status.lower():
+                msg += (" (no controller of this structure meets the modulus margin around "
+                        "the initial controller; lower modulus_margin or give another initial)")
+            res = {"mode": mode, "error": msg}
+        out.append(res)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Public function
+# ---------------------------------------------------------------------------------------------
+def _initial_coefficients(initial: object, n_modes: int, fs: float) -> list:
+    """Per-mode (b, a) of the user's initial controller."""
+    if isinstance(initial, IIRBank):
+        if abs(initial.fs - fs) > 1e-9 * fs:
+            raise ValueError(f"initial runs at fs={initial.fs} Hz, the plant at {fs} Hz")
+        if initial.n_modes not in (1, n_modes):
+            raise ValueError(f"initial must have 1 or {n_modes} modes (one per PSD row), "
+                             f"got {initial.n_modes}")
+        rows = [min(i, initial.n_modes - 1) for i in range(n_modes)]
+        return [(initial.b[r], initial.a[r]) for r in rows]
+    if isinstance(initial, control.TransferFunction):
+        plant_fs(initial, fs)
+        b, a = z_inverse_coefficients(initial)
+        return [(b, a)] * n_modes
+    raise TypeError("initial must be an IIRBank (e.g. Integrator), a control.TransferFunction "
+                    f"or None, got {type(initial).__name__}")
+
+
+def datadriven(plant: control.TransferFunction | control.FRD, freqs: object, psd: object, *,
+               order: int = 5, noise_psd: object = 0.0, modulus_margin: float = 0.5,
+               stroke_weight: float = 1e-3, fixed_denominator: object = None,
+               initial: IIRBank | control.TransferFunction | None = None,
+               max_iter: int = 60, tol: float = 1e-3, n_grid: int = 80,
+               n_jobs: int | None = None, progress: bool = True,
+               fs: float | None = None) -> DataDrivenResult:
+    r"""Data-driven IIR controllers, one per mode, from disturbance and noise PSDs.
+
+    For each mode the controller ``K = X / Y`` (polynomials in ``z^-1``, ``Y = F Y'`` with
+    ``Y'`` monic and ``F`` the fixed factor) minimises on a frequency grid
+
+    .. math::
+
+        J(K) = \frac{1}{v_\mathrm{ref}} \int_0^{f_s/2}
+               \left(|S|^2 \Phi_d + |T|^2 \Phi_n\right) df
+               + \mathtt{stroke\_weight}\, \|T\|_\infty^2
+        \quad \text{s.t.} \quad \|S\|_\infty \le 1/\mu
+
+    with ``S = 1/(1 + G K)``, ``T = G K / (1 + G K)``. The integral (the paper's
+    ``||W1 S||_2^2`` with ``W1^2 = psd``, plus the noise term ``||Wn T||_2^2`` with
+    ``Wn^2 = noise_psd``) is the residual variance of
+    :func:`aocontrol.analysis.residual_variance` [units^2]: exactly (trapezoid rule) when
+    ``freqs`` has at most ``n_grid`` points, otherwise with ``|S|^2`` and ``|T|^2`` interpolated
+    linearly between the design points (the PSDs keep every input point: the disturbance
+    variance is exact). ``v_ref`` is that of the initial controller, so
+    ``J(initial) = 1 + stroke_weight ||T0||_inf^2`` and the H2 part of ``J`` is the residual
+    variance relative to the initial controller. ``||T||_inf^2`` (the
+    paper's ``||W2 T||_inf^2``, ``W2^2 = stroke_weight``) penalises the peak of the command
+    response (``|T| = |K S|`` for a pure-delay plant). With ``noise_psd = 0`` this is the paper's
+    objective with the disturbance normalised by a scalar instead of its value at the
+    bandwidth.
+
+    The problem is solved by convex-concave iterations: each step is a second-order cone
+    program (cvxpy with Clarabel, compiled once per worker with ``Parameter``s and re-solved)
+    around the previous controller, which is always feasible, so the objective never
+    increases. Each step also keeps ``Re(P conj Pc) > 0`` on a fine grid (linear constraints:
+    same winding number, so the closed loop stays stable) and ``|P|`` away from 0 (no hidden
+    pole-zero cancellation on the unit circle); long flat valleys are crossed by extrapolating
+    the last step while the objective decreases. The start is the optimal modal-gain
+    integrator (designed with the modulus-margin constraint), so the result is never worse
+    than the best integrator; modes are processed in fixed chunks of neighbouring modes, and a
+    mode starts from the previous mode's design instead when that is feasible and better for
+    it (continuation: same result whatever ``n_jobs``).
+
+    Every iterate and the returned controller are verified: closed-loop poles inside the
+    unit circle (:func:`aocontrol.analysis.is_stable` for the result) and the modulus margin
+    met on a grid at least ten times denser than the design grid. The design grid enforces a
+    margin 5 % above ``modulus_margin``; where the dense check still fails, the failing points
+    join the design grid as constraint-only points and the step is solved again. A mode for
+    which no verified controller is found fails (see Raises); none is returned unverified.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant (command to measurement), e.g. :func:`aocontrol.loop_plant`,
+        shared by every mode. An FRD must cover ``freqs``.
+    freqs : array_like, shape (n_freqs,)
+        Strictly increasing frequencies [Hz] in ``[0, fs/2]`` on which the PSDs are given.
+    psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
+        Disturbance PSD per mode, one-sided [units^2/Hz]; not zero everywhere.
+    order : int, default 5
+        Controller order ``n``: the degree of ``Y`` (``F`` included) and of ``X``. With a fixed
+        factor ``F`` of degree ``d``, ``K = X / (F Y')`` with ``X``, ``Y'`` free of degree
+        ``n - d`` (``order = 1`` with ``F = 1 - z^-1`` is the integrator ``g / (1 - z^-1)``).
+    noise_psd : float or array_like like ``psd``, default 0.0
+        Measurement-noise PSD, one-sided [units^2/Hz]; a scalar is white.
+    modulus_margin : float, default 0.5
+        Required ``min |1 + G K|`` in (0, 1), i.e. ``||S||_inf <= 1/modulus_margin``.
+    stroke_weight : float, default 1e-3
+        Weight of ``||T||_inf^2`` relative to the normalised residual (>= 0; 0 drops it).
+    fixed_denominator : array_like, optional
+        Fixed factor ``F`` of the denominator, coefficients in powers of ``z^-1``, e.g.
+        ``[1, -1]`` (integral action) or ``[1, -(1 - leak)]``.
+    initial : IIRBank or control.TransferFunction, optional
+        Starting controller(s) (1 or ``n_modes`` modes); must stabilise the plant. Default:
+        the optimal modal-gain integrator (leaky if ``F = [1, -(1 - leak)]``).
+    max_iter : int, default 60
+        Maximum convex solves per mode.
+    tol : float, default 1e-3
+        Stop when three iterations lower the objective by less than ``tol`` (relative).
+    n_grid : int, default 80
+        Design-grid size: an input grid with more points is subsampled (log- and
+        linearly-spaced points and the PSD peaks), with quadrature weights that keep the
+        integral exact for a ``|S|^2`` linear between design points.
+    n_jobs : int, optional
+        Worker processes (joblib); ``None`` uses every core, 1 runs in this process.
+    progress : bool, default True
+        Show a tqdm progress bar over modes.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+
+    Returns
+    -------
+    DataDrivenResult
+        ``.controller`` is an :class:`~aocontrol.controllers.IIRBank` (one row per mode);
+        per-mode diagnostics in ``.reports``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        Invalid inputs (named in the message), or an initial controller that does not
+        stabilise the plant.
+    DataDrivenError
+        Some modes failed (infeasible convexified problem, no verified controller); the
+        message lists them and ``error.result`` holds every mode (failed ones keep the
+        initial controller).
+
+    Examples
+    --------
+    >>> from aocontrol import loop_plant
+    >>> f = np.linspace(0.0, 500.0, 201)
+    >>> psd = 1.0 / (1.0 + (f / 10.0) ** 2)                 # low-pass disturbance
+    >>> res = datadriven(loop_plant(1000.0, 1.0), f, psd, order=3, noise_psd=1e-3,
+    ...                  n_jobs=1, progress=False)
+    >>> bool(res.residual_variance[0] < res.initial_residual_variance[0])
+    True
+    """
+    if n_jobs is not None:
+        n_jobs = check_int("n_jobs", n_jobs)
+        if n_jobs == 0:
+            raise ValueError("n_jobs must be a nonzero integer (negative: joblib convention)")
+    setup = _prepare(plant, freqs, psd, order=order, noise_psd=noise_psd,
+                     modulus_margin=modulus_margin, stroke_weight=stroke_weight,
+                     fixed_denominator=fixed_denominator, initial=initial, max_iter=max_iter,
+                     tol=tol, n_grid=n_grid, fs=fs)
+    outcomes = _run(setup.ctx, setup.items, n_jobs, progress)
+    return _assemble(setup, outcomes)
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """Validated inputs, shared context and per-mode work items of one call."""
+
+    plant: object
+    fs: float
+    freqs: np.ndarray
+    psd: np.ndarray
+    noise: np.ndarray
+    ctx: _Context
+    items: list
+    init_bank: IIRBank
+
+
+def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weight,
+             fixed_denominator, initial, max_iter, tol, n_grid, fs) -> _Setup:
+    """Validate the inputs, build the grids and the initial controllers (see datadriven)."""
+    fs_ = plant_fs(plant, fs)
+    freqs = check_frequency_grid("freqs", freqs, fs_)
+    if freqs.size < 3:
+        raise ValueError(f"freqs must have at least 3 points, got {freqs.size}")
+    psd_in = check_psd("psd", psd, freqs.size, allow_all_zero=False)
+    psd2 = np.atleast_2d(psd_in)
+    n_modes = psd2.shape[0]
+    noise = check_psd("noise_psd", noise_psd, freqs.size, allow_scalar=True)
+    if noise.ndim == 2 and noise.shape[0] not in (1, n_modes):
+        raise ValueError(f"noise_psd must have 1 or {n_modes} rows (one per mode), "
+                         f"got shape {noise.shape}")
+    noise2 = np.broadcast_to(noise if noise.ndim else np.full(freqs.size, float(noise)),
+                             (n_modes, freqs.size))
+    order = check_int("order", order, minimum=1)
+    mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
+    stroke_weight = check_nonnegative("stroke_weight", stroke_weight)
+    max_iter = check_int("max_iter", max_iter, minimum=1)
+    tol = check_nonnegative("tol", tol)
+    n_grid = check_int("n_grid", n_grid, minimum=8)
+    if fixed_denominator is None:
+        fixed = np.array([1.0])
+    else:
+        fixed = np.trim_zeros(check_finite_array("fixed_denominator", fixed_denominator,
+                                                 ndim=1), "b")
+        if fixed.size == 0 or fixed[0] == 0:
+            raise ValueError("fixed_denominator must have a nonzero first coefficient "
+                             f"(causal, powers of z^-1), got {fixed_denominator!r}")
+        fixed = fixed / fixed[0]
+        if fixed.size - 1 > order:
+            raise ValueError(f"order must be >= the degree of fixed_denominator "
+                             f"({fixed.size - 1}), got {order}")
+
+    # Initial controllers.
+    if initial is None:
+        from aocontrol.synthesis._modal_gain import optimal_modal_gain
+
+        leak = 0.0
+        if fixed.size == 2 and -1.0 <= fixed[1] < 0.0:
+            leak = 1.0 + float(fixed[1])
+        elif fixed.size > 1:
+            logger.warning("fixed_denominator %s is not an integrator or leak factor: the "
+                           "default integrator start lies outside the parameter set",
+                           fixed.tolist())
+        # With the design grid's margin (slightly above mu) it is feasible at every step.
+        mu_start = min(mu * (1 + _MARGIN_SAFETY), 0.999)
+        init_bank = optimal_modal_gain(plant, freqs, psd2, noise2, modulus_margin=mu_start,
+                                       leak=leak, fs=fs_)
+        init = _initial_coefficients(init_bank, n_modes, fs_)
+    else:
+        init = _initial_coefficients(initial, n_modes, fs_)
+    nb0 = max(b.size for b, _ in init)
+    na0 = max(a.size for _, a in init)
+    b0s = np.array([np.pad(b, (0, nb0 - b.size)) for b, _ in init])
+    a0s = np.array([np.pad(a, (0, na0 - a.size)) for _, a in init])
+    init_bank = IIRBank(b0s, a0s, fs_)
+    unstable = [i for i in range(n_modes)
+                if not is_stable(plant, init_bank.transfer_function(i), fs=fs_)]
+    if unstable:
+        raise ValueError(f"initial controller does not stabilise the plant for modes "
+                         f"{unstable[:10]}{' ...' if len(unstable) > 10 else ''}")
+
+    # Design grid: the input grid (subsampled) plus, for a TF plant, margin-only points
+    # covering [0, fs/2] beyond it.
+    idx = _design_indices(freqs, psd2, n_grid)
+    f_h2 = freqs[idx]
+    lo, hi = freqs[0], freqs[-1]
+    if isinstance(plant, control.TransferFunction):
+        lo, hi = 0.0, fs_ / 2
+        step = (f_h2[-1] - f_h2[0]) / max(f_h2.size - 1, 1)
+        first = f_h2[f_h2 > 0][0]
+        extra = np.concatenate([np.arange(0.0, f_h2[0], step),
+                                np.geomspace(hi * 1e-5, first, 8)[:-1] if first > hi * 1e-5
+                                else [], np.arange(f_h2[-1] + step, hi, step), [hi]])
+        extra = extra[~np.isin(extra, f_h2) & (extra <= hi)]
+    else:
+        # Constraint-only points between the measured range's start and the first point.
+        first = f_h2[f_h2 > 0][0]
+        extra = np.geomspace(max(lo, first * 1e-3), first, 6)[:-1] if lo < first else []
+        extra = np.asarray(extra, dtype=float)
+    f_design = np.unique(np.concatenate([f_h2, extra]))
+    H = _interp_matrix(f_h2, freqs)
+    tw = _trapezoid_weights(freqs)
+    pos = np.searchsorted(f_design, f_h2)
+    q1 = np.zeros((n_modes, f_design.size))
+    qn = np.zeros((n_modes, f_design.size))
+    q1[:, pos] = (psd2 * tw) @ H.T
+    qn[:, pos] = (noise2 * tw) @ H.T
+    g_design = frequency_response(plant, f_design, fs_)
+    if np.any(g_design == 0):
+        raise ValueError("plant response must be nonzero on the design grid")
+    f_dense = _dense_grid(f_design, lo, hi)
+    wind_targets = np.concatenate([np.linspace(lo, hi, _N_WIND),
+                                   np.geomspace(max(lo, hi * 2e-6), hi, _N_WIND // 8)])
+    wind_index = np.unique(np.clip(np.searchsorted(f_dense, wind_targets), 0,
+                                   f_dense.size - 1))
+    ctx = _Context(plant=plant, fs=fs_, f_design=f_design, g_design=g_design, f_dense=f_dense,
+                   g_dense=frequency_response(plant, f_dense, fs_), fixed=fixed,
+                   nq=order - (fixed.size - 1), mu=mu, stroke_weight=stroke_weight,
+                   wind_index=wind_index, g_scale=float(np.median(np.abs(g_design))),
+                   plant_poly=(z_inverse_coefficients(plant)
+                               if isinstance(plant, control.TransferFunction) else None),
+                   max_iter=max_iter, tol=tol,
+                   extrapolate=True)
+
+    items = [(i, q1[i], qn[i], b0s[i], a0s[i]) for i in range(n_modes)]
+    return _Setup(plant, fs_, freqs, psd2, noise2, ctx, items, init_bank)
+
+
+def _run(ctx: _Context, items: list, n_jobs: int | None, progress: bool) -> list:
+    """Design every mode, in parallel over processes when it pays."""
+    from tqdm.auto import tqdm
+
+    n_workers = (os.cpu_count() or 1) if n_jobs is None else n_jobs
+    if n_workers < 0:
+        n_workers = max(1, (os.cpu_count() or 1) + 1 + n_workers)
+    n_workers = min(n_workers, len(items))
+    bar = tqdm(total=len(items), desc="data-driven synthesis", unit="mode",
+               disable=not progress)
+    results = []
+    try:
+        # Fixed chunks of neighbouring modes (each mode may start from the previous one's
+        # design): the result does not depend on the number of workers.
+        chunks = [items[i:i + _CHUNK] for i in range(0, len(items), _CHUNK)]
+        if n_workers <= 1:
+            for chunk in chunks:
+                results.extend(_design_chunk(ctx, chunk))
+                bar.update(len(chunk))
+        else:
+            from joblib import Parallel, delayed
+
+            gen = Parallel(n_jobs=n_workers, return_as="generator_unordered")(
+                delayed(_design_chunk)(ctx, chunk) for chunk in chunks)
+            for part in gen:
+                results.extend(part)
+                bar.update(len(part))
+    finally:
+        bar.close()
+    return sorted(results, key=lambda r: r["mode"])
+
+
+def _assemble(setup: _Setup, outcomes: list) -> DataDrivenResult:
+    """Bank, reports and predicted residuals; raises DataDrivenError if a mode failed."""
+    plant, freqs, fs, ctx = setup.plant, setup.freqs, setup.fs, setup.ctx
+    psd2, noise2, init_bank = setup.psd, setup.noise, setup.init_bank
+    n_modes = len(outcomes)
+    nb, na = ctx.nq + 1, ctx.nq + ctx.fixed.size
+    nb = max(nb, init_bank.b.shape[1])
+    na = max(na, init_bank.a.shape[1])
+    b = np.zeros((n_modes, nb))
+    a = np.zeros((n_modes, na))
+    reports, failed = [], {}
+    for r in outcomes:
+        i = r["mode"]
+        if r["error"]:
+            failed[i] = r["error"]
+            bi, ai = init_bank.b[i], init_bank.a[i]
+            reports.append(ModeReport(i, False, r["error"], np.empty(0), 0, False, np.nan,
+                                      False, 0, ""))
+        else:
+            bi, ai = r["b"], r["a"]
+            reports.append(ModeReport(i, True, "", r["history"], r["solves"], r["converged"],
+                                      r["margin"], r["stable"], r["refinements"],
+                                      r["start"]))
+        b[i, : bi.size] = bi
+        a[i, : ai.size] = ai
+    bank = IIRBank(b, a, fs)
+    var = np.trapezoid(residual_psd(plant, bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
+    var0 = np.trapezoid(residual_psd(plant, init_bank, freqs, psd2, noise2, fs=fs), freqs,
+                        axis=-1)
+    result = DataDrivenResult(bank, init_bank, tuple(reports), var, var0, ctx.f_design)
+    if failed:
+        raise DataDrivenError(failed, result)
+    logger.info("data-driven synthesis of %d modes: median %d convex solves per mode",
+                n_modes, int(np.median(result.solves)))
+    return result

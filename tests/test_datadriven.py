@@ -1,0 +1,257 @@
+"""Tests of the data-driven controller synthesis (aocontrol.synthesis._datadriven)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aocontrol.analysis import is_stable, loop_response, margins, residual_variance
+from aocontrol.controllers import Integrator
+from aocontrol.plant import frequency_response, loop_plant, measured_plant
+from aocontrol.synthesis import DataDrivenError, datadriven, optimal_modal_gain
+
+FS = 1000.0
+# Impulse responses of the real-time path and of the transfer function: same arithmetic up
+# to rounding.
+IMPULSE_ATOL = 1e-10
+# Interior-point solutions are accurate to ~1e-7 relative; the gain of a one-parameter design
+# is the minimiser of a smooth function, so it is accurate to about the square root of that.
+GAIN_RTOL = 2e-3
+# Objective values computed along two paths (solver vs numpy) agree to solver accuracy.
+OBJECTIVE_RTOL = 1e-6
+# TF vs FRD designs: same data on the design grid, the dense-grid checks differ only by the
+# FRD interpolation (exact here) -> the designs agree to the iteration's stopping tolerance.
+FRD_RTOL = 1e-3
+# A notch at a line 60x above the background lowers |S| there by far more than this factor.
+NOTCH_FACTOR = 0.3
+# Bandwidth ratio between noise levels 4 decades apart (large effect, loose bound).
+BANDWIDTH_FACTOR = 0.7
+# Modulus margin: verified on the dense grid; margins() refines on its own grid.
+MARGIN_RTOL = 1e-6
+
+
+def _grid(n: int = 201) -> np.ndarray:
+    return np.linspace(0.0, FS / 2, n)
+
+
+def _lowpass_psd(f: np.ndarray, fc: float = 15.0) -> np.ndarray:
+    """Turbulence-like PSD: flat below fc, f^-17/3 above [units^2/Hz]."""
+    return 1.0 / (1.0 + (f / fc) ** 2) ** (17 / 6)
+
+
+@pytest.fixture(scope="module")
+def plant():
+    return loop_plant(FS, 1.0)  # G = z^-2
+
+
+@pytest.fixture(scope="module")
+def basic(plant):
+    f = _grid()
+    psd = _lowpass_psd(f)
+    res = datadriven(plant, f, psd, order=4, noise_psd=1e-4, n_jobs=1, progress=False)
+    return f, psd, res
+
+
+def test_transfer_function_equals_step_impulse_response(basic):
+    # Oracle: the bank's real-time path (Direct-Form I step()) and its transfer function are
+    # the same filter, so their impulse responses agree to rounding.
+    import control
+
+    _, _, res = basic
+    bank = res.controller
+    n = 64
+    steps = bank.impulse_response(n)[:, 0]
+    _, tf_resp = control.impulse_response(bank.transfer_function(0), T=np.arange(n) / FS)
+    # python-control's discrete impulse has area 1 (amplitude 1/dt): scale by dt.
+    np.testing.assert_allclose(steps, np.ravel(tf_resp)[:n] / FS, atol=IMPULSE_ATOL)
+
+
+def test_result_is_verified_and_better_than_initial(plant, basic):
+    # Invariants: closed loop stable, modulus margin met (independent check by
+    # aocontrol.analysis.margins on its own dense grid), and the design starts from the
+    # optimal-gain integrator, so it is never worse than it.
+    f, psd, res = basic
+    rep = res.reports[0]
+    assert rep.ok and rep.stable
+    assert is_stable(plant, res.controller.transfer_function(0))
+    m = margins(plant, res.controller)
+    assert m.stable
+    assert m.modulus_margin >= 0.5 * (1 - MARGIN_RTOL)
+    assert res.residual_variance[0] < res.initial_residual_variance[0]
+    direct = residual_variance(plant, res.controller, f, psd, 1e-4)
+    np.testing.assert_allclose(res.residual_variance, direct, rtol=1e-12)
+
+
+def test_objective_history_non_increasing(basic):
+    # Oracle: the previous controller is feasible for each convexified problem, so the
+    # objective never increases (up to solver accuracy).
+    _, _, res = basic
+    hist = res.reports[0].objective_history
+    assert hist.size >= 3
+    assert np.all(np.diff(hist) <= OBJECTIVE_RTOL * hist[:-1])
+    assert hist[-1] < 0.9 * hist[0]
+
+
+@pytest.mark.parametrize("noise", [0.0, 3e-3])
+def test_objective_is_relative_residual_variance(plant, noise):
+    # Oracle: with stroke_weight = 0 and a grid no larger than n_grid (design grid = input
+    # grid, trapezoid weights), J = residual variance / initial residual variance exactly;
+    # with noise_psd = 0 this is the paper's objective (disturbance term only).
+    f = _grid(101)
+    psd = _lowpass_psd(f)
+    res = datadriven(plant, f, psd, order=3, noise_psd=noise, stroke_weight=0.0, n_grid=101,
+                     n_jobs=1, progress=False)
+    hist = res.reports[0].objective_history
+    np.testing.assert_allclose(hist[0], 1.0, rtol=OBJECTIVE_RTOL)
+    np.testing.assert_allclose(hist[-1] * res.initial_residual_variance[0],
+                               res.residual_variance[0], rtol=OBJECTIVE_RTOL)
+
+
+def test_order_one_with_integrator_factor_is_optimal_gain_integrator(plant):
+    # Oracle: K = x0 / (1 - z^-1) is the integrator; minimising the same residual as
+    # optimal_modal_gain (no stroke term, margin not active) gives the same gain.
+    f = _grid(151)
+    psd = _lowpass_psd(f, fc=5.0)
+    noise = 2e-3
+    ref = optimal_modal_gain(plant, f, psd, noise, modulus_margin=0.3)
+    start = Integrator(0.5 * ref.gain[0], fs=FS)  # away from the optimum
+    res = datadriven(plant, f, psd, order=1, noise_psd=noise, fixed_denominator=[1, -1],
+                     modulus_margin=0.3, stroke_weight=0.0, initial=start, n_jobs=1,
+                     progress=False, tol=1e-9)
+    bank = res.controller
+    np.testing.assert_allclose(bank.a[0, :2], [1.0, -1.0], atol=1e-12)
+    assert bank.b.shape[1] == 1 or np.allclose(bank.b[0, 1:], 0.0)
+    np.testing.assert_allclose(bank.b[0, 0], ref.gain[0], rtol=GAIN_RTOL)
+
+
+def test_resonance_gets_a_notch(plant):
+    # Oracle (paper, vibration case): a sharp disturbance line is rejected far better than by
+    # an integrator, whose |S| there is set by its low-pass shape.
+    f = _grid(401)
+    f_vib, width = 60.0, 0.8
+    psd = _lowpass_psd(f, fc=5.0) + 50.0 / (1.0 + ((f - f_vib) / width) ** 2)
+    res = datadriven(plant, f, psd, order=5, noise_psd=1e-4, n_jobs=1, progress=False)
+    S_dd = np.abs(loop_response(plant, res.controller, [f_vib]).sensitivity[0, 0])
+    S_int = np.abs(loop_response(plant, res.initial, [f_vib]).sensitivity[0, 0])
+    assert S_dd < NOTCH_FACTOR * S_int
+    assert res.residual_variance[0] < 0.5 * res.initial_residual_variance[0]
+
+
+def test_frd_plant_gives_the_tf_result(plant):
+    # Oracle: a measured plant that equals the TF on the design grid (pure delay: log-magnitude
+    # and unwrapped phase are linear, so the FRD interpolation is exact) gives the same design.
+    f = _grid(201)
+    psd = _lowpass_psd(f)
+    frd = measured_plant(f, frequency_response(plant, f, FS), FS)
+    kw = dict(order=3, noise_psd=1e-4, n_jobs=1, progress=False)
+    res_tf = datadriven(plant, f, psd, **kw)
+    res_frd = datadriven(frd, f, psd, **kw)
+    assert res_frd.reports[0].ok and res_frd.stable[0]
+    np.testing.assert_allclose(res_frd.residual_variance, res_tf.residual_variance,
+                               rtol=FRD_RTOL)
+    k_tf = loop_response(plant, res_tf.controller, f).controller
+    k_frd = loop_response(plant, res_frd.controller, f).controller
+    np.testing.assert_allclose(k_frd, k_tf, rtol=10 * FRD_RTOL, atol=FRD_RTOL)
+
+
+def _s_crossover(plant, controller, f):
+    """Lowest frequency [Hz] where |S| reaches 1 (rejection bandwidth)."""
+    s = np.abs(loop_response(plant, controller, f).sensitivity[0])
+    return f[np.argmax(s >= 1.0)]
+
+
+def test_noise_lowers_the_bandwidth(plant):
+    # Oracle: the noise term |T|^2 noise_psd penalises a wide band; with much more noise the
+    # optimal rejection bandwidth (|S| = 1 crossing) drops and the noise term dominates.
+    f = _grid(201)
+    psd = _lowpass_psd(f, fc=20.0)
+    dense = np.linspace(0.0, FS / 2, 5001)
+    bws = []
+    for noise in (1e-6, 1e-2):
+        res = datadriven(plant, f, psd, order=4, noise_psd=noise, n_jobs=1, progress=False)
+        bws.append(_s_crossover(plant, res.controller, dense))
+    assert bws[1] < BANDWIDTH_FACTOR * bws[0]
+
+
+def test_bank_in_parallel_matches_serial(plant):
+    # Invariant: modes are independent, so the worker processes give the serial result.
+    f = _grid(151)
+    psd = np.stack([_lowpass_psd(f, fc) for fc in (5.0, 15.0, 40.0)])
+    kw = dict(order=3, noise_psd=1e-4, progress=False)
+    serial = datadriven(plant, f, psd, n_jobs=1, **kw)
+    parallel = datadriven(plant, f, psd, n_jobs=2, **kw)
+    assert serial.controller.n_modes == 3
+    np.testing.assert_allclose(parallel.controller.b, serial.controller.b, rtol=1e-9)
+    np.testing.assert_allclose(parallel.controller.a, serial.controller.a, rtol=1e-9)
+    assert np.all(serial.residual_variance < serial.initial_residual_variance)
+
+
+def test_failing_mode_is_named_and_others_kept(plant):
+    # Mode 1 starts from an integrator with almost no modulus margin (g = 0.9 on z^-2) and
+    # must reach margin 0.9 with an integrator structure: the convexified problem around it is
+    # infeasible. Modes 0 and 2 start from a gentle integrator and succeed.
+    f = _grid(101)
+    psd = np.stack([_lowpass_psd(f)] * 3)
+    start = Integrator(np.array([0.05, 0.9, 0.05]), fs=FS)
+    with pytest.raises(DataDrivenError, match="mode 1") as info:
+        datadriven(plant, f, psd, order=1, fixed_denominator=[1, -1], modulus_margin=0.9,
+                   initial=start, n_jobs=1, progress=False)
+    err = info.value
+    assert list(err.failed) == [1]
+    assert "infeasible" in err.failed[1]
+    res = err.result
+    np.testing.assert_array_equal(res.ok, [True, False, True])
+    np.testing.assert_allclose(res.controller.b[1, 0], 0.9)  # failed mode keeps its start
+    assert res.reports[0].modulus_margin >= 0.9 * (1 - 1e-9)
+
+
+def test_initial_outside_parameter_set(plant):
+    # A leaky-integrator start is not of the form X / ((1 - z^-1) Y'): the first step leaves
+    # it, the result keeps the fixed integrator factor (a(z=1) = 0) and is verified.
+    f = _grid(151)
+    res = datadriven(plant, f, _lowpass_psd(f), order=3, fixed_denominator=[1, -1],
+                     initial=Integrator(0.3, fs=FS, leak=0.01), noise_psd=1e-4, n_jobs=1,
+                     progress=False)
+    rep = res.reports[0]
+    assert rep.ok and rep.stable and rep.modulus_margin >= 0.5
+    assert np.isfinite(rep.objective_history[0])
+    assert rep.objective_history[-1] < rep.objective_history[0]
+    np.testing.assert_allclose(res.controller.a[0].sum(), 0.0, atol=1e-12)
+
+
+def test_identical_modes_continue_from_previous_design(plant):
+    # Continuation: a mode whose PSD is the previous one's times 2 (same normalised problem)
+    # starts from that design, and is still never worse than its own initial controller.
+    f = _grid(151)
+    psd = _lowpass_psd(f)
+    res = datadriven(plant, f, np.stack([psd, 2 * psd]), order=3, noise_psd=1e-4, n_jobs=1,
+                     progress=False)
+    assert [r.start for r in res.reports] == ["initial", "previous mode"]
+    assert res.reports[1].solves < res.reports[0].solves
+    assert np.all(res.residual_variance < res.initial_residual_variance)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(psd=np.full(51, np.nan)), "psd must contain only finite"),
+        (dict(psd=-np.ones(51)), "psd must be >= 0"),
+        (dict(psd=np.zeros(51)), "psd must not be zero everywhere"),
+        (dict(freqs=np.linspace(0, 500, 51)[::-1]), "freqs must be strictly increasing"),
+        (dict(freqs=np.linspace(0, 600, 51)), "Nyquist"),
+        (dict(order=0), "order must be an integer >= 1"),
+        (dict(modulus_margin=1.0), r"modulus_margin must be in \(0.0, 1.0\)"),
+        (dict(modulus_margin=0.0), r"modulus_margin must be in \(0.0, 1.0\)"),
+        (dict(modulus_margin=1.7), "got 1.7"),
+        (dict(noise_psd=-1.0), "noise_psd must be >= 0"),
+        (dict(order=1, fixed_denominator=[1, -2, 1]), "order must be >= the degree"),
+        (dict(initial=Integrator(1.5, fs=FS)), "does not stabilise the plant for modes"),
+    ],
+)
+def test_bad_inputs_are_named(plant, kwargs, match):
+    # Oracle: each bad input is refused before any solve, with a ValueError that names the
+    # argument, the value and the expectation.
+    args = dict(freqs=np.linspace(0, 500, 51), psd=np.ones(51), n_jobs=1, progress=False)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        datadriven(plant, **args)
