@@ -129,7 +129,9 @@ def main() -> None:
     n_conv = 2 if args.quick else 4
 
     plant = loop_plant(FS, LATENCY)
-    freqs = np.linspace(0.0, FS / 2, 2049)
+    # Log-spaced at low frequency: low-order modes span decades below 1 Hz, which a linear
+    # grid does not resolve (the Wiener bound would then be unreliable and warns).
+    freqs = np.concatenate([[0.0], np.geomspace(1e-3, FS / 2, 2048)])
     psd = synthetic_turbulence_psd(freqs, n_modes, fs=FS)
     noise = float(white_noise_psd(NOISE_VAR, FS))
     print(f"{n_modes} modes, order {ORDER}, fs = {FS:g} Hz, latency {LATENCY} frame, "
