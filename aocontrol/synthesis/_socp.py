@@ -50,7 +50,9 @@ logger = logging.getLogger(__name__)
 # inaccurate solutions accepted (accept_unknown): every iterate is checked on the true,
 # non-convexified objective and constraints before it is used. No equilibration: the problem
 # is scaled by construction (Y monic, G normalised, g = s u), and it halves the IPM iterations.
-_SOLVER_OPTS = {"tol_gap_abs": 1e-6, "tol_gap_rel": 1e-5, "tol_feas": 1e-7,
+# Gap 1e-4: each convex step is only a surrogate of the true problem; measured on 6 modes it
+# saves ~35 % of the solver time and moves the final objectives by < 0.5 % either way.
+_SOLVER_OPTS = {"tol_gap_abs": 1e-5, "tol_gap_rel": 1e-4, "tol_feas": 1e-7,
                 "max_iter": 100, "presolve_enable": False, "accept_unknown": True,
                 "equilibrate_enable": False}
 # Winding constraints: Re(P conj Pc) >= _WIND_MIN |Pc|^2 keeps the phase of P within ~87 deg
