@@ -23,6 +23,8 @@ def _demo(args: argparse.Namespace) -> int:
     for name, m in res.margins.items():
         print(f"{name:34s} {str(m.stable):>6s} {m.gain_margin:7.2f} {m.phase_margin:8.1f} "
               f"{m.modulus_margin:6.3f} {m.delay_margin:7.2f} {res.residual_rms[name]:9.2f}")
+    print(f"{'physical limit (Wiener bound)':34s} {'':>6s} {'':>7s} {'':>8s} {'':>6s} {'':>7s} "
+          f"{res.wiener_rms:9.2f}")
     print(f"Rejection plot written to {res.plot_path}")
     return 0
 

@@ -1,5 +1,6 @@
-"""The main job's short demo: design controllers for one SAXO+ stage-2 mode, check margins,
-write the rejection plot.
+"""The main job's short demo: design an integrator, the optimal-gain integrator and the
+data-driven controller for one SAXO+ stage-2 mode, check margins, compare with the Wiener
+bound, write the rejection plot.
 
 Run with ``python -m aocontrol demo --output DIR`` (or ``make demo``).
 """
@@ -12,9 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aocontrol.analysis import Margins, margins, residual_variance, sensitivity
+from aocontrol.analysis import Margins, margins, residual_variance, sensitivity, wiener_bound
 from aocontrol.controllers import Integrator
+from aocontrol.disturbance import synthetic_turbulence_psd
 from aocontrol.plant import loop_plant
+from aocontrol.synthesis import datadriven, optimal_modal_gain
 
 __all__ = ["DemoResult", "run_demo"]
 
@@ -30,17 +33,13 @@ class DemoResult:
     controllers: dict
     margins: dict[str, Margins]
     residual_rms: dict[str, float]
+    wiener_rms: float
     plot_path: str
 
 
-def _demo_psd(freqs: np.ndarray) -> np.ndarray:
-    """A turbulence-like modal PSD [nm^2/Hz] (the project's model when available)."""
-    try:
-        from aocontrol.disturbance import synthetic_turbulence_psd
-    except ImportError:  # pragma: no cover - the disturbance module ships with the package
-        fc = 20.0
-        return 50.0 / (1 + (freqs / fc) ** 2) ** (17 / 12)
-    return synthetic_turbulence_psd(freqs, 10)[5]
+def _demo_psd(freqs: np.ndarray, fs: float) -> np.ndarray:
+    """Temporal PSD [nm^2/Hz] of a mid-order turbulent mode (mode 6 of the synthetic bank)."""
+    return synthetic_turbulence_psd(freqs, 10, fs=fs)[5]
 
 
 def run_demo(output: str, *, fs: float = 3000.0, latency_frames: float = 0.83,
@@ -62,24 +61,16 @@ def run_demo(output: str, *, fs: float = 3000.0, latency_frames: float = 0.83,
     from aocontrol.study.plot import plot_rejection, save_figure
 
     plant = loop_plant(fs, latency_frames)
-    freqs = np.linspace(0.0, fs / 2, 4001)
-    psd = _demo_psd(freqs)
+    # Log-spaced at low frequency so that the PSD (and the Wiener bound) are resolved.
+    freqs = np.concatenate([[0.0], np.geomspace(1e-2, fs / 2, 2000)])
+    psd = _demo_psd(freqs, fs)
     noise = float(white_noise_psd(noise_rms**2, fs))
     ctrls: dict = {"integrator g=0.5 (hand-tuned)": Integrator(0.5, fs=fs)}
-    try:
-        from aocontrol.synthesis import optimal_modal_gain
-    except ImportError:  # pragma: no cover
-        optimal_modal_gain = None
-    if optimal_modal_gain is not None:
-        ctrls["optimal-gain integrator"] = optimal_modal_gain(plant, freqs, psd, noise,
-                                                               modulus_margin=0.5)
-    try:
-        from aocontrol.synthesis import datadriven
-    except ImportError:  # pragma: no cover
-        datadriven = None
-    if datadriven is not None:
-        ctrls["data-driven (order 5)"] = _controller_of(
-            datadriven(plant, freqs, psd, noise_psd=noise, order=5, progress=False))
+    ctrls["optimal-gain integrator"] = optimal_modal_gain(plant, freqs, psd, noise,
+                                                           modulus_margin=0.5)
+    ctrls["data-driven (order 5)"] = datadriven(plant, freqs, psd, noise_psd=noise, order=5,
+                                                progress=False, n_jobs=1).controller
+    bound = float(wiener_bound(plant, freqs, psd, noise))
     mar = {k: margins(plant, c) for k, c in ctrls.items()}
     rms = {k: float(np.sqrt(np.atleast_1d(residual_variance(plant, c, freqs, psd, noise))[0]))
            for k, c in ctrls.items()}
@@ -88,9 +79,6 @@ def run_demo(output: str, *, fs: float = 3000.0, latency_frames: float = 0.83,
                          psd=psd, title=f"rejection, fs = {fs:g} Hz, latency {latency_frames} "
                                          "frame")
     path = save_figure(fig, os.path.join(output, "rejection.png"))
-    return DemoResult(fs, latency_frames, ctrls, mar, rms, path)
+    return DemoResult(fs, latency_frames, ctrls, mar, rms, float(np.sqrt(bound)), path)
 
 
-def _controller_of(result: object) -> object:
-    """The controller bank of a synthesis result (or the bank itself)."""
-    return getattr(result, "controller", result)

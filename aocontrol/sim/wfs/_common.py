@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from aocontrol._validation import check_finite_array
+
 
 def opd_to_phase(opd: np.ndarray, wavelength: float) -> np.ndarray:
     """Phase [rad] at ``wavelength`` [m] of an optical path difference [nm]."""
@@ -22,3 +24,11 @@ def bin_matrix(n_in: int, n_out: int) -> np.ndarray:
     lo = np.maximum(edges[:-1, None], np.arange(n_in)[None, :])
     hi = np.minimum(edges[1:, None], np.arange(n_in)[None, :] + 1.0)
     return np.clip(hi - lo, 0.0, None)
+
+
+def check_opd(opd: object, n_pix: int) -> np.ndarray:
+    """Finite OPD maps [nm] of shape ``(..., n_pix, n_pix)``, or a clear ``ValueError``."""
+    opd = check_finite_array("opd", opd)
+    if opd.shape[-2:] != (n_pix, n_pix):
+        raise ValueError(f"opd must end with shape ({n_pix}, {n_pix}), got {opd.shape}")
+    return opd

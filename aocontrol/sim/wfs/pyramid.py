@@ -56,7 +56,7 @@ from aocontrol._validation import (
 )
 from aocontrol.sim.noise import add_detector_noise
 from aocontrol.sim.pupil import Pupil
-from aocontrol.sim.wfs._common import bin_matrix, opd_to_phase
+from aocontrol.sim.wfs._common import bin_matrix, check_opd, opd_to_phase
 
 __all__ = ["PyramidWFS", "default_modulation_points"]
 
@@ -396,10 +396,8 @@ class PyramidWFS:
             Fraction of the incoming flux on each detector pixel (multiply by the photons per
             frame for photo-electrons); quadrants ``[[I0, I1], [I2, I3]]``.
         """
-        opd = check_finite_array("opd", opd)
         n_pix = self.pupil.n_pix
-        if opd.shape[-2:] != (n_pix, n_pix):
-            raise ValueError(f"opd must end with shape ({n_pix}, {n_pix}), got {opd.shape}")
+        opd = check_opd(opd, n_pix)
         lead = opd.shape[:-2]
         phase = opd_to_phase(opd.reshape(-1, n_pix, n_pix), self.wavelength)
         return self._frames(phase).reshape(*lead, *self.frame_shape)

@@ -29,10 +29,10 @@ import numpy as np
 import scipy.fft
 import scipy.sparse
 
-from aocontrol._validation import check_finite_array, check_in_range, check_int, check_positive
+from aocontrol._validation import check_in_range, check_int, check_positive
 from aocontrol.sim.noise import add_detector_noise
 from aocontrol.sim.pupil import Pupil
-from aocontrol.sim.wfs._common import bin_matrix, opd_to_phase
+from aocontrol.sim.wfs._common import bin_matrix, check_opd, opd_to_phase
 
 __all__ = ["ShackHartmannWFS"]
 
@@ -197,11 +197,7 @@ class ShackHartmannWFS:
 
     # ------------------------------------------------------------------ public
     def _check_opd(self, opd: np.ndarray) -> np.ndarray:
-        opd = check_finite_array("opd", opd)
-        n_pix = self.pupil.n_pix
-        if opd.shape[-2:] != (n_pix, n_pix):
-            raise ValueError(f"opd must end with shape ({n_pix}, {n_pix}), got {opd.shape}")
-        return opd
+        return check_opd(opd, self.pupil.n_pix)
 
     def signals(self, opd: np.ndarray) -> np.ndarray:
         """Noise-free signals ``(..., n_signals)`` [nm of OPD across a subaperture]."""
