@@ -78,8 +78,9 @@ def check_int(name: str, value: object, *, minimum: int | None = None) -> int:
     return value
 
 
-def check_finite_array(name: str, value: object, *, ndim: int | tuple[int, ...] | None = None,
-                       dtype: type = float) -> np.ndarray:
+def check_finite_array(
+    name: str, value: object, *, ndim: int | tuple[int, ...] | None = None, dtype: type = float
+) -> np.ndarray:
     """Return ``value`` as an array, requiring finite entries (and ``ndim`` if given)."""
     try:
         arr = np.asarray(value, dtype=dtype)
@@ -98,8 +99,9 @@ def check_finite_array(name: str, value: object, *, ndim: int | tuple[int, ...] 
     return arr
 
 
-def check_frequency_grid(name: str, freqs: object, fs: float, *,
-                         allow_zero: bool = True) -> np.ndarray:
+def check_frequency_grid(
+    name: str, freqs: object, fs: float, *, allow_zero: bool = True
+) -> np.ndarray:
     """Return a 1-D, strictly increasing frequency grid in [0, fs/2] [Hz].
 
     Raises
@@ -128,8 +130,9 @@ def check_frequency_grid(name: str, freqs: object, fs: float, *,
     return arr
 
 
-def check_psd(name: str, psd: object, n_freqs: int, *, allow_scalar: bool = False,
-              allow_all_zero: bool = True) -> np.ndarray:
+def check_psd(
+    name: str, psd: object, n_freqs: int, *, allow_scalar: bool = False, allow_all_zero: bool = True
+) -> np.ndarray:
     """Return a one-sided PSD [units^2/Hz] of shape ``(n_freqs,)`` or ``(n_modes, n_freqs)``.
 
     A scalar (white PSD) is accepted when ``allow_scalar`` and returned as a 0-d array.

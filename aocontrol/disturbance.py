@@ -70,8 +70,11 @@ __all__ = [
 ]
 
 # von Karman / Kolmogorov phase-spectrum constant: c r0^(-5/3) k^(-11/3), k in cycles/m.
-_VK_CONSTANT = (special.gamma(11 / 6) ** 2 / (2 * np.pi ** (11 / 3))
-                * (24 / 5 * special.gamma(6 / 5)) ** (5 / 6))
+_VK_CONSTANT = (
+    special.gamma(11 / 6) ** 2
+    / (2 * np.pi ** (11 / 3))
+    * (24 / 5 * special.gamma(6 / 5)) ** (5 / 6)
+)
 # Conan et al. (1995) cut-off: f_c = _CUTOFF_FACTOR (n + 1) V / D.
 _CUTOFF_FACTOR = 0.3
 # f_L = _TILT_OUTER_FACTOR V / L0, see the module docstring.
@@ -102,8 +105,14 @@ def radial_orders(n_modes: int) -> np.ndarray:
 def _noll_kolmogorov(n: np.ndarray) -> np.ndarray:
     """Noll's Kolmogorov variance per mode of radial order ``n`` [rad^2 per (D/r0)^(5/3)]."""
     n = np.asarray(n, dtype=float)
-    const = (8 * np.pi * _VK_CONSTANT * np.pi ** (5 / 3) * special.gamma(14 / 3)
-             / (2 ** (14 / 3) * special.gamma(17 / 6) ** 2))
+    const = (
+        8
+        * np.pi
+        * _VK_CONSTANT
+        * np.pi ** (5 / 3)
+        * special.gamma(14 / 3)
+        / (2 ** (14 / 3) * special.gamma(17 / 6) ** 2)
+    )
     return const * (n + 1) * np.exp(special.gammaln(n - 5 / 6) - special.gammaln(n + 23 / 6))
 
 
@@ -128,8 +137,12 @@ def _vk_correction_one(n: int, x0: float) -> float:
     # Log grid through the steep part of the kernel (x <~ 8 max(1, x0)), then linear steps of
     # 0.05 (60 per period of J^2): relative error ~1e-5 against adaptive quadrature.
     x_mid = 8.0 * max(1.0, x0)
-    x = np.concatenate([np.geomspace(eps, x_mid, 3000, endpoint=False),
-                        np.linspace(x_mid, x_hi, int((x_hi - x_mid) / 0.05) + 1)])
+    x = np.concatenate(
+        [
+            np.geomspace(eps, x_mid, 3000, endpoint=False),
+            np.linspace(x_mid, x_hi, int((x_hi - x_mid) / 0.05) + 1),
+        ]
+    )
     diff_kernel = (x * x + x0 * x0) ** (-11 / 6) - x ** (-11 / 3)
     val = np.trapezoid(diff_kernel * special.jv(n + 1, x) ** 2 / x, x)
     # Kolmogorov part on [0, eps]: J_{n+1}(x) ~ (x/2)^(n+1)/(n+1)!
@@ -138,8 +151,14 @@ def _vk_correction_one(n: int, x0: float) -> float:
     return float(8 * np.pi * _VK_CONSTANT * np.pi ** (5 / 3) * (n + 1) * (val - small))
 
 
-def modal_variances(n_modes: int, *, diameter: float = 8.0, r0: float = 0.15,
-                    L0: float = 25.0, wavelength_nm: float = 500.0) -> np.ndarray:
+def modal_variances(
+    n_modes: int,
+    *,
+    diameter: float = 8.0,
+    r0: float = 0.15,
+    L0: float = 25.0,
+    wavelength_nm: float = 500.0,
+) -> np.ndarray:
     """Turbulent variance of each mode [nm^2], KL-like ordering, shape ``(n_modes,)``.
 
     Zernike variances per radial order (Noll 1976), von Karman corrected for the outer scale
@@ -186,8 +205,11 @@ def modal_variances(n_modes: int, *, diameter: float = 8.0, r0: float = 0.15,
 
 
 def _check_outer_scale(L0: object) -> float:
-    if isinstance(L0, (int, float, np.floating)) and not isinstance(L0, bool) \
-            and float(L0) == np.inf:
+    if (
+        isinstance(L0, (int, float, np.floating))
+        and not isinstance(L0, bool)
+        and float(L0) == np.inf
+    ):
         return np.inf
     return check_positive("L0", L0)
 
@@ -196,8 +218,8 @@ def _shape(x: np.ndarray, tilt: bool, x_l: float, p: float) -> np.ndarray:
     """Unnormalised broken power law ``h(x)``, ``x = f / f_c`` (see module docstring)."""
     if tilt:
         with np.errstate(divide="ignore"):
-            return (x * x + x_l * x_l) ** (-1 / 3) * (1 + x ** p) ** (-5 / p)
-    return (1 + x ** p) ** (-17 / (3 * p))
+            return (x * x + x_l * x_l) ** (-1 / 3) * (1 + x**p) ** (-5 / p)
+    return (1 + x**p) ** (-17 / (3 * p))
 
 
 def _shape_integral(tilt: bool, x_l: float, p: float) -> float:
@@ -210,16 +232,30 @@ def _shape_integral(tilt: bool, x_l: float, p: float) -> float:
     total = 0.0
     for lo, hi in zip(pieces[:-1], pieces[1:], strict=True):
         if hi > lo:
-            val, _ = integrate.quad(lambda t: float(_shape(np.array(t), True, x_l, p)), lo,
-                                    hi, limit=200, epsabs=0.0, epsrel=1e-11)
+            val, _ = integrate.quad(
+                lambda t: float(_shape(np.array(t), True, x_l, p)),
+                lo,
+                hi,
+                limit=200,
+                epsabs=0.0,
+                epsrel=1e-11,
+            )
             total += val
     return total
 
 
-def synthetic_turbulence_psd(freqs: object, n_modes: int, *, diameter: float = 8.0,
-                             wind_speed: float = 10.0, r0: float = 0.15, L0: float = 25.0,
-                             wavelength_nm: float = 500.0, sharpness: float = 4.0,
-                             fs: float | None = None) -> np.ndarray:
+def synthetic_turbulence_psd(
+    freqs: object,
+    n_modes: int,
+    *,
+    diameter: float = 8.0,
+    wind_speed: float = 10.0,
+    r0: float = 0.15,
+    L0: float = 25.0,
+    wavelength_nm: float = 500.0,
+    sharpness: float = 4.0,
+    fs: float | None = None,
+) -> np.ndarray:
     """Turbulence-like modal temporal PSDs [nm^2/Hz], one-sided, shape ``(n_modes, n_freqs)``.
 
     Mode ``j`` of radial order ``n`` (KL-like ordering, :func:`radial_orders`) has the
@@ -284,10 +320,13 @@ def synthetic_turbulence_psd(freqs: object, n_modes: int, *, diameter: float = 8
         fs = check_positive("fs", fs)
         freqs = check_frequency_grid("freqs", freqs, fs)
     if np.isinf(L0) and freqs[0] == 0.0:
-        raise ValueError("freqs must be > 0 Hz when L0 = inf (the Kolmogorov tip/tilt PSD "
-                         f"diverges at 0), got freqs[0]={freqs[0]!r}")
-    variances = modal_variances(n_modes, diameter=diameter, r0=r0, L0=L0,
-                                wavelength_nm=wavelength_nm)
+        raise ValueError(
+            "freqs must be > 0 Hz when L0 = inf (the Kolmogorov tip/tilt PSD "
+            f"diverges at 0), got freqs[0]={freqs[0]!r}"
+        )
+    variances = modal_variances(
+        n_modes, diameter=diameter, r0=r0, L0=L0, wavelength_nm=wavelength_nm
+    )
     orders = radial_orders(n_modes)
     unique = np.unique(orders)
     f_l = 0.0 if np.isinf(L0) else _TILT_OUTER_FACTOR * wind_speed / L0
@@ -332,8 +371,9 @@ def resonator_ar2(frequency: float, damping: float, fs: float) -> tuple[float, f
     return float(2 * r * np.cos(theta)), float(-r * r)
 
 
-def vibration_psd(freqs: object, frequency: float, variance: float, damping: float, *,
-                  fs: float | None = None) -> np.ndarray:
+def vibration_psd(
+    freqs: object, frequency: float, variance: float, damping: float, *, fs: float | None = None
+) -> np.ndarray:
     """One-sided PSD [units^2/Hz] of a vibration: a white-noise-driven damped resonator.
 
     Continuous (``fs`` omitted): the second-order resonator ``1/(s^2 + 2 zeta w0 s + w0^2)``,
@@ -382,7 +422,7 @@ def vibration_psd(freqs: object, frequency: float, variance: float, damping: flo
         f0 = check_positive("frequency", frequency)
         freqs = check_frequency_grid("freqs", freqs, np.inf)
         den = (f0 * f0 - freqs * freqs) ** 2 + (2 * zeta * f0 * freqs) ** 2
-        return variance * 4 * zeta * f0 ** 3 / (np.pi * den)
+        return variance * 4 * zeta * f0**3 / (np.pi * den)
     fs = check_positive("fs", fs)
     freqs = check_frequency_grid("freqs", freqs, fs)
     a1, a2 = resonator_ar2(frequency, zeta, fs)
@@ -404,6 +444,7 @@ def psd_variance(freqs: object, psd: object) -> np.ndarray:
     freqs = check_frequency_grid("freqs", freqs, np.inf)
     psd = check_finite_array("psd", psd)
     if psd.shape[-1:] != freqs.shape:
-        raise ValueError(f"psd must have {freqs.size} values along its last axis, "
-                         f"got shape {psd.shape}")
+        raise ValueError(
+            f"psd must have {freqs.size} values along its last axis, got shape {psd.shape}"
+        )
     return np.trapezoid(psd, freqs, axis=-1)

@@ -122,8 +122,10 @@ def loop_plant(fs: float, latency_frames: float) -> control.TransferFunction:
     return tf_from_z_inverse(b, [1.0], 1.0 / fs)
 
 
-def plant_delay_frames(plant: control.TransferFunction | control.FRD, fs: float | None = None,
-                       ) -> float:
+def plant_delay_frames(
+    plant: control.TransferFunction | control.FRD,
+    fs: float | None = None,
+) -> float:
     """Low-frequency group delay of a plant [frames] (``1 + latency_frames`` for loop_plant)."""
     fs_ = plant_fs(plant, fs)
     f0 = fs_ * 1e-4
@@ -150,9 +152,7 @@ def measured_plant(freqs: object, response: object, fs: float) -> control.FRD:
     freqs = check_frequency_grid("freqs", freqs, fs)
     resp = check_finite_array("response", response, ndim=1, dtype=complex)
     if resp.shape != freqs.shape:
-        raise ValueError(
-            f"response must have the shape of freqs {freqs.shape}, got {resp.shape}"
-        )
+        raise ValueError(f"response must have the shape of freqs {freqs.shape}, got {resp.shape}")
     return control.FRD(resp, 2 * np.pi * freqs, dt=1.0 / fs)
 
 
@@ -172,8 +172,11 @@ def plant_fs(plant: object, fs: float | None = None) -> float:
     has_dt = dt not in (None, 0, True, False) and np.isfinite(float(dt)) and float(dt) > 0
     if fs is None:
         if not has_dt:
-            kind = "FRD (python-control drops dt on FRD arithmetic)" if isinstance(
-                plant, control.FRD) else "system"
+            kind = (
+                "FRD (python-control drops dt on FRD arithmetic)"
+                if isinstance(plant, control.FRD)
+                else "system"
+            )
             raise ValueError(
                 f"plant must be discrete-time with dt = 1/fs > 0, got dt={dt!r} for a {kind}; "
                 "pass fs explicitly"
@@ -193,8 +196,7 @@ def check_plant(plant: object) -> None:
     """Raise ``TypeError``/``ValueError`` unless ``plant`` is a SISO TF or FRD."""
     if not isinstance(plant, (control.TransferFunction, control.FRD)):
         raise TypeError(
-            "plant must be a control.TransferFunction or control.FRD, "
-            f"got {type(plant).__name__}"
+            f"plant must be a control.TransferFunction or control.FRD, got {type(plant).__name__}"
         )
     if plant.ninputs != 1 or plant.noutputs != 1:
         raise ValueError(f"plant must be SISO, got {plant.noutputs}x{plant.ninputs}")

@@ -70,13 +70,24 @@ def main() -> None:
     layers = scale_to_tau0(eso_median_profile(4), r0, tau0)
     atm = Atmosphere(pupil, r0, layers, fs, rng=1)
     camera = ScienceCamera(pupil, field_of_view=20.0)
-    stage = Stage(Integrator(0.5, fs=fs, n_modes=args.modes), LinearModalSensor(1.0, 1.0),
-                  latency, name="stage 2")
+    stage = Stage(
+        Integrator(0.5, fs=fs, n_modes=args.modes),
+        LinearModalSensor(1.0, 1.0),
+        latency,
+        name="stage 2",
+    )
 
     t0 = time.perf_counter()
-    res = run_loop(stage, TurbulenceSource(atm, basis), args.frames, rng=2,
-                   science=camera.long_exposure(), basis=basis,
-                   science_every=args.science_every, record=("measurements", "commands"))
+    res = run_loop(
+        stage,
+        TurbulenceSource(atm, basis),
+        args.frames,
+        rng=2,
+        science=camera.long_exposure(),
+        basis=basis,
+        science_every=args.science_every,
+        record=("measurements", "commands"),
+    )
     t_run = time.perf_counter() - t0
 
     # Parts measured separately in the same run (fresh atmosphere, same sizes).
@@ -89,7 +100,7 @@ def main() -> None:
     t_proj = (time.perf_counter() - t0) * args.frames / 1000
     t0 = time.perf_counter()
     exp = camera.long_exposure()
-    exp.add(pupil.to_map(maps[::args.science_every] - basis.synthesize(d[::args.science_every])))
+    exp.add(pupil.to_map(maps[:: args.science_every] - basis.synthesize(d[:: args.science_every])))
     t_sci = (time.perf_counter() - t0) * args.frames / 1000
 
     n_ref = 300
@@ -100,24 +111,35 @@ def main() -> None:
     from aocontrol.sim.loop import ModalTimeSeries
 
     t0 = time.perf_counter()
-    run_loop(Stage(Integrator(gains, fs=fs), latency_frames=latency), ModalTimeSeries(d),
-             1000, record=())
+    run_loop(
+        Stage(Integrator(gains, fs=fs), latency_frames=latency), ModalTimeSeries(d), 1000, record=()
+    )
     t_vec = (time.perf_counter() - t0) / 1000
 
     sci = res.science
-    print(f"single-stage fast loop: {args.modes} modes, {args.frames} frames at {fs:g} Hz "
-          f"({args.frames / fs:g} s), pupil {args.n_pix}x{args.n_pix}, "
-          f"PSF every {args.science_every} frames")
+    print(
+        f"single-stage fast loop: {args.modes} modes, {args.frames} frames at {fs:g} Hz "
+        f"({args.frames / fs:g} s), pupil {args.n_pix}x{args.n_pix}, "
+        f"PSF every {args.science_every} frames"
+    )
     print(f"  calibration (DM + {args.modes} KL modes): {t_cal:7.2f} s")
-    print(f"  closed-loop run incl. atmosphere, science: {t_run:7.2f} s "
-          f"({args.frames / t_run:,.0f} frames/s)")
-    print(f"    of which (measured separately, scaled to the run): atmosphere {t_atm:.2f} s, "
-          f"projection {t_proj:.2f} s, science {t_sci:.2f} s")
+    print(
+        f"  closed-loop run incl. atmosphere, science: {t_run:7.2f} s "
+        f"({args.frames / t_run:,.0f} frames/s)"
+    )
+    print(
+        f"    of which (measured separately, scaled to the run): atmosphere {t_atm:.2f} s, "
+        f"projection {t_proj:.2f} s, science {t_sci:.2f} s"
+    )
     print(f"  run time / goal ({GOAL_SECONDS:g} s): {t_run / GOAL_SECONDS:.2f}")
-    print(f"  vectorised loop vs per-mode Python loop: {t_naive / t_vec:,.0f}x faster "
-          f"({t_vec * 1e6:.0f} us/frame vs {t_naive * 1e3:.1f} ms/frame)")
-    print(f"  Strehl @1.65um: {sci.strehl:.4f}, mean contrast 4-6 l/D: "
-          f"{sci.mean_contrast_4_6:.3e}, residual {res.residual_rms:.1f} nm RMS (modal)")
+    print(
+        f"  vectorised loop vs per-mode Python loop: {t_naive / t_vec:,.0f}x faster "
+        f"({t_vec * 1e6:.0f} us/frame vs {t_naive * 1e3:.1f} ms/frame)"
+    )
+    print(
+        f"  Strehl @1.65um: {sci.strehl:.4f}, mean contrast 4-6 l/D: "
+        f"{sci.mean_contrast_4_6:.3e}, residual {res.residual_rms:.1f} nm RMS (modal)"
+    )
 
 
 if __name__ == "__main__":

@@ -47,11 +47,18 @@ def _peak_rss_mb() -> float:
 
 def _config(args: argparse.Namespace) -> dict:
     if args.quick:
-        return dict(n_pix=32, n_subap=16, n_act=12, n_modes=60, modulation=2.0, frames=30,
-                    n_points=None)
-    return dict(n_pix=args.n_pix, n_subap=args.n_subap, n_act=args.n_actuators,
-                n_modes=args.n_modes, modulation=args.modulation, frames=args.frames,
-                n_points=None)
+        return dict(
+            n_pix=32, n_subap=16, n_act=12, n_modes=60, modulation=2.0, frames=30, n_points=None
+        )
+    return dict(
+        n_pix=args.n_pix,
+        n_subap=args.n_subap,
+        n_act=args.n_actuators,
+        n_modes=args.n_modes,
+        modulation=args.modulation,
+        frames=args.frames,
+        n_points=None,
+    )
 
 
 # --------------------------------------------------------------------------------- ours
@@ -68,8 +75,13 @@ def run_ours(args: argparse.Namespace) -> dict:
     fs, gain, wavelength = 3000.0, 0.4, 1.215e-6  # OOPAO's J band wavelength
     pupil = vlt_pupil(c["n_pix"])
     t0 = time.perf_counter()
-    wfs = PyramidWFS(pupil, wavelength, n_subapertures=c["n_subap"], modulation=c["modulation"],
-                     workers=args.threads)
+    wfs = PyramidWFS(
+        pupil,
+        wavelength,
+        n_subapertures=c["n_subap"],
+        modulation=c["modulation"],
+        workers=args.threads,
+    )
     _ = wfs.reference_signals
     t_wfs = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -111,15 +123,28 @@ def run_ours(args: argparse.Namespace) -> dict:
         wfs.signals(opd)
     t_wfs_only = (time.perf_counter() - t0) / n_frames
     c_wfs_only = (time.process_time() - c0) / n_frames
-    return dict(code="aocontrol", loop_fps=n_frames / t_loop, wfs_fps=1.0 / t_wfs_only,
-                loop_fps_cpu=n_frames / c_loop, wfs_fps_cpu=1.0 / c_wfs_only,
-                t_setup_wfs=t_wfs, t_modes=t_modes, t_imat=t_imat,
-                t_imat_derivative=t_imat_derivative, imat_derivative_rel_diff=imat_rel_diff,
-                t_calibration=t_modes + t_imat, peak_mb_calibration=mem_cal,
-                peak_mb=_peak_rss_mb(), residual_nm=float(np.mean(res_rms[-10:])),
-                turbulence_nm=float(np.std(turb)), n_modes=int(basis.n_modes),
-                n_signals=int(wfs.n_signals), n_fft=wfs.n_fft, n_points=wfs.n_points,
-                push_pull=True)
+    return dict(
+        code="aocontrol",
+        loop_fps=n_frames / t_loop,
+        wfs_fps=1.0 / t_wfs_only,
+        loop_fps_cpu=n_frames / c_loop,
+        wfs_fps_cpu=1.0 / c_wfs_only,
+        t_setup_wfs=t_wfs,
+        t_modes=t_modes,
+        t_imat=t_imat,
+        t_imat_derivative=t_imat_derivative,
+        imat_derivative_rel_diff=imat_rel_diff,
+        t_calibration=t_modes + t_imat,
+        peak_mb_calibration=mem_cal,
+        peak_mb=_peak_rss_mb(),
+        residual_nm=float(np.mean(res_rms[-10:])),
+        turbulence_nm=float(np.std(turb)),
+        n_modes=int(basis.n_modes),
+        n_signals=int(wfs.n_signals),
+        n_fft=wfs.n_fft,
+        n_points=wfs.n_points,
+        push_pull=True,
+    )
 
 
 # --------------------------------------------------------------------------------- OOPAO
@@ -142,31 +167,56 @@ def run_oopao(args: argparse.Namespace) -> dict:
 
     c = _config(args)
     fs, gain = 3000.0, 0.4
-    tel = Telescope(resolution=c["n_pix"], diameter=8.0, samplingTime=1 / fs,
-                    centralObstruction=0.14)
+    tel = Telescope(
+        resolution=c["n_pix"], diameter=8.0, samplingTime=1 / fs, centralObstruction=0.14
+    )
     ngs = Source(optBand="J", magnitude=8, display_properties=False)
     ngs * tel
-    atm = Atmosphere(telescope=tel, r0=0.15, L0=25, windSpeed=[10], fractionalR0=[1],
-                     windDirection=[0], altitude=[0])
+    atm = Atmosphere(
+        telescope=tel,
+        r0=0.15,
+        L0=25,
+        windSpeed=[10],
+        fractionalR0=[1],
+        windDirection=[0],
+        altitude=[0],
+    )
     atm.initializeAtmosphere(tel)
     tel.resetOPD()
     n_points = 4 * int(np.ceil(np.pi * c["modulation"]))  # same as aocontrol's default
     t0 = time.perf_counter()
-    wfs = Pyramid(nSubap=c["n_subap"], telescope=tel, modulation=c["modulation"],
-                  lightRatio=0.5, n_pix_separation=2, postProcessing="slopesMaps",
-                  nTheta_user_defined=n_points)
+    wfs = Pyramid(
+        nSubap=c["n_subap"],
+        telescope=tel,
+        modulation=c["modulation"],
+        lightRatio=0.5,
+        n_pix_separation=2,
+        postProcessing="slopesMaps",
+        nTheta_user_defined=n_points,
+    )
     wfs.nJobs = args.threads
     t_wfs = time.perf_counter() - t0
     t0 = time.perf_counter()
-    dm = DeformableMirror(telescope=tel, nSubap=c["n_act"] - 1, mechCoupling=0.3,
-                          print_dm_properties=False)
+    dm = DeformableMirror(
+        telescope=tel, nSubap=c["n_act"] - 1, mechCoupling=0.3, print_dm_properties=False
+    )
     m2c = compute_KL_basis(tel, atm, dm)[:, : c["n_modes"]]
     t_modes = time.perf_counter() - t0
     tel.resetOPD()
     ngs * tel
     t0 = time.perf_counter()
-    calib = InteractionMatrix(ngs, tel, dm, wfs, m2c, stroke=1e-9, nMeasurements=8,
-                              single_pass=False, invert=True, display=False)
+    calib = InteractionMatrix(
+        ngs,
+        tel,
+        dm,
+        wfs,
+        m2c,
+        stroke=1e-9,
+        nMeasurements=8,
+        single_pass=False,
+        invert=True,
+        display=False,
+    )
     t_imat = time.perf_counter() - t0
     mem_cal = _peak_rss_mb()
     recon = calib.M
@@ -197,28 +247,40 @@ def run_oopao(args: argparse.Namespace) -> dict:
         wfs.wfs_measure(phase_in=phase)
     t_wfs_only = (time.perf_counter() - t0) / n_frames
     c_wfs_only = (time.process_time() - c0) / n_frames
-    return dict(code="OOPAO", loop_fps=n_frames / t_loop, wfs_fps=1.0 / t_wfs_only,
-                loop_fps_cpu=n_frames / c_loop, wfs_fps_cpu=1.0 / c_wfs_only,
-                t_setup_wfs=t_wfs, t_modes=t_modes, t_imat=t_imat,
-                t_calibration=t_modes + t_imat, peak_mb_calibration=mem_cal,
-                peak_mb=_peak_rss_mb(), residual_nm=float(np.mean(res_rms[-10:])),
-                turbulence_nm=float(np.std(turb) * 1e9), n_modes=int(m2c.shape[1]),
-                n_signals=int(wfs.nSignal), n_fft=int(wfs.resolution), n_points=int(wfs.nTheta),
-                push_pull=True, precision=int(os.environ["OOPAO_PRECISION"]))
+    return dict(
+        code="OOPAO",
+        loop_fps=n_frames / t_loop,
+        wfs_fps=1.0 / t_wfs_only,
+        loop_fps_cpu=n_frames / c_loop,
+        wfs_fps_cpu=1.0 / c_wfs_only,
+        t_setup_wfs=t_wfs,
+        t_modes=t_modes,
+        t_imat=t_imat,
+        t_calibration=t_modes + t_imat,
+        peak_mb_calibration=mem_cal,
+        peak_mb=_peak_rss_mb(),
+        residual_nm=float(np.mean(res_rms[-10:])),
+        turbulence_nm=float(np.std(turb) * 1e9),
+        n_modes=int(m2c.shape[1]),
+        n_signals=int(wfs.nSignal),
+        n_fft=int(wfs.resolution),
+        n_points=int(wfs.nTheta),
+        push_pull=True,
+        precision=int(os.environ["OOPAO_PRECISION"]),
+    )
 
 
 # --------------------------------------------------------------------------------- driver
 def _run_part(python: str, part: str, argv: list[str]) -> dict | str:
     env = dict(os.environ)
     threads = argv[argv.index("--threads") + 1] if "--threads" in argv else "1"
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-                "NUMBA_NUM_THREADS"):
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         env[var] = threads
     cmd = [python, os.path.abspath(__file__), "--part", part, *argv]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
     for line in proc.stdout.splitlines()[::-1]:
         if line.startswith(RESULT_TAG):
-            return json.loads(line[len(RESULT_TAG):])
+            return json.loads(line[len(RESULT_TAG) :])
     tail = (proc.stderr or proc.stdout).strip().splitlines()[-15:]
     return f"{part} part failed (exit {proc.returncode}):\n" + "\n".join(tail)
 
@@ -250,19 +312,24 @@ def _table(ours: dict, ref: dict | None) -> str:
         else:
             ratio = f"{b / a:9.2f}x"
         out.append(f"{label:34s}{a:12.3g}{b:12.3g}{ratio:>10s}")
-    out.append(f"aocontrol interaction matrix by exact derivative (one propagation per mode): "
-               f"{ours['t_imat_derivative']:.3g} s, relative difference from push-pull "
-               f"{ours['imat_derivative_rel_diff']:.1e}")
-    out.append("ratio: how many times faster / smaller aocontrol is (OOPAO / aocontrol for "
-               "times and memory, aocontrol / OOPAO for rates)")
+    out.append(
+        f"aocontrol interaction matrix by exact derivative (one propagation per mode): "
+        f"{ours['t_imat_derivative']:.3g} s, relative difference from push-pull "
+        f"{ours['imat_derivative_rel_diff']:.1e}"
+    )
+    out.append(
+        "ratio: how many times faster / smaller aocontrol is (OOPAO / aocontrol for "
+        "times and memory, aocontrol / OOPAO for rates)"
+    )
     return "\n".join(out)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--part", choices=["all", "ours", "oopao"], default="all")
-    parser.add_argument("--oopao-python", default=None,
-                        help="interpreter of a virtualenv with OOPAO installed")
+    parser.add_argument(
+        "--oopao-python", default=None, help="interpreter of a virtualenv with OOPAO installed"
+    )
     parser.add_argument("--oopao-precision", type=int, choices=[32, 64], default=64)
     parser.add_argument("--n-pix", type=int, default=80)
     parser.add_argument("--n-subap", type=int, default=40)
@@ -284,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
     passthrough = [a for a in raw if a not in ("--part", "all")]
     if "--oopao-python" in passthrough:
         i = passthrough.index("--oopao-python")
-        del passthrough[i:i + 2]
+        del passthrough[i : i + 2]
     print(f"configuration: {_config(args)}, threads={args.threads}", flush=True)
     ours = _run_part(sys.executable, "ours", passthrough)
     if isinstance(ours, str):
@@ -292,8 +359,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     ref = None
     if args.oopao_python is None:
-        print("OOPAO part skipped: pass --oopao-python /path/to/venv/bin/python (a virtualenv "
-              "with `pip install oopao`) to measure it side by side.")
+        print(
+            "OOPAO part skipped: pass --oopao-python /path/to/venv/bin/python (a virtualenv "
+            "with `pip install oopao`) to measure it side by side."
+        )
     elif not os.path.exists(args.oopao_python):
         print(f"OOPAO part skipped: {args.oopao_python} does not exist.")
     else:

@@ -78,17 +78,30 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
         Y = grid.AY @ v + grid.F
         GX = grid.AX @ v
         g = cp.multiply(s, u)
-        rows = [2 * cp.multiply(r1, cp.real(Y)), 2 * cp.multiply(r1, cp.imag(Y)),
-                2 * cp.multiply(rn, cp.real(GX)), 2 * cp.multiply(rn, cp.imag(GX)), g - phi]
-        cons = [cp.SOC(g + phi, cp.vstack(rows), axis=0),
-                cp.SOC(1 + phi, cp.vstack([2 * mu_d * cp.real(Y), 2 * mu_d * cp.imag(Y),
-                                           1 - phi]), axis=0)]
+        rows = [
+            2 * cp.multiply(r1, cp.real(Y)),
+            2 * cp.multiply(r1, cp.imag(Y)),
+            2 * cp.multiply(rn, cp.real(GX)),
+            2 * cp.multiply(rn, cp.imag(GX)),
+            g - phi,
+        ]
+        cons = [
+            cp.SOC(g + phi, cp.vstack(rows), axis=0),
+            cp.SOC(
+                1 + phi, cp.vstack([2 * mu_d * cp.real(Y), 2 * mu_d * cp.imag(Y), 1 - phi]), axis=0
+            ),
+        ]
         objective = (h * s) @ u
         if ctx.stroke_weight > 0:
             gamma = cp.Variable()
             sw = 2 * np.sqrt(ctx.stroke_weight)
-            cons.append(cp.SOC(gamma + phi, cp.vstack([sw * cp.real(GX), sw * cp.imag(GX),
-                                                       gamma - phi]), axis=0))
+            cons.append(
+                cp.SOC(
+                    gamma + phi,
+                    cp.vstack([sw * cp.real(GX), sw * cp.imag(GX), gamma - phi]),
+                    axis=0,
+                )
+            )
             objective = objective + gamma
         scale = 1.0 / np.abs(Pw)
         Wa = (Pw.real[:, None] * wind.A.real + Pw.imag[:, None] * wind.A.imag) * scale[:, None]
@@ -134,18 +147,33 @@ def main() -> None:
     freqs = np.concatenate([[0.0], np.geomspace(1e-3, FS / 2, 2048)])
     psd = synthetic_turbulence_psd(freqs, n_modes, fs=FS)
     noise = float(white_noise_psd(NOISE_VAR, FS))
-    print(f"{n_modes} modes, order {ORDER}, fs = {FS:g} Hz, latency {LATENCY} frame, "
-          f"noise {NOISE_VAR:g} nm^2/frame; input grid {freqs.size} points")
+    print(
+        f"{n_modes} modes, order {ORDER}, fs = {FS:g} Hz, latency {LATENCY} frame, "
+        f"noise {NOISE_VAR:g} nm^2/frame; input grid {freqs.size} points"
+    )
 
     # (a) Speed: the whole bank on all cores.
     t0 = time.perf_counter()
-    res = dd.datadriven(plant, freqs, psd, order=ORDER, noise_psd=noise, n_jobs=args.n_jobs,
-                        progress=True)
+    res = dd.datadriven(
+        plant, freqs, psd, order=ORDER, noise_psd=noise, n_jobs=args.n_jobs, progress=True
+    )
     t_bank = time.perf_counter() - t0
     subset = np.unique(np.linspace(0, n_modes - 1, n_subset).round().astype(int))
-    setup = dd._prepare(plant, freqs, psd[subset], order=ORDER, noise_psd=noise,
-                        modulus_margin=0.5, stroke_weight=1e-3, fixed_denominator=None,
-                        initial=None, max_iter=60, tol=1e-3, n_grid=80, fs=None)
+    setup = dd._prepare(
+        plant,
+        freqs,
+        psd[subset],
+        order=ORDER,
+        noise_psd=noise,
+        modulus_margin=0.5,
+        stroke_weight=1e-3,
+        fixed_denominator=None,
+        initial=None,
+        max_iter=60,
+        tol=1e-3,
+        n_grid=80,
+        fs=None,
+    )
     t0 = time.perf_counter()
     ours = [dd._design_mode(setup.ctx, *item[1:]) for item in setup.items]
     t_ours = (time.perf_counter() - t0) / len(subset)
@@ -159,21 +187,40 @@ def main() -> None:
     v_omg = np.trapezoid(residual_psd(plant, omg, freqs, psd, noise), freqs, axis=-1)
     g_max = integrator_gain_limit(plant)
     gains = np.linspace(0.02, 0.98, 49) * g_max
-    totals = [np.trapezoid(residual_psd(plant, Integrator(g, fs=FS, n_modes=n_modes), freqs,
-                                        psd, noise), freqs, axis=-1).sum() for g in gains]
+    totals = [
+        np.trapezoid(
+            residual_psd(plant, Integrator(g, fs=FS, n_modes=n_modes), freqs, psd, noise),
+            freqs,
+            axis=-1,
+        ).sum()
+        for g in gains
+    ]
     g_hand = gains[int(np.argmin(totals))]
-    v_hand = np.trapezoid(residual_psd(plant, Integrator(g_hand, fs=FS, n_modes=n_modes),
-                                       freqs, psd, noise), freqs, axis=-1)
+    v_hand = np.trapezoid(
+        residual_psd(plant, Integrator(g_hand, fs=FS, n_modes=n_modes), freqs, psd, noise),
+        freqs,
+        axis=-1,
+    )
 
     # (c) Convergence against a tightly converged reference, each mode alone (same start: the
     # optimal-gain integrator), and the bank's value (which may come from a continuation start).
     conv = np.unique(np.linspace(0, n_modes - 1, n_conv + 2)[1:-1].round().astype(int))
     j_alone, j_ref, ref_solves = [], [], []
     for i in conv:
-        alone = dd.datadriven(plant, freqs, psd[[i]], order=ORDER, noise_psd=noise, n_jobs=1,
-                              progress=False)
-        ref = dd.datadriven(plant, freqs, psd[[i]], order=ORDER, noise_psd=noise,
-                            max_iter=400, tol=1e-9, n_jobs=1, progress=False)
+        alone = dd.datadriven(
+            plant, freqs, psd[[i]], order=ORDER, noise_psd=noise, n_jobs=1, progress=False
+        )
+        ref = dd.datadriven(
+            plant,
+            freqs,
+            psd[[i]],
+            order=ORDER,
+            noise_psd=noise,
+            max_iter=400,
+            tol=1e-9,
+            n_jobs=1,
+            progress=False,
+        )
         j_alone.append(alone.reports[0].objective_history[-1])
         j_ref.append(ref.reports[0].objective_history[-1])
         ref_solves.append(ref.reports[0].solves)
@@ -185,34 +232,54 @@ def main() -> None:
     print(f"  serial per mode, ours [s]                  {t_ours:8.2f}   (modes {subset.tolist()})")
     print(f"  serial per mode, straightforward [s]       {t_naive:8.2f}")
     print(f"  straightforward / ours (per mode)          {t_naive / t_ours:8.1f}x")
-    print(f"  straightforward, extrapolated to {n_modes} modes serial [s] "
-          f"{t_naive * n_modes:8.0f}  vs our bank {t_bank:.1f} s "
-          f"({t_naive * n_modes / t_bank:.0f}x)")
-    print("  objective on the design grid, ours / straightforward, per mode " + " ".join(
-        f"{o['history'][-1] / n[0]:.3f}" for o, n in zip(ours, naive, strict=True)))
-    print("  (a lower straightforward value is not better: it exploits the gaps of the design "
-          "grid, see the next line)")
-    print(f"  straightforward results verified (stable, margin on the dense grid): "
-          f"{sum(n[2] for n in naive)}/{len(naive)}; ours: all (or the mode fails)")
+    print(
+        f"  straightforward, extrapolated to {n_modes} modes serial [s] "
+        f"{t_naive * n_modes:8.0f}  vs our bank {t_bank:.1f} s "
+        f"({t_naive * n_modes / t_bank:.0f}x)"
+    )
+    print(
+        "  objective on the design grid, ours / straightforward, per mode "
+        + " ".join(f"{o['history'][-1] / n[0]:.3f}" for o, n in zip(ours, naive, strict=True))
+    )
+    print(
+        "  (a lower straightforward value is not better: it exploits the gaps of the design "
+        "grid, see the next line)"
+    )
+    print(
+        f"  straightforward results verified (stable, margin on the dense grid): "
+        f"{sum(n[2] for n in naive)}/{len(naive)}; ours: all (or the mode fails)"
+    )
 
     print("\n(b) quality: residual variance / Wiener bound   median    p90   total")
-    for name, v in [("data-driven", res.residual_variance), ("optimal modal gain", v_omg),
-                    (f"hand-tuned gain {g_hand:.3f}", v_hand)]:
+    for name, v in [
+        ("data-driven", res.residual_variance),
+        ("optimal modal gain", v_omg),
+        (f"hand-tuned gain {g_hand:.3f}", v_hand),
+    ]:
         r = v / bound
-        print(f"  {name:<28s} {np.median(r):8.3f} {np.percentile(r, 90):7.3f} "
-              f"{v.sum() / bound.sum():7.3f}")
-    print(f"  (goal: data-driven median <= 1.15; {np.sum(res.residual_variance < bound)} "
-          "modes below the bound)")
-    print(f"  modulus margin min {res.modulus_margin.min():.4f} (required 0.5); all stable: "
-          f"{bool(res.stable.all())}")
+        print(
+            f"  {name:<28s} {np.median(r):8.3f} {np.percentile(r, 90):7.3f} "
+            f"{v.sum() / bound.sum():7.3f}"
+        )
+    print(
+        f"  (goal: data-driven median <= 1.15; {np.sum(res.residual_variance < bound)} "
+        "modes below the bound)"
+    )
+    print(
+        f"  modulus margin min {res.modulus_margin.min():.4f} (required 0.5); all stable: "
+        f"{bool(res.stable.all())}"
+    )
 
-    print("\n(c) convergence: objective / tightly converged reference (400 solves max, "
-          "tol 1e-9)")
+    print("\n(c) convergence: objective / tightly converged reference (400 solves max, tol 1e-9)")
     for i, a, b, r, n in zip(conv, j_alone, j_bank, j_ref, ref_solves, strict=True):
-        print(f"  mode {i:4d}: alone {a / r - 1:+.2%}, in the bank {b / r - 1:+.2%}   "
-              f"(reference {n} solves)")
-    print("  (goal: within 1 %; 'in the bank' may start from the previous mode's design, a "
-          "different local optimum)")
+        print(
+            f"  mode {i:4d}: alone {a / r - 1:+.2%}, in the bank {b / r - 1:+.2%}   "
+            f"(reference {n} solves)"
+        )
+    print(
+        "  (goal: within 1 %; 'in the bank' may start from the previous mode's design, a "
+        "different local optimum)"
+    )
 
 
 if __name__ == "__main__":

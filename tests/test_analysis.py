@@ -147,8 +147,7 @@ def test_frd_plant_gives_same_analysis_as_tf(latency):
     unstable = Integrator(_stability_limit(int(np.ceil(1 + latency))) * 1.5, fs=fs)
     assert is_stable(frd, unstable) == is_stable(plant, unstable) is False
     fr = np.linspace(1, 1400, 50)
-    np.testing.assert_allclose(sensitivity(frd, ctrl, fr), sensitivity(plant, ctrl, fr),
-                               atol=1e-6)
+    np.testing.assert_allclose(sensitivity(frd, ctrl, fr), sensitivity(plant, ctrl, fr), atol=1e-6)
 
 
 def test_frd_that_lost_dt_works_with_fs():
@@ -183,8 +182,9 @@ def test_noise_variance_through_integrator_closed_form(g):
     # s2 * g / (2 - g)  (sum of squared impulse response of T = g z^-1 / (1 - (1-g) z^-1)).
     f = np.linspace(0, FS / 2, 20001)
     s2 = 3.0
-    v = residual_variance(loop_plant(FS, 0.0), Integrator(g, fs=FS), f, np.zeros_like(f),
-                          white_noise_psd(s2, FS))
+    v = residual_variance(
+        loop_plant(FS, 0.0), Integrator(g, fs=FS), f, np.zeros_like(f), white_noise_psd(s2, FS)
+    )
     assert v == pytest.approx(s2 * g / (2 - g), rel=QUADRATURE)
 
 

@@ -78,8 +78,9 @@ def _theory_sf(seps_pix, dx: float) -> np.ndarray:
     return structure_function(np.asarray(seps_pix) * dx, R0, L0) * NM2
 
 
-def _moving_layer(pupil: Pupil, pixels_per_frame: tuple[float, float], fs: float = 1000.0,
-                  fraction: float = 1.0) -> Layer:
+def _moving_layer(
+    pupil: Pupil, pixels_per_frame: tuple[float, float], fs: float = 1000.0, fraction: float = 1.0
+) -> Layer:
     """A layer whose screen moves by (dy, dx) pixels per frame."""
     dy, dxp = pixels_per_frame
     speed = math.hypot(dy, dxp) * pupil.pixel_scale * fs
@@ -111,8 +112,10 @@ def long_run():
     """Two layers moving by whole pixels (4 px/frame along +x and +y): frames are exact
     screen samples, 20000 frames = 40 km of extruded screen per layer (1600 L0)."""
     pupil = Pupil(n_pix=16)
-    layers = [_moving_layer(pupil, (0, 4), fraction=0.5), _moving_layer(pupil, (4, 0),
-                                                                         fraction=0.5)]
+    layers = [
+        _moving_layer(pupil, (0, 4), fraction=0.5),
+        _moving_layer(pupil, (4, 0), fraction=0.5),
+    ]
     atm = Atmosphere(pupil, R0, layers, fs=1000.0, L0=L0, rng=2)
     return pupil, atm.phase(20000)
 
@@ -144,12 +147,13 @@ def test_extrusion_is_stationary(long_run):
     # (frame 0 of 400 independent atmospheres): piston-removed variance over the pupil and
     # structure function at 2-12 px. Both estimates have 2-3 % standard deviations.
     pupil, maps = long_run
-    layers = [_moving_layer(pupil, (0, 4), fraction=0.5), _moving_layer(pupil, (4, 0),
-                                                                         fraction=0.5)]
-    start = np.concatenate([
-        Atmosphere(pupil, R0, layers, fs=1000.0, L0=L0, rng=1000 + s).phase(1)
-        for s in range(400)
-    ])
+    layers = [
+        _moving_layer(pupil, (0, 4), fraction=0.5),
+        _moving_layer(pupil, (4, 0), fraction=0.5),
+    ]
+    start = np.concatenate(
+        [Atmosphere(pupil, R0, layers, fs=1000.0, L0=L0, rng=1000 + s).phase(1) for s in range(400)]
+    )
     far = maps[200:]
 
     def stats(m):
@@ -169,24 +173,35 @@ def _interpolated_sf(seps_pix, dx: float, weights, taps) -> np.ndarray:
     for ma, wa in zip(taps, weights, strict=True):
         for mb, wb in zip(taps, weights, strict=True):
             d = (ma - mb) * dx
-            pair = 0.5 * (structure_function(r + d, R0, L0) + structure_function(np.abs(r - d), R0,
-                                                                                 L0))
+            pair = 0.5 * (
+                structure_function(r + d, R0, L0) + structure_function(np.abs(r - d), R0, L0)
+            )
             out += wa * wb * (pair - structure_function(abs(d), R0, L0))
     return out * NM2
 
 
-@pytest.mark.parametrize("interpolation, weights, taps", [
-    ("linear", (0.5, 0.5), (0, 1)),
-    ("cubic", (-1 / 16, 9 / 16, 9 / 16, -1 / 16), (-1, 0, 1, 2)),  # Keys a = -1/2 at f = 1/2
-])
+@pytest.mark.parametrize(
+    "interpolation, weights, taps",
+    [
+        ("linear", (0.5, 0.5), (0, 1)),
+        ("cubic", (-1 / 16, 9 / 16, 9 / 16, -1 / 16), (-1, 0, 1, 2)),  # Keys a = -1/2 at f = 1/2
+    ],
+)
 def test_interpolation_structure_function(interpolation, weights, taps):
     # Oracle: the exact structure function of the interpolated Gaussian field (see
     # _interpolated_sf). A layer moving 4.5 px/frame along x is sampled at a fraction
     # f = 0 of a pixel (even frames: D itself) and f = 1/2 (odd frames, the worst case).
     pupil = Pupil(n_pix=16)
     dx = pupil.pixel_scale
-    atm = Atmosphere(pupil, R0, [_moving_layer(pupil, (0, 4.5))], fs=1000.0, L0=L0, rng=3,
-                     interpolation=interpolation)
+    atm = Atmosphere(
+        pupil,
+        R0,
+        [_moving_layer(pupil, (0, 4.5))],
+        fs=1000.0,
+        L0=L0,
+        rng=3,
+        interpolation=interpolation,
+    )
     maps = atm.phase(6000)[100:]
     seps = np.array([1, 2, 4, 8])
     d = _theory_sf(seps, dx)
@@ -200,10 +215,19 @@ def test_interpolation_structure_function(interpolation, weights, taps):
 
 
 # ---------------------------------------------------------------------------- frozen flow
-@pytest.mark.parametrize("shift, interpolation", [
-    ((0, 1), "linear"), ((1, 0), "linear"), ((0, -1), "linear"), ((-1, 0), "linear"),
-    ((1, 2), "linear"), ((-2, 1), "linear"), ((-1, -1), "linear"), ((-2, 1), "cubic"),
-])
+@pytest.mark.parametrize(
+    "shift, interpolation",
+    [
+        ((0, 1), "linear"),
+        ((1, 0), "linear"),
+        ((0, -1), "linear"),
+        ((-1, 0), "linear"),
+        ((1, 2), "linear"),
+        ((-2, 1), "linear"),
+        ((-1, -1), "linear"),
+        ((-2, 1), "cubic"),
+    ],
+)
 def test_frozen_flow_shift_and_direction(shift, interpolation):
     # Invariant: phi_{k+n}(x) = phi_k(x - v n dt). The layer moves by `shift` (dy, dx)
     # pixels every 7 frames, towards wind_direction = atan2(dy, dx): frame k+7 is frame k
@@ -212,8 +236,9 @@ def test_frozen_flow_shift_and_direction(shift, interpolation):
     n_sub = 7
     layer = _moving_layer(pupil, (shift[0] / n_sub, shift[1] / n_sub))
     assert math.isclose(layer.wind_direction, math.degrees(math.atan2(*shift)))
-    maps = Atmosphere(pupil, R0, [layer], fs=1000.0, L0=L0, rng=4,
-                      interpolation=interpolation).phase(400)
+    maps = Atmosphere(
+        pupil, R0, [layer], fs=1000.0, L0=L0, rng=4, interpolation=interpolation
+    ).phase(400)
     dy, dxp = shift
     n = pupil.n_pix
     src = (slice(max(0, -dy), n - max(0, dy)), slice(max(0, -dxp), n - max(0, dxp)))
@@ -302,8 +327,9 @@ def test_layers_add_in_cn2():
     # alone, with the same seed streams, is sqrt(f) times the full-weight layer.
     pupil = Pupil(n_pix=16)
     one = Atmosphere(pupil, 0.1, [Layer(0.0, 1.0, 10.0, 0.0)], fs=500.0, rng=11).phase(20)
-    frac = Atmosphere(pupil, 0.1 * 0.3 ** (-3 / 5), [Layer(0.0, 1.0, 10.0, 0.0)], fs=500.0,
-                      rng=11).phase(20)
+    frac = Atmosphere(
+        pupil, 0.1 * 0.3 ** (-3 / 5), [Layer(0.0, 1.0, 10.0, 0.0)], fs=500.0, rng=11
+    ).phase(20)
     np.testing.assert_allclose(frac, one * math.sqrt(0.3), rtol=1e-12, atol=1e-9)
 
 
@@ -347,9 +373,11 @@ def test_frames_reproduce_tau0():
     # exactly 2 frames. (At these scales, 1-3 m, L0 = 25 m lowers D_t well below 1 rad^2.)
     pupil = Pupil(n_pix=16)
     fs, lag = 1000.0, 2
-    layers = [_moving_layer(pupil, (0, 1), fraction=0.5), _moving_layer(pupil, (2, 0),
-                                                                        fraction=0.3),
-              _moving_layer(pupil, (0, -3), fraction=0.2)]
+    layers = [
+        _moving_layer(pupil, (0, 1), fraction=0.5),
+        _moving_layer(pupil, (2, 0), fraction=0.3),
+        _moving_layer(pupil, (0, -3), fraction=0.2),
+    ]
     speeds = np.array([lay.wind_speed for lay in layers])
     v_bar = effective_wind_speed(speeds, [0.5, 0.3, 0.2])
     r0 = v_bar * lag / fs / 0.314
@@ -359,11 +387,14 @@ def test_frames_reproduce_tau0():
     assert abs(atm.tau0 * fs / lag - 1) < 1e-12
 
     def d_t(outer_scale):
-        return sum(lay.fraction * structure_function(lay.wind_speed * lag / fs, r0,
-                                                     outer_scale) for lay in layers)
+        return sum(
+            lay.fraction * structure_function(lay.wind_speed * lag / fs, r0, outer_scale)
+            for lay in layers
+        )
 
-    kolmogorov = sum(lay.fraction * 6.88 * (lay.wind_speed * lag / fs / r0) ** (5 / 3)
-                     for lay in layers)
+    kolmogorov = sum(
+        lay.fraction * 6.88 * (lay.wind_speed * lag / fs / r0) ** (5 / 3) for lay in layers
+    )
     assert abs(kolmogorov - 1) < 0.01  # Kolmogorov limit: 1 rad^2 at tau0
     rad = atm.phase_vectors(4000)[100:] / opd_per_radian()
     measured = np.mean((rad[lag:] - rad[:-lag]) ** 2)
@@ -381,8 +412,9 @@ def test_compressed_profile_preserves_moments(k):
     assert abs(sum(lay.fraction for lay in comp) - 1) < 1e-12
 
     def v_bar(layers):
-        return effective_wind_speed([lay.wind_speed for lay in layers],
-                                    [lay.fraction for lay in layers])
+        return effective_wind_speed(
+            [lay.wind_speed for lay in layers], [lay.fraction for lay in layers]
+        )
 
     assert abs(v_bar(comp) / v_bar(full) - 1) < 1e-12
     assert abs(effective_altitude(comp) / effective_altitude(full) - 1) < 1e-12
@@ -392,8 +424,9 @@ def test_compressed_profile_preserves_moments(k):
 
 def test_eso_atmosphere_factory():
     # Oracle: r0 = 0.98 lambda / seeing at 500 nm and tau0 as requested.
-    atm = eso_atmosphere(Pupil(n_pix=16), seeing=0.65, tau0=5e-3, fs=3000.0, n_layers=4,
-                         rng=0, dtype=np.float32)
+    atm = eso_atmosphere(
+        Pupil(n_pix=16), seeing=0.65, tau0=5e-3, fs=3000.0, n_layers=4, rng=0, dtype=np.float32
+    )
     assert abs(atm.r0 / r0_from_seeing(0.65) - 1) < 1e-12
     assert abs(atm.tau0 / 5e-3 - 1) < 1e-12
     assert len(atm.layers) == 4 and atm.phase(3).dtype == np.float32
@@ -421,19 +454,22 @@ def _atm(**kw):
     return Atmosphere(**args)
 
 
-@pytest.mark.parametrize("kw, exc, words", [
-    (dict(r0=-0.1), ValueError, ["r0", "-0.1", "> 0"]),
-    (dict(fs=0.0), ValueError, ["fs", "0.0", "> 0"]),
-    (dict(L0=float("inf")), ValueError, ["L0", "inf"]),
-    (dict(layers=[Layer(0.0, 0.5, 10.0)]), ValueError, ["fractions", "sum to 1", "0.5"]),
-    (dict(layers=[]), ValueError, ["layers", "at least one"]),
-    (dict(layers=[(0.0, 1.0, 10.0)]), TypeError, ["layers[0]", "Layer"]),
-    (dict(pupil=16), TypeError, ["pupil", "Pupil"]),
-    (dict(rng="seed"), TypeError, ["rng", "seed"]),
-    (dict(screen_size=10), ValueError, ["screen_size", "10", ">= 20"]),
-    (dict(dtype=np.int32), ValueError, ["dtype", "int32", "float64 or float32"]),
-    (dict(interpolation="nearest"), ValueError, ["interpolation", "nearest", "cubic"]),
-])
+@pytest.mark.parametrize(
+    "kw, exc, words",
+    [
+        (dict(r0=-0.1), ValueError, ["r0", "-0.1", "> 0"]),
+        (dict(fs=0.0), ValueError, ["fs", "0.0", "> 0"]),
+        (dict(L0=float("inf")), ValueError, ["L0", "inf"]),
+        (dict(layers=[Layer(0.0, 0.5, 10.0)]), ValueError, ["fractions", "sum to 1", "0.5"]),
+        (dict(layers=[]), ValueError, ["layers", "at least one"]),
+        (dict(layers=[(0.0, 1.0, 10.0)]), TypeError, ["layers[0]", "Layer"]),
+        (dict(pupil=16), TypeError, ["pupil", "Pupil"]),
+        (dict(rng="seed"), TypeError, ["rng", "seed"]),
+        (dict(screen_size=10), ValueError, ["screen_size", "10", ">= 20"]),
+        (dict(dtype=np.int32), ValueError, ["dtype", "int32", "float64 or float32"]),
+        (dict(interpolation="nearest"), ValueError, ["interpolation", "nearest", "cubic"]),
+    ],
+)
 def test_bad_atmosphere_input(kw, exc, words):
     with pytest.raises(exc) as info:
         _atm(**kw)
@@ -441,12 +477,15 @@ def test_bad_atmosphere_input(kw, exc, words):
         assert word in str(info.value)
 
 
-@pytest.mark.parametrize("args, words", [
-    ((-1.0, 0.5, 10.0, 0.0), ["altitude", "-1.0"]),
-    ((0.0, 1.5, 10.0, 0.0), ["fraction", "1.5", "[0, 1]"]),
-    ((0.0, 0.5, -3.0, 0.0), ["wind_speed", "-3.0", ">= 0"]),
-    ((0.0, 0.5, 3.0, float("nan")), ["wind_direction", "nan"]),
-])
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        ((-1.0, 0.5, 10.0, 0.0), ["altitude", "-1.0"]),
+        ((0.0, 1.5, 10.0, 0.0), ["fraction", "1.5", "[0, 1]"]),
+        ((0.0, 0.5, -3.0, 0.0), ["wind_speed", "-3.0", ">= 0"]),
+        ((0.0, 0.5, 3.0, float("nan")), ["wind_direction", "nan"]),
+    ],
+)
 def test_bad_layer(args, words):
     with pytest.raises(ValueError) as info:
         Layer(*args)

@@ -37,7 +37,11 @@ def test_cli_bad_input_is_a_clear_error(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_python_dash_m_entry_point(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "aocontrol", "demo", "--output", str(tmp_path)],
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "aocontrol", "demo", "--output", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "rejection.png").exists()

@@ -39,8 +39,9 @@ def test_step_impulse_response_equals_transfer_function(ctrl):
     n = 64
     h = ctrl.impulse_response(n)
     for mode in range(ctrl.n_modes):
-        np.testing.assert_allclose(h[:, mode], _tf_impulse(ctrl.transfer_function(mode), n),
-                                   atol=ROUNDING, rtol=ROUNDING)
+        np.testing.assert_allclose(
+            h[:, mode], _tf_impulse(ctrl.transfer_function(mode), n), atol=ROUNDING, rtol=ROUNDING
+        )
 
 
 @pytest.mark.parametrize("ctrl", _controllers(), ids=repr)
@@ -105,13 +106,16 @@ def test_clipping_per_mode_stroke():
 
 
 def test_from_transfer_functions_round_trip():
-    tfs = [Integrator(0.3, fs=500.0).transfer_function(),
-           IIRBank([0.1, 0.2], [1.0, -0.3, 0.2], fs=500.0).transfer_function()]
+    tfs = [
+        Integrator(0.3, fs=500.0).transfer_function(),
+        IIRBank([0.1, 0.2], [1.0, -0.3, 0.2], fs=500.0).transfer_function(),
+    ]
     bank = IIRBank.from_transfer_functions(tfs)
     assert bank.n_modes == 2
     for i, tf in enumerate(tfs):
-        np.testing.assert_allclose(bank.impulse_response(20)[:, i], _tf_impulse(tf, 20),
-                                   atol=ROUNDING)
+        np.testing.assert_allclose(
+            bank.impulse_response(20)[:, i], _tf_impulse(tf, 20), atol=ROUNDING
+        )
 
 
 def test_coefficients_are_read_only():

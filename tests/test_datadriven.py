@@ -99,12 +99,22 @@ def test_objective_is_relative_residual_variance(plant, noise):
     # with noise_psd = 0 this is the paper's objective (disturbance term only).
     f = _grid(101)
     psd = _lowpass_psd(f)
-    res = datadriven(plant, f, psd, order=3, noise_psd=noise, stroke_weight=0.0, n_grid=101,
-                     n_jobs=1, progress=False)
+    res = datadriven(
+        plant,
+        f,
+        psd,
+        order=3,
+        noise_psd=noise,
+        stroke_weight=0.0,
+        n_grid=101,
+        n_jobs=1,
+        progress=False,
+    )
     hist = res.reports[0].objective_history
     np.testing.assert_allclose(hist[0], 1.0, rtol=OBJECTIVE_RTOL)
-    np.testing.assert_allclose(hist[-1] * res.initial_residual_variance[0],
-                               res.residual_variance[0], rtol=OBJECTIVE_RTOL)
+    np.testing.assert_allclose(
+        hist[-1] * res.initial_residual_variance[0], res.residual_variance[0], rtol=OBJECTIVE_RTOL
+    )
 
 
 def test_order_one_with_integrator_factor_is_optimal_gain_integrator(plant):
@@ -115,9 +125,20 @@ def test_order_one_with_integrator_factor_is_optimal_gain_integrator(plant):
     noise = 2e-3
     ref = optimal_modal_gain(plant, f, psd, noise, modulus_margin=0.3)
     start = Integrator(0.5 * ref.gain[0], fs=FS)  # away from the optimum
-    res = datadriven(plant, f, psd, order=1, noise_psd=noise, fixed_denominator=[1, -1],
-                     modulus_margin=0.3, stroke_weight=0.0, initial=start, n_jobs=1,
-                     progress=False, tol=1e-9)
+    res = datadriven(
+        plant,
+        f,
+        psd,
+        order=1,
+        noise_psd=noise,
+        fixed_denominator=[1, -1],
+        modulus_margin=0.3,
+        stroke_weight=0.0,
+        initial=start,
+        n_jobs=1,
+        progress=False,
+        tol=1e-9,
+    )
     bank = res.controller
     np.testing.assert_allclose(bank.a[0, :2], [1.0, -1.0], atol=1e-12)
     assert bank.b.shape[1] == 1 or np.allclose(bank.b[0, 1:], 0.0)
@@ -147,8 +168,7 @@ def test_frd_plant_gives_the_tf_result(plant):
     res_tf = datadriven(plant, f, psd, **kw)
     res_frd = datadriven(frd, f, psd, **kw)
     assert res_frd.reports[0].ok and res_frd.stable[0]
-    np.testing.assert_allclose(res_frd.residual_variance, res_tf.residual_variance,
-                               rtol=FRD_RTOL)
+    np.testing.assert_allclose(res_frd.residual_variance, res_tf.residual_variance, rtol=FRD_RTOL)
     k_tf = loop_response(plant, res_tf.controller, f).controller
     k_frd = loop_response(plant, res_frd.controller, f).controller
     np.testing.assert_allclose(k_frd, k_tf, rtol=10 * FRD_RTOL, atol=FRD_RTOL)
@@ -194,8 +214,17 @@ def test_failing_mode_is_named_and_others_kept(plant):
     psd = np.stack([_lowpass_psd(f)] * 3)
     start = Integrator(np.array([0.05, 0.9, 0.05]), fs=FS)
     with pytest.raises(DataDrivenError, match="mode 1") as info:
-        datadriven(plant, f, psd, order=1, fixed_denominator=[1, -1], modulus_margin=0.9,
-                   initial=start, n_jobs=1, progress=False)
+        datadriven(
+            plant,
+            f,
+            psd,
+            order=1,
+            fixed_denominator=[1, -1],
+            modulus_margin=0.9,
+            initial=start,
+            n_jobs=1,
+            progress=False,
+        )
     err = info.value
     assert list(err.failed) == [1]
     assert "infeasible" in err.failed[1]
@@ -209,9 +238,17 @@ def test_initial_outside_parameter_set(plant):
     # A leaky-integrator start is not of the form X / ((1 - z^-1) Y'): the first step leaves
     # it, the result keeps the fixed integrator factor (a(z=1) = 0) and is verified.
     f = _grid(151)
-    res = datadriven(plant, f, _lowpass_psd(f), order=3, fixed_denominator=[1, -1],
-                     initial=Integrator(0.3, fs=FS, leak=0.01), noise_psd=1e-4, n_jobs=1,
-                     progress=False)
+    res = datadriven(
+        plant,
+        f,
+        _lowpass_psd(f),
+        order=3,
+        fixed_denominator=[1, -1],
+        initial=Integrator(0.3, fs=FS, leak=0.01),
+        noise_psd=1e-4,
+        n_jobs=1,
+        progress=False,
+    )
     rep = res.reports[0]
     assert rep.ok and rep.stable and rep.modulus_margin >= 0.5
     assert np.isfinite(rep.objective_history[0])
@@ -224,8 +261,9 @@ def test_identical_modes_continue_from_previous_design(plant):
     # starts from that design, and is still never worse than its own initial controller.
     f = _grid(151)
     psd = _lowpass_psd(f)
-    res = datadriven(plant, f, np.stack([psd, 2 * psd]), order=3, noise_psd=1e-4, n_jobs=1,
-                     progress=False)
+    res = datadriven(
+        plant, f, np.stack([psd, 2 * psd]), order=3, noise_psd=1e-4, n_jobs=1, progress=False
+    )
     assert [r.start for r in res.reports] == ["initial", "previous mode"]
     assert res.reports[1].solves < res.reports[0].solves
     assert np.all(res.residual_variance < res.initial_residual_variance)

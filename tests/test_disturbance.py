@@ -41,8 +41,7 @@ def test_kolmogorov_variances_match_noll_table():
     d_r0 = 8.0 / 0.15
     v = modal_variances(6, diameter=8.0, r0=0.15, L0=np.inf) / NM_PER_RAD_500**2
     v /= d_r0 ** (5 / 3)
-    for got, want in [(v[0], 1.0299 - 0.582), (v[2], 0.134 - 0.111),
-                      (v[5], 0.0648 - 0.0587)]:
+    for got, want in [(v[0], 1.0299 - 0.582), (v[2], 0.134 - 0.111), (v[5], 0.0648 - 0.0587)]:
         assert abs(got / want - 1) < tol
 
 
@@ -65,9 +64,15 @@ def test_von_karman_tilt_matches_direct_quadrature():
 
     def integral(a):
         parts = [(0, 1), (1, 10), (10, 100), (100, 1000), (1000, np.inf)]
-        return sum(integrate.quad(lambda x: (x * x + a * a) ** (-11 / 6)
-                                  * special.jv(2, x) ** 2 / x, lo, hi, limit=500)[0]
-                   for lo, hi in parts)
+        return sum(
+            integrate.quad(
+                lambda x: (x * x + a * a) ** (-11 / 6) * special.jv(2, x) ** 2 / x,
+                lo,
+                hi,
+                limit=500,
+            )[0]
+            for lo, hi in parts
+        )
 
     want = integral(x0) / integral(0.0)
     got = modal_variances(1, L0=25.0)[0] / modal_variances(1, L0=np.inf)[0]

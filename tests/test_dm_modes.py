@@ -42,8 +42,9 @@ A_F_RANGE = (0.23, 0.28)
 A_F_SAMPLING_TOL = 0.07
 
 
-def _von_karman_screens(rng: np.random.Generator, n_pairs: int, n_grid: int, dx: float,
-                        r0: float, L0: float) -> np.ndarray:
+def _von_karman_screens(
+    rng: np.random.Generator, n_pairs: int, n_grid: int, dx: float, r0: float, L0: float
+) -> np.ndarray:
     """FFT phase screens [nm], shape (2 n_pairs, n_grid, n_grid), pixel dx [m].
 
     Complex white noise shaped by sqrt(PSD) * dk and Fourier transformed; the real and
@@ -61,8 +62,9 @@ def _von_karman_screens(rng: np.random.Generator, n_pairs: int, n_grid: int, dx:
     return out * opd_per_radian()
 
 
-def _pupil_samples(rng: np.random.Generator, pupil: Pupil, n_pairs: int, r0: float,
-                   L0: float, n_sub: int = 4) -> np.ndarray:
+def _pupil_samples(
+    rng: np.random.Generator, pupil: Pupil, n_pairs: int, r0: float, L0: float, n_sub: int = 4
+) -> np.ndarray:
     """Phase maps [nm] on ``pupil``: n_sub x n_sub pupils cut from each screen.
 
     Screens are generated at half the pupil pixel and decimated, so that the power between

@@ -42,6 +42,9 @@ def test_sim_layer_imports_no_study(path):
 
 
 def test_only_plot_module_imports_matplotlib():
-    users = {p.relative_to(ROOT).as_posix() for p in ROOT.rglob("*.py")
-             if any(m.startswith("matplotlib") for m in _imports(p))}
+    users = {
+        p.relative_to(ROOT).as_posix()
+        for p in ROOT.rglob("*.py")
+        if any(m.startswith("matplotlib") for m in _imports(p))
+    }
     assert users == {"study/plot.py"}, users

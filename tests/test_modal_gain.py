@@ -69,8 +69,9 @@ def test_matches_brute_force_over_dense_gain_grid():
     limit = integrator_gain_limit(G)
     grid = np.linspace(1e-4, limit, 800)
     for m in range(3):
-        brute = residual_variance(G, Integrator(grid, fs=FS), f, psd[m], noise[m],
-                                  check_stability=False)
+        brute = residual_variance(
+            G, Integrator(grid, fs=FS), f, psd[m], noise[m], check_stability=False
+        )
         j_opt = residual_variance(G, Integrator(K.gain[m], fs=FS), f, psd[m], noise[m])[0]
         assert j_opt <= brute.min() * (1 + tol)
         assert abs(K.gain[m] - grid[np.argmin(brute)]) <= grid[1] - grid[0]
@@ -161,7 +162,11 @@ def test_measured_plant_gives_the_same_gains():
     ],
 )
 def test_bad_input(kwargs, err, match):
-    args = {"plant": loop_plant(FS, 0.0), "freqs": np.linspace(0.0, 500.0, 11),
-            "psd": np.ones(11), **kwargs}
+    args = {
+        "plant": loop_plant(FS, 0.0),
+        "freqs": np.linspace(0.0, 500.0, 11),
+        "psd": np.ones(11),
+        **kwargs,
+    }
     with pytest.raises(err, match=match):
         optimal_modal_gain(args.pop("plant"), args.pop("freqs"), args.pop("psd"), **args)

@@ -71,8 +71,9 @@ def test_frd_that_lost_dt_needs_fs():
     P = measured_plant(f, np.exp(-2j * np.pi * f / fs), fs) * 1.0
     with pytest.raises(ValueError, match="pass fs explicitly"):
         frequency_response(P, f)
-    np.testing.assert_allclose(frequency_response(P, f, fs=fs), np.exp(-2j * np.pi * f / fs),
-                               atol=EXACT)
+    np.testing.assert_allclose(
+        frequency_response(P, f, fs=fs), np.exp(-2j * np.pi * f / fs), atol=EXACT
+    )
 
 
 def test_frd_outside_measured_range_raises():

@@ -45,8 +45,9 @@ def smooth_residual(pupil, rng, n_frames, rms_rad):
     f[0, 0] = np.inf
     w = np.fft.ifft2(np.fft.fft2(rng.normal(size=(n_frames, n, n))) * f ** (-11 / 6)).real
     v = pupil.to_vector(w)
-    basis = np.stack([np.ones(pupil.n_valid), pupil.to_vector(pupil.x),
-                      pupil.to_vector(pupil.y)], axis=1)
+    basis = np.stack(
+        [np.ones(pupil.n_valid), pupil.to_vector(pupil.x), pupil.to_vector(pupil.y)], axis=1
+    )
     v = v - (np.linalg.lstsq(basis, v.T, rcond=None)[0].T @ basis.T)
     v *= rms_rad / v.std(axis=-1, keepdims=True)
     return pupil.to_map(v) * NM_PER_RAD
@@ -70,8 +71,13 @@ def test_clear_circular_pupil_gives_airy_pattern():
     # Oracle: Airy pattern I(r)/I(0) = (2 J1(x)/x)^2, x = pi r (r in lambda/D); first dark ring
     # at 1.2197 lambda/D. Tolerances: a 64-pixel circle differs from a disc by ~0.3 % in area.
     airy_tol, ring_tol = 1e-2, 2e-3
-    cam = ScienceCamera(Pupil(n_pix=64, obstruction=0.0), oversampling=16, field_of_view=3.0,
-                        coronagraph=False, precision="double")
+    cam = ScienceCamera(
+        Pupil(n_pix=64, obstruction=0.0),
+        oversampling=16,
+        field_of_view=3.0,
+        coronagraph=False,
+        precision="double",
+    )
     psf = cam.images(np.zeros((64, 64)))[0][0]
     assert abs(psf.max() - 1) < DOUBLE
     radii, profile = cam.radial_profile(psf, 0.1)
@@ -80,10 +86,10 @@ def test_clear_circular_pupil_gives_airy_pattern():
     main_lobe = radii < 0.8
     assert np.all(np.abs(profile[main_lobe] / airy[main_lobe] - 1) < airy_tol)
     # First dark ring: minimum of the cut along x, refined by a parabola through 3 pixels.
-    cut = psf[cam.centre, cam.centre:]
+    cut = psf[cam.centre, cam.centre :]
     r = np.arange(cut.size) * cam.pixel_scale
     i = int(np.argmin(np.where((r > 1.0) & (r < 1.5), cut, np.inf)))
-    y0, y1, y2 = cut[i - 1:i + 2]
+    y0, y1, y2 = cut[i - 1 : i + 2]
     r_dark = (i + 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2)) * cam.pixel_scale
     assert abs(r_dark / 1.2197 - 1) < ring_tol
 
@@ -144,8 +150,10 @@ def test_parseval_energy_conservation(pupil):
         assert abs(p.sum() / total - 1) < energy_tol
         assert abs(k.sum() / (total * (1 - p[cam.centre, cam.centre])) - 1) < energy_tol
     # Integral over the sky of a peak-normalised PSF: lambda^2 / A in (lambda/D)^2 units.
-    assert abs(cam.diffraction_psf.sum() * cam.pixel_scale**2
-               / (pupil.n_pix**2 / pupil.n_valid) - 1) < energy_tol
+    assert (
+        abs(cam.diffraction_psf.sum() * cam.pixel_scale**2 / (pupil.n_pix**2 / pupil.n_valid) - 1)
+        < energy_tol
+    )
 
 
 def test_long_exposure_equals_mean_of_single_frames(pupil):
@@ -160,13 +168,15 @@ def test_long_exposure_equals_mean_of_single_frames(pupil):
     psf, coro = cam.images(opd)
     assert exposure.n_frames == 70
     np.testing.assert_allclose(exposure.psf, psf.mean(axis=0), rtol=accumulate_tol, atol=0)
-    np.testing.assert_allclose(exposure.coronagraphic, coro.mean(axis=0), rtol=accumulate_tol,
-                               atol=1e-18)
+    np.testing.assert_allclose(
+        exposure.coronagraphic, coro.mean(axis=0), rtol=accumulate_tol, atol=1e-18
+    )
     result = exposure.result()
     assert result.n_frames == 70 and result.wavelength == WL
     assert result.strehl == pytest.approx(psf.mean(axis=0).max(), rel=accumulate_tol)
     assert result.mean_contrast_4_6 == pytest.approx(
-        cam.mean_contrast(coro.mean(axis=0)), rel=accumulate_tol)
+        cam.mean_contrast(coro.mean(axis=0)), rel=accumulate_tol
+    )
     exposure.reset()
     assert exposure.n_frames == 0
     with pytest.raises(RuntimeError, match="no frame"):
@@ -178,8 +188,10 @@ def test_single_precision_is_accurate_enough(pupil):
     # ~1e-6 at 4-6 lambda/D) with a large piston (10 um, 38 rad in float32) as a stress test.
     contrast_tol, pixel_tol = 1e-5, 1e-4
     opd = smooth_residual(pupil, np.random.default_rng(7), 8, 10.0 / NM_PER_RAD) + 1e4
-    single, double = (ScienceCamera(pupil, precision=p, field_of_view=8.0).long_exposure()
-                      for p in ("single", "double"))
+    single, double = (
+        ScienceCamera(pupil, precision=p, field_of_view=8.0).long_exposure()
+        for p in ("single", "double")
+    )
     single.add(opd)
     double.add(opd)
     rs, rd = single.result(), double.result()
@@ -205,8 +217,10 @@ def test_opd_wavelength_scaling(pupil):
         assert abs(psf.max() - 1) < SINGLE
     # Marechal: sigma scales as 1/lambda, so ln S scales as 1/lambda^2.
     rms = 100.0
-    assert abs(np.log(marechal_strehl(rms, WL / 2)) / np.log(marechal_strehl(rms, WL)) / 4
-               - 1) < DOUBLE
+    assert (
+        abs(np.log(marechal_strehl(rms, WL / 2)) / np.log(marechal_strehl(rms, WL)) / 4 - 1)
+        < DOUBLE
+    )
 
 
 def test_radial_profile_and_mean_contrast_invariants(camera):
@@ -217,8 +231,9 @@ def test_radial_profile_and_mean_contrast_invariants(camera):
     assert np.all(np.abs(prof / 3.5e-6 - 1) < DOUBLE)
     r_edge = (camera.n_image - 1 - camera.centre) * camera.pixel_scale  # largest inner circle
     assert r_edge - 0.5 <= radii[-1] < r_edge
-    radii, prof = radial_profile(camera.radius_map, None, np.arange(0.0, 20.5, 0.5),
-                                 pixel_scale=camera.pixel_scale)
+    radii, prof = radial_profile(
+        camera.radius_map, None, np.arange(0.0, 20.5, 0.5), pixel_scale=camera.pixel_scale
+    )
     np.testing.assert_allclose(prof, radii, rtol=DOUBLE)
     lower, upper = np.arange(0.5, 20.0, 0.5), np.arange(1.0, 20.5, 0.5)
     assert np.all((radii[1:] >= lower) & (radii[1:] < upper))

@@ -24,13 +24,20 @@ def run():
     pupil = vlt_pupil(32)
     dm = DeformableMirror(pupil, n_actuators=15)
     basis = kl_basis(dm, 60, r0=0.15)
-    atm = Atmosphere(pupil, 0.15, [Layer(0.0, 0.6, 8.0, 0.0), Layer(5000.0, 0.4, 15.0, 70.0)],
-                     FS, rng=3)
+    atm = Atmosphere(
+        pupil, 0.15, [Layer(0.0, 0.6, 8.0, 0.0), Layer(5000.0, 0.4, 15.0, 70.0)], FS, rng=3
+    )
     ctrl = Integrator(0.45, fs=FS, n_modes=basis.n_modes)
     camera = ScienceCamera(pupil, field_of_view=10.0)
-    res = run_loop(Stage(ctrl, LinearModalSensor(1.0, 0.0), LATENCY),
-                   TurbulenceSource(atm, basis), 6000, science=camera.long_exposure(),
-                   basis=basis, science_every=5, settle_frames=200)
+    res = run_loop(
+        Stage(ctrl, LinearModalSensor(1.0, 0.0), LATENCY),
+        TurbulenceSource(atm, basis),
+        6000,
+        science=camera.long_exposure(),
+        basis=basis,
+        science_every=5,
+        settle_frames=200,
+    )
     return res, ctrl, basis
 
 
@@ -93,8 +100,12 @@ def test_actuator_stroke_clips_dm_commands_and_counts():
     d[:, 5] = 20.0
 
     def run(stroke):
-        stage = Stage(Integrator(0.5, fs=FS, n_modes=basis.n_modes), latency_frames=0.5,
-                      dm_stroke=stroke, m2c=basis.m2c)
+        stage = Stage(
+            Integrator(0.5, fs=FS, n_modes=basis.n_modes),
+            latency_frames=0.5,
+            dm_stroke=stroke,
+            m2c=basis.m2c,
+        )
         return run_loop(stage, ModalTimeSeries(d), 400)
 
     clipped, free = run(300.0), run(1e6)
@@ -113,9 +124,15 @@ def test_same_seed_same_run_with_atmosphere_and_noise():
     def run(seed):
         atm = Atmosphere(pupil, 0.15, [Layer(0.0, 1.0, 10.0, 30.0)], FS, rng=seed)
         cam = ScienceCamera(pupil, field_of_view=6.0)
-        return run_loop(Stage(Integrator(0.4, fs=FS, n_modes=20), LinearModalSensor(1.0, 2.0),
-                              LATENCY), TurbulenceSource(atm, basis), 500, rng=seed,
-                        science=cam.long_exposure(), basis=basis, science_every=5)
+        return run_loop(
+            Stage(Integrator(0.4, fs=FS, n_modes=20), LinearModalSensor(1.0, 2.0), LATENCY),
+            TurbulenceSource(atm, basis),
+            500,
+            rng=seed,
+            science=cam.long_exposure(),
+            basis=basis,
+            science_every=5,
+        )
 
     a, b, c = run(7), run(7), run(8)
     np.testing.assert_array_equal(a.telemetry["residuals"], b.telemetry["residuals"])

@@ -37,8 +37,7 @@ def _simulate(d, noise, K, latency):
     for t in range(n_frames):
         m[t] = (e[t - 1] if t else zero) + noise[t]
         u[t] = K.step(m[t])
-        dm = ((1 - f) * (u[t - k] if t >= k else zero)
-              + f * (u[t - k - 1] if t >= k + 1 else zero))
+        dm = (1 - f) * (u[t - k] if t >= k else zero) + f * (u[t - k - 1] if t >= k + 1 else zero)
         e[t] = d[t] - dm
     return m, u, e
 
@@ -58,8 +57,7 @@ def loop_data():
     latency = 0.83
     K = Integrator(0.4, fs=FS, n_modes=3)
     m, u, e = _simulate(d, noise, K, latency)
-    return {"d": d, "n": noise, "m": m, "u": u, "e": e, "K": K,
-            "plant": loop_plant(FS, latency)}
+    return {"d": d, "n": noise, "m": m, "u": u, "e": e, "K": K, "plant": loop_plant(FS, latency)}
 
 
 def test_pseudo_open_loop_is_delayed_disturbance_plus_noise(loop_data):
@@ -75,8 +73,13 @@ def test_simulated_residual_matches_analysis_sensitivity(loop_data):
     # residual variance; statistical tolerance for 1.3e5 correlated samples.
     tol = 0.05
     f = np.linspace(0.0, FS / 2, 20001)
-    pred = residual_variance(loop_data["plant"], loop_data["K"], f, _ar2_psd(f, SIGMA_W),
-                             white_noise_psd(SIGMA_N**2, FS)[:, None] * np.ones(f.size))
+    pred = residual_variance(
+        loop_data["plant"],
+        loop_data["K"],
+        f,
+        _ar2_psd(f, SIGMA_W),
+        white_noise_psd(SIGMA_N**2, FS)[:, None] * np.ones(f.size),
+    )
     sim = np.var(loop_data["e"][1000:], axis=0)
     assert np.max(np.abs(sim / pred - 1)) < tol
 
@@ -136,14 +139,26 @@ def test_one_dimensional_telemetry_and_pure_delay():
         ({"noise_band": (0.9, 0.5)}, ValueError, "noise_band"),
         ({"noise_band": (0.0, 1.5)}, ValueError, "noise_band"),
         ({"noise_band": (0.999, 1.0)}, ValueError, "no Welch frequency bin"),
-        ({"plant": measured_plant([0.0, 500.0], frequency_response(loop_plant(FS, 0.0),
-                                                                   [0.0, 500.0]), FS)},
-         TypeError, "TransferFunction"),
+        (
+            {
+                "plant": measured_plant(
+                    [0.0, 500.0], frequency_response(loop_plant(FS, 0.0), [0.0, 500.0]), FS
+                )
+            },
+            TypeError,
+            "TransferFunction",
+        ),
     ],
 )
 def test_bad_input(kwargs, err, match):
-    args = {"measurements": np.zeros((64, 2)), "commands": np.zeros((64, 2)),
-            "plant": loop_plant(FS, 0.5), "nperseg": 32, **kwargs}
+    args = {
+        "measurements": np.zeros((64, 2)),
+        "commands": np.zeros((64, 2)),
+        "plant": loop_plant(FS, 0.5),
+        "nperseg": 32,
+        **kwargs,
+    }
     with pytest.raises(err, match=match):
-        disturbance_from_telemetry(args.pop("measurements"), args.pop("commands"),
-                                   args.pop("plant"), **args)
+        disturbance_from_telemetry(
+            args.pop("measurements"), args.pop("commands"), args.pop("plant"), **args
+        )

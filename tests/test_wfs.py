@@ -34,9 +34,9 @@ def _modes(pupil: Pupil, n_modes: int) -> np.ndarray:
     x = pupil.to_vector(pupil.x) / (pupil.diameter / 2)
     y = pupil.to_vector(pupil.y) / (pupil.diameter / 2)
     cols = [x**i * y**j for d in range(1, 8) for i in range(d + 1) for j in [d - i]]
-    a = np.stack([np.ones_like(x)] + cols[: n_modes], axis=1)
+    a = np.stack([np.ones_like(x)] + cols[:n_modes], axis=1)
     q, _ = np.linalg.qr(a)
-    return (q[:, 1: n_modes + 1] * np.sqrt(pupil.n_valid)).T
+    return (q[:, 1 : n_modes + 1] * np.sqrt(pupil.n_valid)).T
 
 
 def _tilt_opd(pupil: Pupil, shift: float, wavelength: float = WAVELENGTH) -> np.ndarray:
@@ -59,7 +59,7 @@ def _beam_tilt_reference(wfs: PyramidWFS, opd: np.ndarray) -> np.ndarray:
         tilt = (ax * q - 0.5) * idx[None, :] + (ay * q - 0.5) * idx[:, None]
         phase = phase + 2 * np.pi * tilt / n
         field = np.zeros((n, n), complex)
-        field[r0:r0 + n_pix, r0:r0 + n_pix] = p.mask * np.exp(1j * phase)
+        field[r0 : r0 + n_pix, r0 : r0 + n_pix] = p.mask * np.exp(1j * phase)
         total += np.abs(np.fft.ifft2(np.fft.fft2(field) * mask)) ** 2
     total /= p.n_valid * wfs.n_points
     b = wfs._binning_full
@@ -107,8 +107,14 @@ def test_pyramid_flat_wavefront_zero_signal_symmetric_images(pyramid: PyramidWFS
 def test_pyramid_matches_unfactored_beam_tilt_propagation(pupil32: Pupil):
     # Oracle: the separable computation is an exact rewrite of the textbook propagation
     # (tilt, FFT, 2-D mask, inverse FFT per modulation point): equal to rounding in double.
-    wfs = PyramidWFS(pupil32, WAVELENGTH, n_subapertures=16, modulation=1.3,
-                     n_modulation_points=7, precision="double")
+    wfs = PyramidWFS(
+        pupil32,
+        WAVELENGTH,
+        n_subapertures=16,
+        modulation=1.3,
+        n_modulation_points=7,
+        precision="double",
+    )
     opd = _tilt_opd(pupil32, 0.3) + 30 * np.cos(2 * np.pi * pupil32.x / 2.0)
     fast, ref = wfs.detector_image(opd), _beam_tilt_reference(wfs, opd)
     assert np.abs(fast - ref).max() < 1e-10 * ref.max()
@@ -144,8 +150,7 @@ def test_modulated_pyramid_tilt_response_matches_geometric_optics(pupil32: Pupil
     # arccos(-d/r)/pi on one side of the edge: Sx = (2/pi) arcsin(d/r) for |d| <= r.
     # Diffraction adds a few per cent (~1/r): GEOM_TOL.
     geom_tol = 0.10
-    wfs = PyramidWFS(pupil32, WAVELENGTH, n_subapertures=16, modulation=radius,
-                     precision="double")
+    wfs = PyramidWFS(pupil32, WAVELENGTH, n_subapertures=16, modulation=radius, precision="double")
     nv = wfs.n_valid_subapertures
     for d in (0.5, 1.0, 1.5):
         s = wfs.signals(_tilt_opd(pupil32, d))
@@ -195,12 +200,12 @@ def test_derivative_interaction_matrix_matches_push_pull(pyramid, calibrated):
     # at 1.04 um, (2 pi a / lambda)^2 ~ 4e-5, hence DERIV_TOL; also around a residual screen.
     deriv_tol = 1e-3
     modes, _ = calibrated
-    screen = fitting_residual_screens(pyramid.pupil, 60.0, 1, np.random.default_rng(4),
-                                      cutoff_frequency=1.0)[0]
+    screen = fitting_residual_screens(
+        pyramid.pupil, 60.0, 1, np.random.default_rng(4), cutoff_frequency=1.0
+    )[0]
     for offset in (None, screen):
         pp = interaction_matrix(pyramid, modes[:6], 1.0, offset_opd=offset)
-        lin = interaction_matrix(pyramid, modes[:6], 1.0, offset_opd=offset,
-                                 method="derivative")
+        lin = interaction_matrix(pyramid, modes[:6], 1.0, offset_opd=offset, method="derivative")
         assert np.linalg.norm(lin - pp) / np.linalg.norm(pp) < deriv_tol
 
 
@@ -231,22 +236,21 @@ def test_optical_gain_below_one_and_decreasing_with_residual(pyramid, calibrated
     rng = np.random.default_rng(3)
     means = []
     for rms in (30.0, 80.0):
-        screens = fitting_residual_screens(pyramid.pupil, rms, 2, rng,
-                                           cutoff_frequency=16 / (2 * 8.0))
+        screens = fitting_residual_screens(
+            pyramid.pupil, rms, 2, rng, cutoff_frequency=16 / (2 * 8.0)
+        )
         g = optical_gains(pyramid, modes[:6], screens, recon=cal.recon[:6])
         assert np.all(g < 1)
         means.append(g.mean())
     assert means[1] < means[0] < 1
-    flat = optical_gains(pyramid, modes[:3], np.zeros((32, 32)), recon=cal.recon[:3],
-                         amplitude=5.0)
+    flat = optical_gains(pyramid, modes[:3], np.zeros((32, 32)), recon=cal.recon[:3], amplitude=5.0)
     # the recon of 20 modes restricted to 3 rows: diagonal of R D is exactly 1 when flat
     np.testing.assert_allclose(flat, 1.0, atol=1e-8)
 
 
 def test_fitting_residual_screens_rms(pupil32: Pupil):
     # Oracle: each screen is scaled to the requested RMS over the pupil, piston-free.
-    s = fitting_residual_screens(pupil32, 50.0, 3, np.random.default_rng(0),
-                                 cutoff_frequency=1.0)
+    s = fitting_residual_screens(pupil32, 50.0, 3, np.random.default_rng(0), cutoff_frequency=1.0)
     v = pupil32.to_vector(s)
     np.testing.assert_allclose(np.sqrt((v**2).mean(axis=1)), 50.0, rtol=1e-12)
     np.testing.assert_allclose(v.mean(axis=1), 0.0, atol=1e-9)
@@ -277,8 +281,10 @@ def test_noise_scalings(calibrated):
     _, full = calibrated
     cal = dataclasses.replace(full, norm_pixels=0)
     n, f = full.norm_pixels, full.norm_fraction
-    np.testing.assert_allclose(full.noise_variance(50.0, 1.0) / cal.noise_variance(50.0, 1.0),
-                               1 + 3 * (f * 50 + n) / (f * 50) ** 2)
+    np.testing.assert_allclose(
+        full.noise_variance(50.0, 1.0) / cal.noise_variance(50.0, 1.0),
+        1 + 3 * (f * 50 + n) / (f * 50) ** 2,
+    )
     v1 = cal.noise_variance(100.0, 0.0)
     np.testing.assert_allclose(cal.noise_variance(400.0, 0.0), v1 / 4)
     r = cal.noise_variance(100.0, 2.0) - v1
@@ -329,8 +335,10 @@ def test_modal_basis_object_accepted(pupil32: Pupil, pyramid):
             self.pupil, self.modes = pupil, modes
 
     modes = _modes(pupil32, 3)
-    np.testing.assert_array_equal(interaction_matrix(pyramid, Basis(pupil32, modes), 5.0),
-                                  interaction_matrix(pyramid, modes, 5.0))
+    np.testing.assert_array_equal(
+        interaction_matrix(pyramid, Basis(pupil32, modes), 5.0),
+        interaction_matrix(pyramid, modes, 5.0),
+    )
 
 
 # ---------------------------------------------------------------------------- Shack-Hartmann
@@ -348,8 +356,10 @@ def test_shack_hartmann_tilt_equals_analytic_gradient(model: str):
     a = 20.0
     s = wfs.signals(a * pupil.x)
     nv = wfs.n_valid_subapertures
-    full = (np.add.reduceat(np.add.reduceat(pupil.mask, np.arange(0, 64, 8), 0),
-                            np.arange(0, 64, 8), 1) == 64)[wfs.valid_subapertures]
+    full = (
+        np.add.reduceat(np.add.reduceat(pupil.mask, np.arange(0, 64, 8), 0), np.arange(0, 64, 8), 1)
+        == 64
+    )[wfs.valid_subapertures]
     assert full.sum() > 10
     np.testing.assert_allclose(s[:nv][full] / (a * wfs.subaperture_size), 1.0, atol=sh_tol)
     assert np.abs(s[nv:]).max() < 1e-9 * a
@@ -393,10 +403,12 @@ def test_bad_inputs(pupil32: Pupil):
         LinearModalWFS(optical_gain=[1.0, 1.0], noise_std=[1.0])
     with pytest.raises(ValueError, match=r"residual must have shape"):
         LinearModalWFS(optical_gain=[1.0], noise_std=[1.0]).measure(
-            np.zeros(3), np.random.default_rng(0))
+            np.zeros(3), np.random.default_rng(0)
+        )
     with pytest.raises(ValueError, match=r"amplitude must be a finite number > 0, got 0.0"):
-        interaction_matrix(PyramidWFS(pupil32, WAVELENGTH, n_subapertures=16),
-                           _modes(pupil32, 2), amplitude=0.0)
+        interaction_matrix(
+            PyramidWFS(pupil32, WAVELENGTH, n_subapertures=16), _modes(pupil32, 2), amplitude=0.0
+        )
 
 
 def test_white_noise_propagation_matches_monte_carlo():
@@ -429,8 +441,9 @@ def test_saxo_plus_scale_pyramid_noise_model_with_kl_modes():
     np.testing.assert_allclose(cal.recon @ cal.imat, np.eye(12), atol=1e-10)
     photons, ron = 3000.0, 0.3
     frame = wfs.reference_frame * photons
-    noisy = add_detector_noise(np.broadcast_to(frame, (3000, *frame.shape)), ron,
-                               np.random.default_rng(8))
+    noisy = add_detector_noise(
+        np.broadcast_to(frame, (3000, *frame.shape)), ron, np.random.default_rng(8)
+    )
     var = (wfs.signals_from_frame(noisy) @ cal.recon.T).var(axis=0)
     assert np.all(np.abs(var / cal.noise_variance(photons, ron) - 1) < noise_tol)
 

@@ -77,8 +77,10 @@ def test_fractional_delay_below_half_costs_nothing_above_half_costs_extra():
     a = 0.9
     f = np.linspace(0.0, FS / 2, 20001)
     psd = _ar1_psd(f, a)
-    b = {lat: wiener_bound(loop_plant(FS, lat), f, psd) for lat in
-         (0.0, 0.2, 0.45, 0.55, 0.7, 0.83, 1.0)}
+    b = {
+        lat: wiener_bound(loop_plant(FS, lat), f, psd)
+        for lat in (0.0, 0.2, 0.45, 0.55, 0.7, 0.83, 1.0)
+    }
     assert abs(b[0.2] / b[0.0] - 1) < tol and abs(b[0.45] / b[0.0] - 1) < tol
     assert b[0.0] < b[0.55] < b[0.7] < b[0.83] < b[1.0]
     assert abs(b[1.0] / (1 + a * a) - 1) < 1e-6
@@ -93,8 +95,9 @@ def test_fir_youla_brute_force_converges_to_bound_from_above(latency):
     # finer), while 4 taps are 140-220 % above it.
     tol = 2e-4
     f = np.linspace(0.0, FS / 2, 8001)
-    psd = (synthetic_turbulence_psd(f, 1, wind_speed=15.0, fs=FS)[0]
-           + vibration_psd(f, 47.0, 2000.0, 0.02, fs=FS))
+    psd = synthetic_turbulence_psd(f, 1, wind_speed=15.0, fs=FS)[0] + vibration_psd(
+        f, 47.0, 2000.0, 0.02, fs=FS
+    )
     noise = white_noise_psd(100.0, FS)
     G = loop_plant(FS, latency)
     bound = wiener_bound(G, f, psd, noise)
@@ -153,8 +156,12 @@ def test_zero_psd_gives_zero_and_shapes():
     ],
 )
 def test_bad_input(kwargs, err, match):
-    args = {"plant": loop_plant(FS, 0.0), "freqs": np.linspace(0.0, 500.0, 11),
-            "psd": np.ones((3, 11)), **kwargs}
+    args = {
+        "plant": loop_plant(FS, 0.0),
+        "freqs": np.linspace(0.0, 500.0, 11),
+        "psd": np.ones((3, 11)),
+        **kwargs,
+    }
     with pytest.raises(err, match=match):
         wiener_bound(args.pop("plant"), args.pop("freqs"), args.pop("psd"), **args)
 

@@ -62,8 +62,12 @@ def controller_response(controller: object, freqs: object, fs: float) -> np.ndar
         va = zi[None, :] ** np.arange(na)[:, None]
         return (controller.b @ vb) / (controller.a @ va)
     if isinstance(controller, ControllerBank):
-        return np.stack([frequency_response(controller.transfer_function(i), freqs, fs)
-                         for i in range(controller.n_modes)])
+        return np.stack(
+            [
+                frequency_response(controller.transfer_function(i), freqs, fs)
+                for i in range(controller.n_modes)
+            ]
+        )
     return frequency_response(controller, freqs, fs)
 
 
@@ -94,8 +98,12 @@ class LoopResponse:
     command: np.ndarray
 
 
-def loop_response(plant: control.TransferFunction | control.FRD, controller: object,
-                  freqs: object, fs: float | None = None) -> LoopResponse:
+def loop_response(
+    plant: control.TransferFunction | control.FRD,
+    controller: object,
+    freqs: object,
+    fs: float | None = None,
+) -> LoopResponse:
     """Evaluate ``G, K, L, S, T, KS`` on ``freqs`` [Hz] (grid in [0, fs/2]).
 
     ``plant`` is a discrete SISO TF or FRD; ``controller`` a TF, FRD or ControllerBank (then
@@ -122,20 +130,23 @@ def loop_response(plant: control.TransferFunction | control.FRD, controller: obj
     return LoopResponse(freqs, G, K, L, S, T, KS)
 
 
-def sensitivity(plant: object, controller: object, freqs: object,
-                fs: float | None = None) -> np.ndarray:
+def sensitivity(
+    plant: object, controller: object, freqs: object, fs: float | None = None
+) -> np.ndarray:
     """Sensitivity ``S = 1/(1+GK)`` (disturbance to residual) at ``freqs`` [Hz]."""
     return loop_response(plant, controller, freqs, fs).sensitivity
 
 
-def complementary_sensitivity(plant: object, controller: object, freqs: object,
-                              fs: float | None = None) -> np.ndarray:
+def complementary_sensitivity(
+    plant: object, controller: object, freqs: object, fs: float | None = None
+) -> np.ndarray:
     """Complementary sensitivity ``T = GK/(1+GK)`` at ``freqs`` [Hz]."""
     return loop_response(plant, controller, freqs, fs).complementary
 
 
-def noise_transfer(plant: object, controller: object, freqs: object,
-                   fs: float | None = None) -> np.ndarray:
+def noise_transfer(
+    plant: object, controller: object, freqs: object, fs: float | None = None
+) -> np.ndarray:
     """Measurement noise to residual transfer at ``freqs`` [Hz].
 
     Equal to ``-T`` up to a pure delay (unit modulus); its squared modulus multiplies the
@@ -144,8 +155,9 @@ def noise_transfer(plant: object, controller: object, freqs: object,
     return -loop_response(plant, controller, freqs, fs).complementary
 
 
-def command_transfer(plant: object, controller: object, freqs: object,
-                     fs: float | None = None) -> np.ndarray:
+def command_transfer(
+    plant: object, controller: object, freqs: object, fs: float | None = None
+) -> np.ndarray:
     """Measurement noise to command transfer ``K S`` at ``freqs`` [Hz]."""
     return loop_response(plant, controller, freqs, fs).command
 

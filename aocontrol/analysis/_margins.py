@@ -89,20 +89,23 @@ class _LoopEval:
         self.plant = plant
         self.controller = controller
         self.exact = isinstance(plant, control.TransferFunction) and isinstance(
-            controller, control.TransferFunction)
+            controller, control.TransferFunction
+        )
         if self.exact:
             self.theta = np.linspace(0.0, np.pi, _N_GRID + 1)
         else:
-            omega = np.asarray(plant.omega if isinstance(plant, control.FRD)
-                               else controller.omega, dtype=float)
+            omega = np.asarray(
+                plant.omega if isinstance(plant, control.FRD) else controller.omega, dtype=float
+            )
             self.theta = omega / fs  # rad/s * dt = rad/sample
         self.values = self(self.theta)
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         f = np.clip(np.asarray(theta, dtype=float) * self.fs / (2 * np.pi), 0.0, self.fs / 2)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return (frequency_response(self.plant, f, self.fs)
-                    * frequency_response(self.controller, f, self.fs))
+            return frequency_response(self.plant, f, self.fs) * frequency_response(
+                self.controller, f, self.fs
+            )
 
 
 def _roots_of(fun, theta: np.ndarray, values: np.ndarray, exact: bool) -> list[float]:
@@ -120,8 +123,13 @@ def _roots_of(fun, theta: np.ndarray, values: np.ndarray, exact: bool) -> list[f
     return out
 
 
-def margins(plant: control.TransferFunction | control.FRD, controller: object, *,
-            fs: float | None = None, mode: int = 0) -> Margins:
+def margins(
+    plant: control.TransferFunction | control.FRD,
+    controller: object,
+    *,
+    fs: float | None = None,
+    mode: int = 0,
+) -> Margins:
     """Gain, phase, modulus and delay margins and closed-loop stability of ``L = G K``.
 
     Parameters
@@ -163,8 +171,11 @@ def margins(plant: control.TransferFunction | control.FRD, controller: object, *
         if end in (0.0, np.pi):
             cands.append(float(end))
     pc = [(t, ev(np.array([t]))[0]) for t in cands]
-    pc = [(t, v) for t, v in pc if np.isfinite(v) and v.real < 0
-          and abs(v.imag) <= 1e-7 * max(1.0, abs(v))]
+    pc = [
+        (t, v)
+        for t, v in pc
+        if np.isfinite(v) and v.real < 0 and abs(v.imag) <= 1e-7 * max(1.0, abs(v))
+    ]
     if pc:
         t_pc, v_pc = max(pc, key=lambda tv: abs(tv[1]))
         gm, f_pc = 1.0 / abs(v_pc), t_pc * fs_ / (2 * np.pi)
@@ -173,8 +184,12 @@ def margins(plant: control.TransferFunction | control.FRD, controller: object, *
 
     # Gain crossovers: |L| = 1.
     mag = np.where(finite, np.abs(L) - 1.0, np.where(np.isnan(L), np.nan, np.inf))
-    gc = _roots_of(lambda t: float(np.abs(ev(np.array([t]))[0]) - 1.0), theta,
-                   np.where(np.isfinite(mag), mag, 1e300), ev.exact)
+    gc = _roots_of(
+        lambda t: float(np.abs(ev(np.array([t]))[0]) - 1.0),
+        theta,
+        np.where(np.isfinite(mag), mag, 1e300),
+        ev.exact,
+    )
     pm, dm, f_gc = np.inf, np.inf, np.nan
     for t in gc:
         v = ev(np.array([t]))[0]
@@ -192,20 +207,32 @@ def margins(plant: control.TransferFunction | control.FRD, controller: object, *
         lo, hi = theta[max(i - 1, 0)], theta[min(i + 1, theta.size - 1)]
         if hi > lo:
             res = optimize.minimize_scalar(
-                lambda t: float(np.abs(1.0 + ev(np.array([t]))[0])), bounds=(lo, hi),
-                method="bounded", options={"xatol": 1e-12})
+                lambda t: float(np.abs(1.0 + ev(np.array([t]))[0])),
+                bounds=(lo, hi),
+                method="bounded",
+                options={"xatol": 1e-12},
+            )
             if res.fun < mm:
                 mm, t_mm = float(res.fun), float(res.x)
 
     stable = is_stable(plant, K, fs=fs_)
     if not stable:
         logger.info("margins computed for an unstable closed loop")
-    return Margins(float(gm), float(pm), mm, float(dm), stable, float(f_pc), float(f_gc),
-                   float(t_mm * fs_ / (2 * np.pi)))
+    return Margins(
+        float(gm),
+        float(pm),
+        mm,
+        float(dm),
+        stable,
+        float(f_pc),
+        float(f_gc),
+        float(t_mm * fs_ / (2 * np.pi)),
+    )
 
 
-def closed_loop_poles(plant: control.TransferFunction, controller: object, *,
-                      fs: float | None = None, mode: int = 0) -> np.ndarray:
+def closed_loop_poles(
+    plant: control.TransferFunction, controller: object, *, fs: float | None = None, mode: int = 0
+) -> np.ndarray:
     """Roots of the unreduced characteristic polynomial ``Dg Dk + Ng Nk`` (z-plane).
 
     Raises
@@ -214,8 +241,10 @@ def closed_loop_poles(plant: control.TransferFunction, controller: object, *,
         If ``plant`` is an FRD (use :func:`winding_stability`).
     """
     if not isinstance(plant, control.TransferFunction):
-        raise TypeError("closed_loop_poles needs a control.TransferFunction plant; "
-                        f"got {type(plant).__name__} (use winding_stability for an FRD)")
+        raise TypeError(
+            "closed_loop_poles needs a control.TransferFunction plant; "
+            f"got {type(plant).__name__} (use winding_stability for an FRD)"
+        )
     fs_ = plant_fs(plant, fs)
     K = _controller_tf(controller, fs_, mode)
     if not isinstance(K, control.TransferFunction):
@@ -223,16 +252,23 @@ def closed_loop_poles(plant: control.TransferFunction, controller: object, *,
     bg, ag = z_inverse_coefficients(plant)
     bk, ak = z_inverse_coefficients(K)
     # In powers of z^-1: char(z^-1) = Ag Ak + Bg Bk; multiply by z^N to get z-plane roots.
-    p = np.polynomial.polynomial.polyadd(np.polynomial.polynomial.polymul(ag, ak),
-                                         np.polynomial.polynomial.polymul(bg, bk))
+    p = np.polynomial.polynomial.polyadd(
+        np.polynomial.polynomial.polymul(ag, ak), np.polynomial.polynomial.polymul(bg, bk)
+    )
     p = np.trim_zeros(p, "b")
     # p(w) with w = z^-1: z-plane roots are 1/w-roots; zero w-degree terms are poles at 0.
     # Equivalently, the z-polynomial has coefficients p (highest power of z first).
     return np.roots(p)
 
 
-def winding_stability(plant: object, controller: object, *, fs: float | None = None,
-                      mode: int = 0, freqs: np.ndarray | None = None) -> bool:
+def winding_stability(
+    plant: object,
+    controller: object,
+    *,
+    fs: float | None = None,
+    mode: int = 0,
+    freqs: np.ndarray | None = None,
+) -> bool:
     """Closed-loop stability from the winding number of ``P = Y + G X`` (``K = X/Y``).
 
     With ``w = z^-1``, ``P(w)`` is analytic on the closed unit disc when ``G`` is stable and
@@ -259,8 +295,9 @@ def winding_stability(plant: object, controller: object, *, fs: float | None = N
 
     def char(f: np.ndarray) -> np.ndarray:
         zi = np.exp(-2j * np.pi * f / fs_)
-        return (np.polyval(ak[::-1], zi)
-                + frequency_response(plant, f, fs_) * np.polyval(bk[::-1], zi))
+        return np.polyval(ak[::-1], zi) + frequency_response(plant, f, fs_) * np.polyval(
+            bk[::-1], zi
+        )
 
     P = char(freqs)
     exact = isinstance(plant, control.TransferFunction)
@@ -291,8 +328,13 @@ def winding_stability(plant: object, controller: object, *, fs: float | None = N
     return bool(abs(zeros_inside) < 0.5)
 
 
-def is_stable(plant: control.TransferFunction | control.FRD, controller: object, *,
-              fs: float | None = None, mode: int = 0) -> bool:
+def is_stable(
+    plant: control.TransferFunction | control.FRD,
+    controller: object,
+    *,
+    fs: float | None = None,
+    mode: int = 0,
+) -> bool:
     """Closed-loop stability of the loop ``G K``.
 
     TF plant: all roots of the characteristic polynomial strictly inside the unit circle.

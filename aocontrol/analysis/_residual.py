@@ -25,8 +25,15 @@ def _integrate(y: np.ndarray, freqs: np.ndarray) -> np.ndarray:
     return np.trapezoid(y, freqs, axis=-1)
 
 
-def residual_psd(plant: object, controller: object, freqs: object, psd: object,
-                 noise_psd: object = 0.0, *, fs: float | None = None) -> np.ndarray:
+def residual_psd(
+    plant: object,
+    controller: object,
+    freqs: object,
+    psd: object,
+    noise_psd: object = 0.0,
+    *,
+    fs: float | None = None,
+) -> np.ndarray:
     """One-sided residual PSD ``|S|^2 psd + |T|^2 noise_psd`` [units^2/Hz] on ``freqs``.
 
     Parameters
@@ -54,9 +61,16 @@ def residual_psd(plant: object, controller: object, freqs: object, psd: object,
     return out[0] if single and r.sensitivity.ndim == 1 else out
 
 
-def residual_variance(plant: object, controller: object, freqs: object, psd: object,
-                      noise_psd: object = 0.0, *, fs: float | None = None,
-                      check_stability: bool = True) -> float | np.ndarray:
+def residual_variance(
+    plant: object,
+    controller: object,
+    freqs: object,
+    psd: object,
+    noise_psd: object = 0.0,
+    *,
+    fs: float | None = None,
+    check_stability: bool = True,
+) -> float | np.ndarray:
     """Residual variance ``int_0^{fs/2} (|S|^2 psd + |T|^2 noise_psd) df`` [units^2].
 
     The integral is a trapezoid on ``freqs``: the grid must resolve both the PSD and ``S``.
@@ -81,12 +95,15 @@ def residual_variance(plant: object, controller: object, freqs: object, psd: obj
     0.333333
     """
     fs_ = plant_fs(plant, fs)
-    res = _integrate(residual_psd(plant, controller, freqs, psd, noise_psd, fs=fs_),
-                     np.asarray(freqs, dtype=float))
+    res = _integrate(
+        residual_psd(plant, controller, freqs, psd, noise_psd, fs=fs_),
+        np.asarray(freqs, dtype=float),
+    )
     if check_stability:
         if isinstance(controller, ControllerBank):
-            stable = np.array([is_stable(plant, controller, fs=fs_, mode=i)
-                               for i in range(controller.n_modes)])
+            stable = np.array(
+                [is_stable(plant, controller, fs=fs_, mode=i) for i in range(controller.n_modes)]
+            )
             if res.ndim == 0:
                 res = np.full(controller.n_modes, float(res))
             res = np.where(stable, res, np.inf)

@@ -17,8 +17,7 @@ from aocontrol.plant import frequency_response, plant_fs, z_inverse_coefficients
 __all__ = ["mode_psds", "wiener_bound"]
 
 
-def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray, np.ndarray,
-                                                                      bool]:
+def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray, np.ndarray, bool]:
     """Validate a disturbance and a noise PSD and broadcast both to ``(n_modes, n_freqs)``.
 
     Parameters
@@ -48,7 +47,8 @@ def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray,
             raise ValueError(
                 f"noise_psd of shape {noise.shape} must have {n_freqs} values (one per "
                 f"frequency) or {n_modes if n_modes is not None else 'n_modes'} (one white "
-                "level per mode, with a 2-D psd)")
+                "level per mode, with a 2-D psd)"
+            )
         noise = noise[:, None]
     if noise.ndim == 2:
         if noise.shape[1] not in (1, n_freqs):
@@ -89,7 +89,7 @@ def _minimum_phase_log(log_mag2: np.ndarray) -> np.ndarray:
     c = np.fft.ifft(log_mag2, axis=-1).real
     fold = np.zeros_like(c)
     fold[..., 0] = c[..., 0] / 2
-    fold[..., 1:n // 2] = c[..., 1:n // 2]
+    fold[..., 1 : n // 2] = c[..., 1 : n // 2]
     fold[..., n // 2] = c[..., n // 2] / 2
     return np.fft.fft(fold, axis=-1)
 
@@ -109,14 +109,15 @@ def _inner_factor(plant: object, theta: np.ndarray, fs: float) -> np.ndarray:
         if np.size(poles) and np.max(np.abs(poles)) >= 1.0:
             raise ValueError(
                 "plant must be stable (the Wiener bound uses the Youla parametrisation of a "
-                f"stable plant), got a pole of modulus {np.max(np.abs(poles))!r}")
+                f"stable plant), got a pole of modulus {np.max(np.abs(poles))!r}"
+            )
         scale = np.max(np.abs(b))
         if scale == 0:
             raise ValueError("plant must not be identically zero")
         nz = np.flatnonzero(np.abs(b) > 1e-14 * scale)
-        delay, b = int(nz[0]), np.trim_zeros(b[nz[0]:], "b")
+        delay, b = int(nz[0]), np.trim_zeros(b[nz[0] :], "b")
         out = zi**delay
-        for zeta in (np.roots(b) if b.size > 1 else []):
+        for zeta in np.roots(b) if b.size > 1 else []:
             if abs(zeta) > 1.0 + _ZERO_TOL:
                 out = out * (1 - zeta * zi) / (abs(zeta) * (1 - zi / np.conj(zeta)))
         return out
@@ -125,16 +126,24 @@ def _inner_factor(plant: object, theta: np.ndarray, fs: float) -> np.ndarray:
     try:
         g_half = frequency_response(plant, np.clip(half, 0.0, fs / 2), fs)
     except ValueError as exc:
-        raise ValueError("a measured (FRD) plant must cover [0, fs/2] for the Wiener bound: "
-                         f"{exc}") from exc
+        raise ValueError(
+            f"a measured (FRD) plant must cover [0, fs/2] for the Wiener bound: {exc}"
+        ) from exc
     g = np.concatenate([g_half, np.conj(g_half[-2:0:-1])])
     mag = np.abs(g)
     log_m2 = 2 * np.log(np.maximum(mag, _PSD_FLOOR * mag.max()))
     return g / np.exp(_minimum_phase_log(log_m2))
 
 
-def wiener_bound(plant: object, freqs: object, psd: object, noise_psd: object = 0.0, *,
-                 fs: float | None = None, n_fft: int = _N_FFT) -> float | np.ndarray:
+def wiener_bound(
+    plant: object,
+    freqs: object,
+    psd: object,
+    noise_psd: object = 0.0,
+    *,
+    fs: float | None = None,
+    n_fft: int = _N_FFT,
+) -> float | np.ndarray:
     """Smallest residual variance any causal linear controller can reach [units^2].
 
     For a stable plant ``G``, every stabilising controller is ``K = Q / (1 - G Q)`` with
@@ -228,12 +237,15 @@ def wiener_bound(plant: object, freqs: object, psd: object, noise_psd: object = 
             f"{bad[:10].tolist()}{' ...' if bad.size > 10 else ''} (the bound changes by up to "
             f"{100 * rel[bad].max():.0f}% between FFT sizes {n_fft} and {2 * n_fft}); sample "
             "the PSD on a grid log-spaced at low frequency (e.g. numpy.geomspace)",
-            UserWarning, stacklevel=2)
+            UserWarning,
+            stacklevel=2,
+        )
     return float(fine[0]) if squeeze else fine
 
 
-def _bound(plant: object, fs_: float, freqs: np.ndarray, psd2: np.ndarray,
-           noise2: np.ndarray, n_fft: int) -> np.ndarray:
+def _bound(
+    plant: object, fs_: float, freqs: np.ndarray, psd2: np.ndarray, noise2: np.ndarray, n_fft: int
+) -> np.ndarray:
     """The bound per mode on an ``n_fft``-point circle (see :func:`wiener_bound`)."""
     theta = 2 * np.pi * np.arange(n_fft) / n_fft
     gi_conj = np.conj(_inner_factor(plant, theta, fs_))
@@ -255,8 +267,7 @@ def _bound(plant: object, fs_: float, freqs: np.ndarray, psd2: np.ndarray,
         F = gi_conj * sd / np.conj(np.exp(log_m))
         coef = np.fft.ifft(F, axis=1)
         h = n_fft // 2
-        anticausal = (np.sum(np.abs(coef[:, h + 1:]) ** 2, axis=1)
-                      + 0.5 * np.abs(coef[:, h]) ** 2)
+        anticausal = np.sum(np.abs(coef[:, h + 1 :]) ** 2, axis=1) + 0.5 * np.abs(coef[:, h]) ** 2
         unpredictable = np.mean(sd * sn / total, axis=1)
         out[sl] = np.where(zero, 0.0, unpredictable + anticausal)
     return out

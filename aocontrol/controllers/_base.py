@@ -62,8 +62,7 @@ class ControllerBank(abc.ABC):
         m = np.asarray(measurement, dtype=float)
         if m.shape != (self.n_modes,):
             raise ValueError(
-                f"measurement must have shape ({self.n_modes},) (one value per mode), "
-                f"got {m.shape}"
+                f"measurement must have shape ({self.n_modes},) (one value per mode), got {m.shape}"
             )
         return m
 
@@ -120,8 +119,15 @@ class IIRBank(ControllerBank):
     array([1., 2.])
     """
 
-    def __init__(self, b: object, a: object, fs: float, *, n_modes: int | None = None,
-                 stroke: float | np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        b: object,
+        a: object,
+        fs: float,
+        *,
+        n_modes: int | None = None,
+        stroke: float | np.ndarray | None = None,
+    ) -> None:
         self._fs = check_positive("fs", fs)
         b = check_finite_array("b", b, ndim=(1, 2))
         a = check_finite_array("a", a, ndim=(1, 2))
@@ -218,8 +224,9 @@ class IIRBank(ControllerBank):
 
     # -- constructors ---------------------------------------------------------------------
     @classmethod
-    def from_transfer_functions(cls, tfs: list[control.TransferFunction], *,
-                                stroke: float | np.ndarray | None = None) -> IIRBank:
+    def from_transfer_functions(
+        cls, tfs: list[control.TransferFunction], *, stroke: float | np.ndarray | None = None
+    ) -> IIRBank:
         """Bank from one discrete SISO transfer function per mode (same ``dt``)."""
         if len(tfs) == 0:
             raise ValueError("tfs must contain at least one transfer function")
@@ -237,5 +244,7 @@ class IIRBank(ControllerBank):
         return cls(b, a, 1.0 / float(tfs[0].dt), stroke=stroke)
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}(n_modes={self._n}, fs={self._fs}, "
-                f"nb={self._b.shape[1]}, na={self._a.shape[1]})")
+        return (
+            f"{type(self).__name__}(n_modes={self._n}, fs={self._fs}, "
+            f"nb={self._b.shape[1]}, na={self._a.shape[1]})"
+        )

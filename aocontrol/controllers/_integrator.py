@@ -37,8 +37,15 @@ class Integrator(IIRBank):
     True
     """
 
-    def __init__(self, gain: float | np.ndarray, fs: float, leak: float = 0.0, *,
-                 n_modes: int | None = None, stroke: float | np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        gain: float | np.ndarray,
+        fs: float,
+        leak: float = 0.0,
+        *,
+        n_modes: int | None = None,
+        stroke: float | np.ndarray | None = None,
+    ) -> None:
         g = check_finite_array("gain", gain, ndim=(0, 1))
         if np.any(g < 0):
             raise ValueError(f"gain must be >= 0, got min {g.min()!r}")
@@ -52,8 +59,7 @@ class Integrator(IIRBank):
             a = np.tile([1.0, -(1.0 - leak)], (g.size, 1))
             super().__init__(b, a, fs, stroke=stroke)
         else:
-            super().__init__([float(g)], [1.0, -(1.0 - leak)], fs, n_modes=n_modes,
-                             stroke=stroke)
+            super().__init__([float(g)], [1.0, -(1.0 - leak)], fs, n_modes=n_modes, stroke=stroke)
         self._leak = leak
 
     @property

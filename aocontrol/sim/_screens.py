@@ -42,9 +42,16 @@ __all__ = ["fft_screens", "Extruder", "extrusion_stencil"]
 N_SUBHARMONIC_LEVELS = 3
 
 
-def fft_screens(n_screens: int, size: int, dx: float, L0: float, rng: np.random.Generator,
-                *, oversampling: int = 2,
-                subharmonics: int = N_SUBHARMONIC_LEVELS) -> np.ndarray:
+def fft_screens(
+    n_screens: int,
+    size: int,
+    dx: float,
+    L0: float,
+    rng: np.random.Generator,
+    *,
+    oversampling: int = 2,
+    subharmonics: int = N_SUBHARMONIC_LEVELS,
+) -> np.ndarray:
     """Independent von Kármán screens [rad at 500 nm, r0 = 1 m], shape ``(n, size, size)``.
 
     Parameters
@@ -77,7 +84,7 @@ def fft_screens(n_screens: int, size: int, dx: float, L0: float, rng: np.random.
     amp = np.sqrt(von_karman_psd(kappa, 1.0, L0)) * df
     amp[0, 0] = 0.0  # no piston
     # Subharmonic frequencies: 3x3 grids at df/3^p without the centre.
-    coords = (np.arange(size) * dx)
+    coords = np.arange(size) * dx
     sub_f, sub_amp = [], []
     for p in range(1, subharmonics + 1):
         dfp = df / 3.0**p

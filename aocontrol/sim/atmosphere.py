@@ -112,8 +112,9 @@ def _extruder(size: int, dx: float, L0: float) -> Extruder:
     return Extruder.build(size, dx, L0)
 
 
-def _as_generator(rng: np.random.Generator | int | np.random.SeedSequence | None,
-                  ) -> np.random.Generator:
+def _as_generator(
+    rng: np.random.Generator | int | np.random.SeedSequence | None,
+) -> np.random.Generator:
     if isinstance(rng, np.random.Generator):
         return rng
     if rng is None or isinstance(rng, (int, np.integer, np.random.SeedSequence)):
@@ -160,19 +161,28 @@ def _tap_weights(kind: str, f: np.ndarray) -> np.ndarray:
     if kind == "linear":
         return np.stack([1.0 - f, f], axis=1)
     f2, f3 = f * f, f * f * f
-    return np.stack([
-        -0.5 * f3 + f2 - 0.5 * f,
-        1.5 * f3 - 2.5 * f2 + 1.0,
-        -1.5 * f3 + 2.0 * f2 + 0.5 * f,
-        0.5 * f3 - 0.5 * f2,
-    ], axis=1)
+    return np.stack(
+        [
+            -0.5 * f3 + f2 - 0.5 * f,
+            1.5 * f3 - 2.5 * f2 + 1.0,
+            -1.5 * f3 + 2.0 * f2 + 0.5 * f,
+            0.5 * f3 - 0.5 * f2,
+        ],
+        axis=1,
+    )
 
 
 class _LayerState:
     """Screen, origin and random stream of one layer (internal, mutable)."""
 
-    def __init__(self, screen: np.ndarray, origin: tuple[int, int], step: tuple[float, float],
-                 amplitude: float, rng: np.random.Generator) -> None:
+    def __init__(
+        self,
+        screen: np.ndarray,
+        origin: tuple[int, int],
+        step: tuple[float, float],
+        amplitude: float,
+        rng: np.random.Generator,
+    ) -> None:
         self.screen = screen  # (N, N) nm; screen[i, j] is global pixel (oy + i, ox + j)
         self.oy, self.ox = origin
         self.sy, self.sx = step  # window displacement [pixels/frame] (= -v dt / dx)
@@ -235,11 +245,19 @@ class Atmosphere:
     (5, 16, 16)
     """
 
-    def __init__(self, pupil: Pupil, r0: float, layers: Sequence[Layer], fs: float,
-                 L0: float = 25.0,
-                 rng: np.random.Generator | int | np.random.SeedSequence | None = None,
-                 *, screen_size: int | None = None, interpolation: str = "linear",
-                 dtype: type[np.floating] | str = np.float64) -> None:
+    def __init__(
+        self,
+        pupil: Pupil,
+        r0: float,
+        layers: Sequence[Layer],
+        fs: float,
+        L0: float = 25.0,
+        rng: np.random.Generator | int | np.random.SeedSequence | None = None,
+        *,
+        screen_size: int | None = None,
+        interpolation: str = "linear",
+        dtype: type[np.floating] | str = np.float64,
+    ) -> None:
         if not isinstance(pupil, Pupil):
             raise TypeError(f"pupil must be a Pupil, got {type(pupil).__name__}")
         self._pupil = pupil
@@ -248,8 +266,7 @@ class Atmosphere:
         self._L0 = check_positive("L0", L0)
         self._layers = _check_layers(layers)
         if not isinstance(interpolation, str) or interpolation not in _TAPS:
-            raise ValueError(
-                f"interpolation must be one of {sorted(_TAPS)}, got {interpolation!r}")
+            raise ValueError(f"interpolation must be one of {sorted(_TAPS)}, got {interpolation!r}")
         self._dtype = np.dtype(dtype)
         if self._dtype not in (np.dtype(np.float64), np.dtype(np.float32)):
             raise ValueError(f"dtype must be float64 or float32, got {self._dtype}")
@@ -272,13 +289,21 @@ class Atmosphere:
         # g ranges over [-taps[0], -taps[0] + span].
         self._span = self._size - n - (taps[-1] - taps[0])
         fastest = max(max(abs(sy), abs(sx)) for sy, sx in steps)
-        self._block = MAX_BLOCK_FRAMES if fastest == 0 else int(
-            max(1, min(MAX_BLOCK_FRAMES, math.floor((self._span - 2) / fastest))))
+        self._block = (
+            MAX_BLOCK_FRAMES
+            if fastest == 0
+            else int(max(1, min(MAX_BLOCK_FRAMES, math.floor((self._span - 2) / fastest))))
+        )
         rows, cols = np.nonzero(pupil.mask)
         # Flat index in a layer's screen of each valid pupil pixel, window at the origin.
         self._window_index = rows * self._size + cols
-        logger.debug("Atmosphere: %d layers, screens %d px, %d frames per block, %s",
-                     len(self._layers), self._size, self._block, interpolation)
+        logger.debug(
+            "Atmosphere: %d layers, screens %d px, %d frames per block, %s",
+            len(self._layers),
+            self._size,
+            self._block,
+            interpolation,
+        )
         self.reset(rng)
 
     # ------------------------------------------------------------------ properties
@@ -331,13 +356,17 @@ class Atmosphere:
         return _tau0(self._r0, speeds, [lay.fraction for lay in self._layers])
 
     def __repr__(self) -> str:
-        return (f"Atmosphere(n_pix={self._pupil.n_pix}, r0={self._r0:g} m, "
-                f"{len(self._layers)} layer(s), fs={self._fs:g} Hz, L0={self._L0:g} m, "
-                f"tau0={self.tau0 * 1e3:.3g} ms, frame={self._frame})")
+        return (
+            f"Atmosphere(n_pix={self._pupil.n_pix}, r0={self._r0:g} m, "
+            f"{len(self._layers)} layer(s), fs={self._fs:g} Hz, L0={self._L0:g} m, "
+            f"tau0={self.tau0 * 1e3:.3g} ms, frame={self._frame})"
+        )
 
     # ------------------------------------------------------------------ state
-    def reset(self, rng: np.random.Generator | int | np.random.SeedSequence | None = None,
-              ) -> None:
+    def reset(
+        self,
+        rng: np.random.Generator | int | np.random.SeedSequence | None = None,
+    ) -> None:
         """Restart the stream at frame 0.
 
         Parameters
@@ -362,8 +391,9 @@ class Atmosphere:
             # Start the window where it has room to move: at the far end of its motion.
             start_y = first + (span if sy < 0 else (0 if sy > 0 else span // 2))
             start_x = first + (span if sx < 0 else (0 if sx > 0 else span // 2))
-            states.append(_LayerState(unit[i] * amp, (-start_y, -start_x), (sy, sx), amp,
-                                      gens[i + 1]))
+            states.append(
+                _LayerState(unit[i] * amp, (-start_y, -start_x), (sy, sx), amp, gens[i + 1])
+            )
         self._states = states
         self._frame = 0
 
@@ -425,8 +455,12 @@ class Atmosphere:
             row = 0
             for _, _, origins, st in parts:
                 src = st.screen.astype(self._dtype, copy=False).ravel()
-                np.take(src, origins[:, None] + self._window_index[None, :],
-                        out=windows[row: row + origins.size], mode="clip")
+                np.take(
+                    src,
+                    origins[:, None] + self._window_index[None, :],
+                    out=windows[row : row + origins.size],
+                    mode="clip",
+                )
                 row += origins.size
             data = np.concatenate([p[0] for p in parts], axis=1).astype(self._dtype).ravel()
             indices = np.concatenate([p[1] for p in parts], axis=1).ravel()
@@ -460,8 +494,11 @@ class Atmosphere:
             st.oy += sign * k
         self._extruder.extrude(view, st.rng.standard_normal((k, self._size)), st.amplitude)
 
-    def _interpolation(self, st: _LayerState, frames: np.ndarray,
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _interpolation(
+        self,
+        st: _LayerState,
+        frames: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Weights (n, T^2), window numbers (n, T^2), flat screen index of each window.
 
         ``T`` is the number of taps per axis (2 bilinear, 4 bicubic).
@@ -474,12 +511,14 @@ class Atmosphere:
         cy = gy.astype(np.intp) - st.oy
         cx = gx.astype(np.intp) - st.ox
         size, n = self._size, self._pupil.n_pix
-        if (min(cy.min(), cx.min()) + taps[0] < 0
-                or max(cy.max(), cx.max()) + n - 1 + taps[-1] > size - 1):
+        if (
+            min(cy.min(), cx.min()) + taps[0] < 0
+            or max(cy.max(), cx.max()) + n - 1 + taps[-1] > size - 1
+        ):
             raise RuntimeError("internal error: pupil window outside the layer's screen")
         t, n_frames = np.asarray(taps), len(frames)
         # Window (cy + a, cx + b) for every pair of taps (a, b), weight wy[a] wx[b].
-        keys = ((cy[:, None] + t)[:, :, None] * size + (cx[:, None] + t)[:, None, :])
+        keys = (cy[:, None] + t)[:, :, None] * size + (cx[:, None] + t)[:, None, :]
         keys = keys.reshape(n_frames, -1)
         w = (wy[:, :, None] * wx[:, None, :]).reshape(n_frames, -1)
         origins, inverse = np.unique(keys, return_inverse=True)

@@ -140,9 +140,7 @@ class DeformableMirror:
                 f"need >= {MIN_PIXELS_PER_PITCH:g}, i.e. n_pix >= {needed}"
             )
         if self.n_act == 0:
-            raise ValueError(
-                f"no valid actuator within margin={self.margin} pitches of the pupil"
-            )
+            raise ValueError(f"no valid actuator within margin={self.margin} pitches of the pupil")
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -224,8 +222,11 @@ class DeformableMirror:
         w, v = np.linalg.eigh(gram)
         keep = w > w[-1] * 1e-10
         if not np.all(keep):
-            logger.info("DM fit: %d of %d command directions below 1e-10 of the largest "
-                        "eigenvalue dropped", int(np.sum(~keep)), w.size)
+            logger.info(
+                "DM fit: %d of %d command directions below 1e-10 of the largest eigenvalue dropped",
+                int(np.sum(~keep)),
+                w.size,
+            )
         inv = (v[:, keep] / w[keep]) @ v[:, keep].T
         out = f.T @ inv
         out.setflags(write=False)

@@ -94,10 +94,9 @@ class ModalTimeSeries:
         end = self._pos + n_frames
         if end > self._series.shape[0]:
             raise ValueError(
-                f"the modal time series has {self._series.shape[0]} frames, "
-                f"{end} were requested"
+                f"the modal time series has {self._series.shape[0]} frames, {end} were requested"
             )
-        out = self._series[self._pos:end]
+        out = self._series[self._pos : end]
         self._pos = end
         return out, None
 
@@ -113,8 +112,13 @@ class TurbulenceSource:
         A modal disturbance added on top (e.g. a vibration), same modes.
     """
 
-    def __init__(self, atmosphere: Any, basis: Any, *, additive: DisturbanceSource | None = None,
-                 ) -> None:
+    def __init__(
+        self,
+        atmosphere: Any,
+        basis: Any,
+        *,
+        additive: DisturbanceSource | None = None,
+    ) -> None:
         self.atmosphere = atmosphere
         self.basis = basis
         self.n_modes = int(basis.n_modes)
@@ -185,12 +189,14 @@ class DiffractiveSensor:
     def __post_init__(self) -> None:
         r = np.asarray(self.reconstructor, dtype=float)
         if r.ndim != 2 or not np.all(np.isfinite(r)):
-            raise ValueError(f"reconstructor must be a finite (n_modes, n_signals) matrix, "
-                             f"got shape {r.shape}")
+            raise ValueError(
+                f"reconstructor must be a finite (n_modes, n_signals) matrix, got shape {r.shape}"
+            )
         n_signals = getattr(self.wfs, "n_signals", r.shape[1])
         if r.shape[1] != n_signals:
-            raise ValueError(f"reconstructor has {r.shape[1]} columns, the WFS gives "
-                             f"{n_signals} signals")
+            raise ValueError(
+                f"reconstructor has {r.shape[1]} columns, the WFS gives {n_signals} signals"
+            )
         object.__setattr__(self, "reconstructor", r)
         if self.photons is not None:
             check_positive("photons", self.photons)
@@ -212,8 +218,9 @@ class DiffractiveSensor:
 def _sensor_arrays(sensor: Any, n_modes: int) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(sensor, DiffractiveSensor):
         if sensor.n_modes != n_modes:
-            raise ValueError(f"the sensor reconstructs {sensor.n_modes} modes, the controller "
-                             f"has {n_modes}")
+            raise ValueError(
+                f"the sensor reconstructs {sensor.n_modes} modes, the controller has {n_modes}"
+            )
         return np.ones(n_modes), np.zeros(n_modes)
     if isinstance(sensor, LinearModalSensor):
         return sensor.arrays(n_modes)
@@ -271,7 +278,8 @@ class Stage:
                 raise ValueError(
                     "dm_stroke needs m2c of shape (n_act, n_modes) with n_modes="
                     f"{self.controller.n_modes}, got "
-                    f"{None if m2c is None else m2c.shape}")
+                    f"{None if m2c is None else m2c.shape}"
+                )
             object.__setattr__(self, "m2c", m2c)
 
     @property
@@ -326,8 +334,7 @@ class LoopResult:
         """Total modal residual RMS [nm] (sum over modes)."""
         return float(np.sqrt(np.sum(self.residual_variance)))
 
-    def psd(self, name: str = "residuals", *, nperseg: int = 1024
-            ) -> tuple[np.ndarray, np.ndarray]:
+    def psd(self, name: str = "residuals", *, nperseg: int = 1024) -> tuple[np.ndarray, np.ndarray]:
         """One-sided Welch PSD [nm^2/Hz] of a recorded signal after settling.
 
         Returns ``freqs`` (n_f,) [Hz] and ``psd`` (n_modes, n_f).
@@ -336,7 +343,7 @@ class LoopResult:
 
         if name not in self.telemetry:
             raise KeyError(f"{name!r} was not recorded; recorded: {sorted(self.telemetry)}")
-        x = np.asarray(self.telemetry[name][self.settle_frames:], dtype=float)
+        x = np.asarray(self.telemetry[name][self.settle_frames :], dtype=float)
         nper = min(nperseg, x.shape[0])
         f, p = signal.welch(x, fs=self.fs, nperseg=nper, axis=0, scaling="density")
         return f, p.T
@@ -345,16 +352,23 @@ class LoopResult:
         """Write the result to ``path`` (.npz: arrays + JSON metadata), atomically."""
         path = os.fspath(path)
         arrays = {f"telemetry/{k}": v for k, v in self.telemetry.items()}
-        arrays.update(residual_variance=self.residual_variance,
-                      disturbance_variance=self.disturbance_variance,
-                      saturation=self.saturation)
+        arrays.update(
+            residual_variance=self.residual_variance,
+            disturbance_variance=self.disturbance_variance,
+            saturation=self.saturation,
+        )
         if self.actuator_saturation is not None:
             arrays["actuator_saturation"] = self.actuator_saturation
         science = None
         if self.science is not None and hasattr(self.science, "to_dict"):
             science = self.science.to_dict()
-        meta = dict(fs=self.fs, n_frames=self.n_frames, settle_frames=self.settle_frames,
-                    metadata=self.metadata, science=science)
+        meta = dict(
+            fs=self.fs,
+            n_frames=self.n_frames,
+            settle_frames=self.settle_frames,
+            metadata=self.metadata,
+            science=science,
+        )
         arrays["meta_json"] = np.array(json.dumps(meta, default=_json_default))
         directory = os.path.dirname(os.path.abspath(path))
         fd, tmp = tempfile.mkstemp(dir=directory, suffix=".npz.tmp")
@@ -373,13 +387,20 @@ class LoopResult:
         with np.load(os.fspath(path), allow_pickle=False) as data:
             meta = json.loads(str(data["meta_json"]))
             tele = {k.split("/", 1)[1]: data[k] for k in data.files if k.startswith("telemetry/")}
-            return cls(fs=meta["fs"], n_frames=meta["n_frames"], telemetry=tele,
-                       residual_variance=data["residual_variance"],
-                       disturbance_variance=data["disturbance_variance"],
-                       saturation=data["saturation"], settle_frames=meta["settle_frames"],
-                       science=meta["science"], metadata=meta["metadata"],
-                       actuator_saturation=(data["actuator_saturation"]
-                                            if "actuator_saturation" in data.files else None))
+            return cls(
+                fs=meta["fs"],
+                n_frames=meta["n_frames"],
+                telemetry=tele,
+                residual_variance=data["residual_variance"],
+                disturbance_variance=data["disturbance_variance"],
+                saturation=data["saturation"],
+                settle_frames=meta["settle_frames"],
+                science=meta["science"],
+                metadata=meta["metadata"],
+                actuator_saturation=(
+                    data["actuator_saturation"] if "actuator_saturation" in data.files else None
+                ),
+            )
 
 
 def _json_default(obj: Any) -> Any:
@@ -390,11 +411,21 @@ def _json_default(obj: Any) -> Any:
     return str(obj)
 
 
-def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
-             rng: np.random.Generator | int | None = None, science: Any = None,
-             basis: Any = None, science_every: int = 10, record: tuple[str, ...] = TELEMETRY,
-             settle_frames: int | None = None, chunk: int = 1000, progress: bool = False,
-             metadata: dict | None = None) -> LoopResult:
+def run_loop(
+    stage: Stage,
+    disturbance: DisturbanceSource,
+    n_frames: int,
+    *,
+    rng: np.random.Generator | int | None = None,
+    science: Any = None,
+    basis: Any = None,
+    science_every: int = 10,
+    record: tuple[str, ...] = TELEMETRY,
+    settle_frames: int | None = None,
+    chunk: int = 1000,
+    progress: bool = False,
+    metadata: dict | None = None,
+) -> LoopResult:
     """Run one AO stage in closed loop for ``n_frames`` frames.
 
     Parameters
@@ -438,9 +469,7 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
         raise TypeError("disturbance must provide n_modes and next(n_frames)")
     n = stage.n_modes
     if disturbance.n_modes != n:
-        raise ValueError(
-            f"disturbance has {disturbance.n_modes} modes, the controller {n}"
-        )
+        raise ValueError(f"disturbance has {disturbance.n_modes} modes, the controller {n}")
     if science is not None and basis is None:
         raise ValueError("a science camera needs basis= to form the DM shape")
     diffractive = isinstance(stage.sensor, DiffractiveSensor)
@@ -451,8 +480,11 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
     if noisy and rng is None:
         raise ValueError("rng is required with a noisy sensor (reproducibility)")
     rng = np.random.default_rng(rng)
-    settle = (max(20, n_frames // 100) if settle_frames is None
-              else check_int("settle_frames", settle_frames, minimum=0))
+    settle = (
+        max(20, n_frames // 100)
+        if settle_frames is None
+        else check_int("settle_frames", settle_frames, minimum=0)
+    )
     if settle >= n_frames:
         raise ValueError(f"settle_frames={settle} must be < n_frames={n_frames}")
 
@@ -462,8 +494,11 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
         k0, frac = int(round(stage.latency_frames)), 0.0
     depth = k0 + 2
     hist = np.zeros((depth, n))  # ring buffer of applied commands, hist[k % depth] = u[k]
-    stroke = None if stage.stroke is None else np.broadcast_to(
-        np.asarray(stage.stroke, dtype=float), (n,))
+    stroke = (
+        None
+        if stage.stroke is None
+        else np.broadcast_to(np.asarray(stage.stroke, dtype=float), (n,))
+    )
     saturation = np.zeros(n, dtype=np.int64)
     act_stroke = stage.dm_stroke
     if act_stroke is not None:
@@ -492,12 +527,15 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
             d, maps = disturbance.next(m_chunk)
             d = np.asarray(d, dtype=float)
             if (science is not None or diffractive) and maps is None:
-                raise ValueError("the disturbance source gives no phase maps (needed by the "
-                                 "science camera and a DiffractiveSensor)")
+                raise ValueError(
+                    "the disturbance source gives no phase maps (needed by the "
+                    "science camera and a DiffractiveSensor)"
+                )
             if diffractive and resid_map is None:
                 resid_map = basis.pupil.to_map(np.zeros(maps.shape[1]))
-            noise = (rng.standard_normal((m_chunk, n)) * noise_std if noisy
-                     else np.zeros((m_chunk, n)))
+            noise = (
+                rng.standard_normal((m_chunk, n)) * noise_std if noisy else np.zeros((m_chunk, n))
+            )
             np.maximum(dmax, np.abs(d).max(axis=0), out=dmax)
             # Scale of a healthy residual: the largest disturbance or noise (through T) of any
             # mode (modes couple through stroke clipping and diffractive sensing).
@@ -532,8 +570,12 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
                 if k >= settle:
                     sum_e2 += e * e
                     sum_d2 += d[j] * d[j]
-                for name, val in (("measurements", m), ("commands", u), ("dm", y),
-                                  ("residuals", e)):
+                for name, val in (
+                    ("measurements", m),
+                    ("commands", u),
+                    ("dm", y),
+                    ("residuals", e),
+                ):
                     if name in out:
                         out[name][j] = val
                 if science is not None and k >= settle and k % science_every == 0:
@@ -561,10 +603,19 @@ def run_loop(stage: Stage, disturbance: DisturbanceSource, n_frames: int, *,
     if saturation.any():
         logger.info("%s: DM saturated in %d mode-frames", stage.name, int(saturation.sum()))
     return LoopResult(
-        fs=stage.fs, n_frames=n_frames, telemetry=tele,
-        residual_variance=sum_e2 / n_stat, disturbance_variance=sum_d2 / n_stat,
-        saturation=saturation, settle_frames=settle, science=result_science,
-        metadata=dict(metadata or {}, stage=stage.name, latency_frames=stage.latency_frames,
-                      controller=repr(stage.controller)),
+        fs=stage.fs,
+        n_frames=n_frames,
+        telemetry=tele,
+        residual_variance=sum_e2 / n_stat,
+        disturbance_variance=sum_d2 / n_stat,
+        saturation=saturation,
+        settle_frames=settle,
+        science=result_science,
+        metadata=dict(
+            metadata or {},
+            stage=stage.name,
+            latency_frames=stage.latency_frames,
+            controller=repr(stage.controller),
+        ),
         actuator_saturation=act_saturation if act_stroke is not None else None,
     )

@@ -105,8 +105,7 @@ class ModalBasis:
         modes = check_finite_array("modes", self.modes, ndim=2).copy()
         if modes.shape[1] != self.pupil.n_valid:
             raise ValueError(
-                f"modes must have shape (n_modes, n_valid={self.pupil.n_valid}), "
-                f"got {modes.shape}"
+                f"modes must have shape (n_modes, n_valid={self.pupil.n_valid}), got {modes.shape}"
             )
         m2c = check_finite_array("m2c", self.m2c, ndim=2).copy()
         if m2c.shape[1] != modes.shape[0]:
@@ -247,18 +246,18 @@ class _PistonFreeCovariance:
         n, s = p.n_pix, self.size
         out = np.empty_like(vectors)
         for start in range(0, vectors.shape[0], _FFT_BATCH):
-            block = vectors[start:start + _FFT_BATCH]
+            block = vectors[start : start + _FFT_BATCH]
             maps = np.zeros((block.shape[0], s, s))
             maps[:, :n, :n] = p.to_map(block)
             conv = sfft.irfft2(sfft.rfft2(maps) * self.kernel_ft, s=(s, s))
-            out[start:start + _FFT_BATCH] = p.to_vector(conv[:, :n, :n])
+            out[start : start + _FFT_BATCH] = p.to_vector(conv[:, :n, :n])
         return out
 
 
 def _orthonormal_complement(vectors: np.ndarray) -> np.ndarray:
     """Orthonormal basis ``(n, n - k)`` of the complement of the columns of ``(n, k)``."""
     q, _ = np.linalg.qr(vectors, mode="complete")
-    return q[:, vectors.shape[1]:]
+    return q[:, vectors.shape[1] :]
 
 
 def _fix_signs(coeff_vectors: np.ndarray) -> np.ndarray:
@@ -269,8 +268,7 @@ def _fix_signs(coeff_vectors: np.ndarray) -> np.ndarray:
     return coeff_vectors * signs
 
 
-def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1,
-             L0: float = 25.0) -> ModalBasis:
+def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1, L0: float = 25.0) -> ModalBasis:
     """Karhunen-Loève modes of the DM space, tip and tilt first, piston removed.
 
     Parameters
@@ -382,17 +380,24 @@ def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1,
     # (symmetric orthonormalisation; the correction is tiny, see the DEBUG log).
     gram = modes @ modes.T / n
     gw, gv = np.linalg.eigh(gram)
-    logger.debug("kl_basis: orthonormality error before polishing %.1e",
-                 float(np.max(np.abs(gram - np.eye(n_modes)))))
+    logger.debug(
+        "kl_basis: orthonormality error before polishing %.1e",
+        float(np.max(np.abs(gram - np.eye(n_modes)))),
+    )
     polish = (gv / np.sqrt(gw)) @ gv.T
     modes = polish @ modes
     m2c = m2c @ polish
     logger.info(
         "kl_basis: %d modes of %d valid actuators (n_pix=%d, %d valid pixels) in %.2f s",
-        n_modes, dm.n_act, pupil.n_pix, n, time.perf_counter() - t_start,
+        n_modes,
+        dm.n_act,
+        pupil.n_pix,
+        n,
+        time.perf_counter() - t_start,
     )
-    return ModalBasis(pupil=pupil, modes=modes, m2c=m2c, variances=np.maximum(variances, 0.0),
-                      r0=r0, L0=L0)
+    return ModalBasis(
+        pupil=pupil, modes=modes, m2c=m2c, variances=np.maximum(variances, 0.0), r0=r0, L0=L0
+    )
 
 
 def fitting_error(basis: ModalBasis, r0: float, L0: float = 25.0) -> float:

@@ -87,8 +87,9 @@ class Band:
     source: str
 
 
-def _from_flambda(name: str, wavelength_um: float, bandwidth_um: float,
-                  flambda_si: float, source: str) -> Band:
+def _from_flambda(
+    name: str, wavelength_um: float, bandwidth_um: float, flambda_si: float, source: str
+) -> Band:
     """Band from F_lambda [W m^-2 m^-1] at ``wavelength_um`` over ``bandwidth_um`` [um]."""
     lam = wavelength_um * 1e-6
     photons = flambda_si * bandwidth_um * 1e-6 / (_H * _C / lam)
@@ -96,10 +97,14 @@ def _from_flambda(name: str, wavelength_um: float, bandwidth_um: float,
 
 
 # Unit conversions: 1 erg s^-1 cm^-2 A^-1 = 1e7 W m^-2 m^-1; 1 W cm^-2 um^-1 = 1e10 W m^-2 m^-1.
-_BESSELL = "Bessell, Castelli & Plez (1998) A&A 333, 231, table A2 (F_lambda, lambda_eff); " \
-           "widths: Bessell (1990) PASP 102, 1181"
-_COHEN = "2MASS: Cohen, Wheaton & Megeath (2003) AJ 126, 1090, table 2 " \
-         "(isophotal lambda, F_lambda, bandwidth)"
+_BESSELL = (
+    "Bessell, Castelli & Plez (1998) A&A 333, 231, table A2 (F_lambda, lambda_eff); "
+    "widths: Bessell (1990) PASP 102, 1181"
+)
+_COHEN = (
+    "2MASS: Cohen, Wheaton & Megeath (2003) AJ 126, 1090, table 2 "
+    "(isophotal lambda, F_lambda, bandwidth)"
+)
 
 #: Supported bands. Johnson-Cousins U B V R I from Bessell et al. (1998) [F_lambda in
 #: 1e-11 erg s^-1 cm^-2 A^-1]; near-infrared J H K from the 2MASS calibration of Cohen et al.
@@ -119,8 +124,13 @@ BANDS: dict[str, Band] = {
     # for G = 0: detected photo-electrons, i.e. the Gaia instrument response (optics and CCD
     # QE, mean ~0.6 over the band) is folded in; `throughput` for G is then relative to Gaia's.
     # Effective wavelength 0.673 um and width 0.44 um from Jordi et al. (2010) A&A 523, A48.
-    "G": Band("G", 0.673e-6, 0.44e-6, 10 ** (0.4 * 25.6874) / 0.7278,
-              "Gaia DR3 documentation (Riello et al. 2021) ZP_G=25.6874 Vega; Jordi et al. 2010"),
+    "G": Band(
+        "G",
+        0.673e-6,
+        0.44e-6,
+        10 ** (0.4 * 25.6874) / 0.7278,
+        "Gaia DR3 documentation (Riello et al. 2021) ZP_G=25.6874 Vega; Jordi et al. 2010",
+    ),
 }
 BANDS["Ks"] = BANDS["K"]
 
@@ -193,25 +203,31 @@ def photons_per_frame(
     >>> round(n / 1e6, 2)  # 3.15e9 photons/s/m^2 for J = 0 (2MASS)
     3.15
     """
-    if isinstance(magnitude, bool) or not isinstance(magnitude, (int, float, np.floating,
-                                                               np.integer)):
+    if isinstance(magnitude, bool) or not isinstance(
+        magnitude, (int, float, np.floating, np.integer)
+    ):
         raise TypeError(f"magnitude must be a real number, got {magnitude!r}")
     if not math.isfinite(float(magnitude)):
         raise ValueError(f"magnitude must be finite, got {magnitude!r}")
     b = band_zero_point(band)
     if (fs is None) == (frame_time is None):
-        raise ValueError(f"give exactly one of fs and frame_time, got fs={fs!r}, "
-                         f"frame_time={frame_time!r}")
-    t = 1.0 / check_positive("fs", fs) if fs is not None else check_positive(
-        "frame_time", frame_time)
+        raise ValueError(
+            f"give exactly one of fs and frame_time, got fs={fs!r}, frame_time={frame_time!r}"
+        )
+    t = (
+        1.0 / check_positive("fs", fs)
+        if fs is not None
+        else check_positive("frame_time", frame_time)
+    )
     if area is None:
         d = check_positive("diameter", diameter)
         eps = check_in_range("obstruction", obstruction, 0.0, 1.0)
         area = math.pi * d**2 / 4.0 * (1.0 - eps**2)
     else:
         area = check_positive("area", area)
-    throughput = check_in_range("throughput", throughput, 0.0, 1.0,
-                                low_inclusive=False, high_inclusive=True)
+    throughput = check_in_range(
+        "throughput", throughput, 0.0, 1.0, low_inclusive=False, high_inclusive=True
+    )
     scale = 1.0
     if bandwidth is not None:
         scale = check_positive("bandwidth", bandwidth) / b.bandwidth

@@ -42,23 +42,126 @@ __all__ = [
 ]
 
 # ESO-258292, median profile (35 layers). Altitudes above the site [m].
-ESO_MEDIAN_ALTITUDES = np.array([
-    30, 90, 150, 200, 245, 300, 390, 600, 1130, 1880, 2630, 3500, 4500, 5500, 6500, 7500,
-    8500, 9500, 10500, 11500, 12500, 13500, 14500, 15500, 16500, 17500, 18500, 19500, 20500,
-    21500, 22500, 23500, 24500, 25500, 26500,
-], dtype=float)
+ESO_MEDIAN_ALTITUDES = np.array(
+    [
+        30,
+        90,
+        150,
+        200,
+        245,
+        300,
+        390,
+        600,
+        1130,
+        1880,
+        2630,
+        3500,
+        4500,
+        5500,
+        6500,
+        7500,
+        8500,
+        9500,
+        10500,
+        11500,
+        12500,
+        13500,
+        14500,
+        15500,
+        16500,
+        17500,
+        18500,
+        19500,
+        20500,
+        21500,
+        22500,
+        23500,
+        24500,
+        25500,
+        26500,
+    ],
+    dtype=float,
+)
 # Cn2 fractions [%] of the median profile (they sum to 100; normalised on use).
-ESO_MEDIAN_FRACTIONS = np.array([
-    24.2, 12.0, 9.68, 5.9, 4.73, 4.73, 4.73, 4.73, 3.99, 3.24, 1.62, 2.6, 1.56, 1.04, 1.0,
-    1.2, 0.4, 1.4, 1.3, 0.7, 1.6, 2.59, 1.9, 0.99, 0.62, 0.4, 0.25, 0.22, 0.19, 0.14, 0.11,
-    0.06, 0.09, 0.05, 0.04,
-])
+ESO_MEDIAN_FRACTIONS = np.array(
+    [
+        24.2,
+        12.0,
+        9.68,
+        5.9,
+        4.73,
+        4.73,
+        4.73,
+        4.73,
+        3.99,
+        3.24,
+        1.62,
+        2.6,
+        1.56,
+        1.04,
+        1.0,
+        1.2,
+        0.4,
+        1.4,
+        1.3,
+        0.7,
+        1.6,
+        2.59,
+        1.9,
+        0.99,
+        0.62,
+        0.4,
+        0.25,
+        0.22,
+        0.19,
+        0.14,
+        0.11,
+        0.06,
+        0.09,
+        0.05,
+        0.04,
+    ]
+)
 # Wind speeds [m/s] of the median profile.
-ESO_MEDIAN_WIND_SPEEDS = np.array([
-    5.5, 5.5, 5.1, 5.5, 5.6, 5.7, 5.8, 6.0, 6.5, 7.0, 7.5, 8.5, 9.5, 11.5, 17.5, 23.0, 26.0,
-    29.0, 32.0, 27.0, 22.0, 14.5, 9.5, 6.3, 5.5, 6.0, 6.5, 7.0, 7.5, 8.0, 8.5, 9.0, 9.5, 10.0,
-    10.0,
-])
+ESO_MEDIAN_WIND_SPEEDS = np.array(
+    [
+        5.5,
+        5.5,
+        5.1,
+        5.5,
+        5.6,
+        5.7,
+        5.8,
+        6.0,
+        6.5,
+        7.0,
+        7.5,
+        8.5,
+        9.5,
+        11.5,
+        17.5,
+        23.0,
+        26.0,
+        29.0,
+        32.0,
+        27.0,
+        22.0,
+        14.5,
+        9.5,
+        6.3,
+        5.5,
+        6.0,
+        6.5,
+        7.0,
+        7.5,
+        8.0,
+        8.5,
+        9.0,
+        9.5,
+        10.0,
+        10.0,
+    ]
+)
 for _arr in (ESO_MEDIAN_ALTITUDES, ESO_MEDIAN_FRACTIONS, ESO_MEDIAN_WIND_SPEEDS):
     _arr.setflags(write=False)
 
@@ -88,8 +191,9 @@ def normalize_layers(layers: Sequence[Layer]) -> list[Layer]:
     return [Layer(*args) for args in zip(h, f / total, v, d, strict=True)]
 
 
-def eso_median_profile(n_layers: int = 35, *,
-                       wind_directions: Sequence[float] | None = None) -> list[Layer]:
+def eso_median_profile(
+    n_layers: int = 35, *, wind_directions: Sequence[float] | None = None
+) -> list[Layer]:
     """The ESO 35-layer median profile, or its compression to ``n_layers`` equivalent layers.
 
     Parameters
@@ -127,8 +231,12 @@ def eso_median_profile(n_layers: int = 35, *,
                 f"{directions.shape}"
             )
     fractions = ESO_MEDIAN_FRACTIONS / ESO_MEDIAN_FRACTIONS.sum()
-    layers = [Layer(*args) for args in zip(ESO_MEDIAN_ALTITUDES, fractions,
-                                             ESO_MEDIAN_WIND_SPEEDS, directions, strict=True)]
+    layers = [
+        Layer(*args)
+        for args in zip(
+            ESO_MEDIAN_ALTITUDES, fractions, ESO_MEDIAN_WIND_SPEEDS, directions, strict=True
+        )
+    ]
     return layers if n_layers == n_full else compress_profile(layers, n_layers)
 
 
@@ -234,8 +342,9 @@ def scale_to_tau0(layers: Sequence[Layer], r0: float, tau0: float) -> list[Layer
     h, f, v, d = _arrays(layers)
     v_bar = effective_wind_speed(v, f)
     if v_bar <= 0:
-        raise ValueError("layers must have a non-zero wind speed to be scaled to tau0, "
-                         f"got speeds {v.tolist()}")
+        raise ValueError(
+            f"layers must have a non-zero wind speed to be scaled to tau0, got speeds {v.tolist()}"
+        )
     factor = 0.314 * r0 / (tau0 * v_bar)
     return [Layer(*args) for args in zip(h, f, v * factor, d, strict=True)]
 
@@ -254,11 +363,18 @@ def isoplanatic_angle(layers: Sequence[Layer], r0: float) -> float:
     return math.inf if h_bar == 0 else 0.314 * check_positive("r0", r0) / h_bar
 
 
-def eso_atmosphere(pupil: Pupil, seeing: float, tau0: float, fs: float, *,
-                   n_layers: int = 35, L0: float = 25.0,
-                   rng: np.random.Generator | int | None = None,
-                   wind_directions: Sequence[float] | None = None,
-                   **kwargs: object) -> Atmosphere:
+def eso_atmosphere(
+    pupil: Pupil,
+    seeing: float,
+    tau0: float,
+    fs: float,
+    *,
+    n_layers: int = 35,
+    L0: float = 25.0,
+    rng: np.random.Generator | int | None = None,
+    wind_directions: Sequence[float] | None = None,
+    **kwargs: object,
+) -> Atmosphere:
     """An :class:`Atmosphere` with the ESO median profile at a given seeing and tau0.
 
     ``r0 = 0.98 lambda / seeing`` at 500 nm (:func:`aocontrol.sim.turbulence.r0_from_seeing`),
@@ -294,6 +410,5 @@ def eso_atmosphere(pupil: Pupil, seeing: float, tau0: float, fs: float, *,
     (3.0, 0.1263)
     """
     r0 = r0_from_seeing(seeing)
-    layers = scale_to_tau0(eso_median_profile(n_layers, wind_directions=wind_directions), r0,
-                           tau0)
+    layers = scale_to_tau0(eso_median_profile(n_layers, wind_directions=wind_directions), r0, tau0)
     return Atmosphere(pupil, r0, layers, fs, L0=L0, rng=rng, **kwargs)  # type: ignore[arg-type]

@@ -129,5 +129,4 @@ class Pupil:
 
 def vlt_pupil(n_pix: int = 64, *, spiders: bool = False) -> Pupil:
     """The VLT pupil: 8 m, central obstruction 0.14, optional 4 spiders of 5 cm."""
-    return Pupil(diameter=8.0, n_pix=n_pix, obstruction=0.14,
-                 spider_width=0.05 if spiders else 0.0)
+    return Pupil(diameter=8.0, n_pix=n_pix, obstruction=0.14, spider_width=0.05 if spiders else 0.0)

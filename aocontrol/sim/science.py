@@ -140,7 +140,7 @@ def marechal_strehl(rms_nm: object, wavelength: float = H_BAND) -> np.ndarray | 
     rms = check_finite_array("rms_nm", rms_nm)
     if np.any(rms < 0):
         raise ValueError(f"rms_nm must be >= 0 [nm], found min {rms.min()!r}")
-    out = np.exp(-opd_to_phase(rms, wavelength) ** 2)
+    out = np.exp(-(opd_to_phase(rms, wavelength) ** 2))
     return float(out) if out.ndim == 0 else out
 
 
@@ -164,8 +164,9 @@ def strehl(psf: object, reference_peak: float = 1.0) -> float:
     return float(img.max()) / check_positive("reference_peak", reference_peak)
 
 
-def _radii(shape: tuple[int, int], centre: tuple[float, float] | None,
-           pixel_scale: float) -> np.ndarray:
+def _radii(
+    shape: tuple[int, int], centre: tuple[float, float] | None, pixel_scale: float
+) -> np.ndarray:
     ny, nx = shape
     cy, cx = (ny // 2, nx // 2) if centre is None else centre
     y, x = np.ogrid[:ny, :nx]
@@ -491,11 +492,11 @@ class ScienceCamera:
         psf = np.empty((opd.shape[0], self.n_image, self.n_image))
         coro = np.empty_like(psf) if self.coronagraph else None
         for s in range(0, opd.shape[0], _CHUNK):
-            f, c = self._fields(opd[s:s + _CHUNK])
+            f, c = self._fields(opd[s : s + _CHUNK])
             # Same arithmetic as LongExposure.add (|f|^2 in the FFT precision, then float64).
-            psf[s:s + _CHUNK] = _intensity(f)
+            psf[s : s + _CHUNK] = _intensity(f)
             if coro is not None:
-                coro[s:s + _CHUNK] = _intensity(self._coronagraph(f, c))
+                coro[s : s + _CHUNK] = _intensity(self._coronagraph(f, c))
         psf /= self._norm
         if coro is not None:
             coro /= self._norm
@@ -509,16 +510,19 @@ class ScienceCamera:
         """A new, empty :class:`LongExposure` accumulator for this camera."""
         return LongExposure(self)
 
-    def radial_profile(self, image: object, bin_width: float = 0.5) -> tuple[np.ndarray,
-                                                                          np.ndarray]:
+    def radial_profile(
+        self, image: object, bin_width: float = 0.5
+    ) -> tuple[np.ndarray, np.ndarray]:
         """:func:`radial_profile` of one of this camera's images, bins of ``bin_width`` lambda/D."""
-        return radial_profile(image, (self.centre, self.centre), bin_width,
-                              pixel_scale=self.pixel_scale)
+        return radial_profile(
+            image, (self.centre, self.centre), bin_width, pixel_scale=self.pixel_scale
+        )
 
     def mean_contrast(self, image: object, r_in: float = 4.0, r_out: float = 6.0) -> float:
         """:func:`mean_contrast` of one of this camera's images over ``[r_in, r_out)`` lambda/D."""
-        return mean_contrast(image, r_in, r_out, pixel_scale=self.pixel_scale,
-                             centre=(self.centre, self.centre))
+        return mean_contrast(
+            image, r_in, r_out, pixel_scale=self.pixel_scale, centre=(self.centre, self.centre)
+        )
 
 
 def _intensity(f: np.ndarray) -> np.ndarray:
@@ -581,11 +585,10 @@ class LongExposure:
         cam = self.camera
         opd = cam._check_opd(opd_maps)
         for s in range(0, opd.shape[0], _CHUNK):
-            f, c = cam._fields(opd[s:s + _CHUNK])
+            f, c = cam._fields(opd[s : s + _CHUNK])
             self._psf_sum += _intensity(f).sum(axis=0, dtype=np.float64)
             if self._coro_sum is not None:
-                self._coro_sum += _intensity(cam._coronagraph(f, c)).sum(axis=0,
-                                                                          dtype=np.float64)
+                self._coro_sum += _intensity(cam._coronagraph(f, c)).sum(axis=0, dtype=np.float64)
         self._n += opd.shape[0]
         logger.debug("LongExposure: %d frames added (total %d)", opd.shape[0], self._n)
 
@@ -685,8 +688,11 @@ class ScienceResult:
                 f"radii_ld and contrast_profile must be 1-D of equal length, got shapes "
                 f"{radii.shape} and {prof.shape}"
             )
-        if isinstance(self.n_frames, bool) or not isinstance(self.n_frames, numbers.Integral) \
-                or self.n_frames < 1:
+        if (
+            isinstance(self.n_frames, bool)
+            or not isinstance(self.n_frames, numbers.Integral)
+            or self.n_frames < 1
+        ):
             raise ValueError(f"n_frames must be an integer >= 1, got {self.n_frames!r}")
         _check_wavelength(self.wavelength)
         radii.setflags(write=False)

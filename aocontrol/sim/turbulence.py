@@ -42,7 +42,8 @@ _PSD_COEFF = (24.0 / 5.0 * special.gamma(6.0 / 5.0)) ** (5.0 / 6.0) * (
 )
 # Covariance prefactor: B(r) = _COV_COEFF (L0/r0)^(5/3) x^(5/6) K_{5/6}(x), x = 2 pi r / L0.
 _COV_COEFF = (
-    special.gamma(11.0 / 6.0) / (2.0 ** (5.0 / 6.0) * np.pi ** (8.0 / 3.0))
+    special.gamma(11.0 / 6.0)
+    / (2.0 ** (5.0 / 6.0) * np.pi ** (8.0 / 3.0))
     * (24.0 / 5.0 * special.gamma(6.0 / 5.0)) ** (5.0 / 6.0)
 )
 
@@ -63,12 +64,14 @@ def seeing_from_r0(r0: float, wavelength: float = REFERENCE_WAVELENGTH) -> float
     return 0.98 * check_positive("wavelength", wavelength) / r0 / ARCSEC
 
 
-def r0_at_wavelength(r0: float, wavelength: float,
-                     reference: float = REFERENCE_WAVELENGTH) -> float:
+def r0_at_wavelength(
+    r0: float, wavelength: float, reference: float = REFERENCE_WAVELENGTH
+) -> float:
     """Scale r0 [m] from ``reference`` to ``wavelength``: ``r0 (lambda/ref)^(6/5)``."""
-    return check_positive("r0", r0) * (
-        check_positive("wavelength", wavelength) / check_positive("reference", reference)
-    ) ** 1.2
+    return (
+        check_positive("r0", r0)
+        * (check_positive("wavelength", wavelength) / check_positive("reference", reference)) ** 1.2
+    )
 
 
 def opd_per_radian(wavelength: float = REFERENCE_WAVELENGTH) -> float:

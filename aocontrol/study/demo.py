@@ -42,8 +42,9 @@ def _demo_psd(freqs: np.ndarray, fs: float) -> np.ndarray:
     return synthetic_turbulence_psd(freqs, 10, fs=fs)[5]
 
 
-def run_demo(output: str, *, fs: float = 3000.0, latency_frames: float = 0.83,
-             noise_rms: float = 2.0) -> DemoResult:
+def run_demo(
+    output: str, *, fs: float = 3000.0, latency_frames: float = 0.83, noise_rms: float = 2.0
+) -> DemoResult:
     """Design an integrator for one mode of a SAXO+-like stage 2 and write its rejection plot.
 
     Parameters
@@ -66,19 +67,24 @@ def run_demo(output: str, *, fs: float = 3000.0, latency_frames: float = 0.83,
     psd = _demo_psd(freqs, fs)
     noise = float(white_noise_psd(noise_rms**2, fs))
     ctrls: dict = {"integrator g=0.5 (hand-tuned)": Integrator(0.5, fs=fs)}
-    ctrls["optimal-gain integrator"] = optimal_modal_gain(plant, freqs, psd, noise,
-                                                           modulus_margin=0.5)
-    ctrls["data-driven (order 5)"] = datadriven(plant, freqs, psd, noise_psd=noise, order=5,
-                                                progress=False, n_jobs=1).controller
+    ctrls["optimal-gain integrator"] = optimal_modal_gain(
+        plant, freqs, psd, noise, modulus_margin=0.5
+    )
+    ctrls["data-driven (order 5)"] = datadriven(
+        plant, freqs, psd, noise_psd=noise, order=5, progress=False, n_jobs=1
+    ).controller
     bound = float(wiener_bound(plant, freqs, psd, noise))
     mar = {k: margins(plant, c) for k, c in ctrls.items()}
-    rms = {k: float(np.sqrt(np.atleast_1d(residual_variance(plant, c, freqs, psd, noise))[0]))
-           for k, c in ctrls.items()}
+    rms = {
+        k: float(np.sqrt(np.atleast_1d(residual_variance(plant, c, freqs, psd, noise))[0]))
+        for k, c in ctrls.items()
+    }
     os.makedirs(output, exist_ok=True)
-    fig = plot_rejection(freqs, {k: sensitivity(plant, c, freqs)[0] for k, c in ctrls.items()},
-                         psd=psd, title=f"rejection, fs = {fs:g} Hz, latency {latency_frames} "
-                                         "frame")
+    fig = plot_rejection(
+        freqs,
+        {k: sensitivity(plant, c, freqs)[0] for k, c in ctrls.items()},
+        psd=psd,
+        title=f"rejection, fs = {fs:g} Hz, latency {latency_frames} frame",
+    )
     path = save_figure(fig, os.path.join(output, "rejection.png"))
     return DemoResult(fs, latency_frames, ctrls, mar, rms, float(np.sqrt(bound)), path)
-
-

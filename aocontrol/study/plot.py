@@ -21,8 +21,14 @@ def _axes(ax):
     return ax.figure, ax
 
 
-def plot_rejection(freqs: np.ndarray, sensitivities: Mapping[str, np.ndarray], *,
-                   psd: np.ndarray | None = None, ax=None, title: str | None = None):
+def plot_rejection(
+    freqs: np.ndarray,
+    sensitivities: Mapping[str, np.ndarray],
+    *,
+    psd: np.ndarray | None = None,
+    ax=None,
+    title: str | None = None,
+):
     """Plot ``|S|^2`` [dB] of several controllers, with the disturbance PSD on a twin axis.
 
     Parameters
@@ -53,8 +59,9 @@ def plot_rejection(freqs: np.ndarray, sensitivities: Mapping[str, np.ndarray], *
     return fig
 
 
-def plot_residual_psd(freqs: np.ndarray, psds: Mapping[str, np.ndarray], *, ax=None,
-                      title: str | None = None):
+def plot_residual_psd(
+    freqs: np.ndarray, psds: Mapping[str, np.ndarray], *, ax=None, title: str | None = None
+):
     """Plot one-sided PSDs [nm^2/Hz] (e.g. open loop and residuals) on log-log axes."""
     fig, ax = _axes(ax)
     keep = freqs > 0
@@ -69,8 +76,9 @@ def plot_residual_psd(freqs: np.ndarray, psds: Mapping[str, np.ndarray], *, ax=N
     return fig
 
 
-def plot_contrast(radii_ld: np.ndarray, profiles: Mapping[str, np.ndarray], *, ax=None,
-                  title: str | None = None):
+def plot_contrast(
+    radii_ld: np.ndarray, profiles: Mapping[str, np.ndarray], *, ax=None, title: str | None = None
+):
     """Plot raw-contrast radial profiles against separation [lambda/D]."""
     fig, ax = _axes(ax)
     for label, prof in profiles.items():

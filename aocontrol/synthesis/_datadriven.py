@@ -72,7 +72,8 @@ class DataDrivenError(RuntimeError):
         more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
         super().__init__(
             f"data-driven synthesis failed for {len(failed)} of {result.controller.n_modes} "
-            f"modes: {lines}{more}. The other modes are in this error's .result")
+            f"modes: {lines}{more}. The other modes are in this error's .result"
+        )
         self.failed = failed
         self.result = result
 
@@ -192,8 +193,10 @@ def _design_indices(freqs: np.ndarray, psd: np.ndarray, n_grid: int) -> np.ndarr
         return np.arange(n)
     fpos = freqs[freqs > 0]
     n_log = int(round(0.6 * n_grid))
-    targets = [np.geomspace(fpos[0], freqs[-1], n_log),
-               np.linspace(freqs[0], freqs[-1], n_grid - n_log)]
+    targets = [
+        np.geomspace(fpos[0], freqs[-1], n_log),
+        np.linspace(freqs[0], freqs[-1], n_grid - n_log),
+    ]
     idx = [np.clip(np.searchsorted(freqs, t), 0, n - 1) for t in targets]
     idx.append(np.array([0, n - 1]))
     # Resonances (vibrations): the local maxima that stand out of the smoothed log-PSD.
@@ -263,7 +266,7 @@ def _grid_data(ctx: _Context, f: np.ndarray, g: np.ndarray, mu: float) -> GridDa
     AX = np.zeros((f.size, nv), complex)
     AY = np.zeros((f.size, nv), complex)
     AX[:, : ctx.nq + 1] = (g / ctx.g_scale)[:, None] * powers
-    AY[:, ctx.nq + 1:] = F[:, None] * powers[:, 1:]
+    AY[:, ctx.nq + 1 :] = F[:, None] * powers[:, 1:]
     return GridData(AY, AX, F.astype(complex), mu, ctx.stroke_weight)
 
 
@@ -283,12 +286,13 @@ def _to_v(ctx: _Context, b: np.ndarray, a: np.ndarray) -> np.ndarray | None:
 
 def _from_v(ctx: _Context, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = v[: ctx.nq + 1] / ctx.g_scale
-    a = np.polynomial.polynomial.polymul(ctx.fixed, np.concatenate([[1.0], v[ctx.nq + 1:]]))
+    a = np.polynomial.polynomial.polymul(ctx.fixed, np.concatenate([[1.0], v[ctx.nq + 1 :]]))
     return b, a
 
 
-def _p_of(ctx: _Context, f: np.ndarray, g: np.ndarray, b: np.ndarray,
-          a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _p_of(
+    ctx: _Context, f: np.ndarray, g: np.ndarray, b: np.ndarray, a: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``Y`` and ``P = Y + G X`` of ``K = b/a`` at ``f`` [Hz] (plant response ``g``)."""
     w = np.exp(-2j * np.pi * f / ctx.fs)
     Y = np.polyval(np.asarray(a)[::-1], w)
@@ -337,8 +341,14 @@ def _stable_fast(ctx: _Context, dense: GridData, v: np.ndarray) -> bool:
     return bool(abs(2.0 * (start + np.sum(dphi) + end)) < np.pi)
 
 
-def _design_mode(ctx: _Context, q1: np.ndarray, qn: np.ndarray, b0: np.ndarray,
-                 a0: np.ndarray, warm: tuple | None = None) -> dict:
+def _design_mode(
+    ctx: _Context,
+    q1: np.ndarray,
+    qn: np.ndarray,
+    b0: np.ndarray,
+    a0: np.ndarray,
+    warm: tuple | None = None,
+) -> dict:
     """Design one mode; returns the coefficients and diagnostics (raises on failure).
 
     ``warm`` is an optional second start (the previous mode's design): it replaces the
@@ -359,15 +369,19 @@ def _design_mode(ctx: _Context, q1: np.ndarray, qn: np.ndarray, b0: np.ndarray,
     grid = _grid_data(ctx, f, g, mu_d)
     dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
     wind = dense.take(ctx.wind_index)
-    problem = get_problem(f.size + _SPARE_SLOTS, 2 * ctx.nq + 1, ctx.stroke_weight > 0,
-                          ctx.wind_index.size)
+    problem = get_problem(
+        f.size + _SPARE_SLOTS, 2 * ctx.nq + 1, ctx.stroke_weight > 0, ctx.wind_index.size
+    )
     v0 = _to_v(ctx, b0, a0)
     start = "initial"
     if warm is not None:
         vw = _to_v(ctx, *warm)
         Yw, Pw = _p_of(ctx, ctx.f_dense, ctx.g_dense, *warm)
-        if (vw is not None and np.all(ctx.mu * np.abs(Yw) <= np.abs(Pw))
-                and _stable_fast(ctx, dense, vw)):
+        if (
+            vw is not None
+            and np.all(ctx.mu * np.abs(Yw) <= np.abs(Pw))
+            and _stable_fast(ctx, dense, vw)
+        ):
             J0 = true_objective(grid, v0, r1, rn, h)[0] if v0 is not None else np.inf
             Jw, Pw_grid = true_objective(grid, vw, r1, rn, h)
             # (The design grid's margin holds to the solver's accuracy.)
@@ -375,14 +389,26 @@ def _design_mode(ctx: _Context, q1: np.ndarray, qn: np.ndarray, b0: np.ndarray,
             if Jw < J0 and np.all(mu_d * (1 - 1e-4) * np.abs(Yg) <= np.abs(Pw_grid)):
                 b0, a0, v0, P0, start = warm[0], warm[1], vw, Pw_grid, "previous mode"
     _, Pd0 = _p_of(ctx, ctx.f_dense, ctx.g_dense, b0, a0)
-    J_start = float(np.sum(h * (r1**2 * np.abs(Y0) ** 2 + rn**2 * np.abs(P0 - Y0) ** 2)
-                           / np.abs(P0) ** 2))
+    J_start = float(
+        np.sum(h * (r1**2 * np.abs(Y0) ** 2 + rn**2 * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2)
+    )
     if start == "initial" and ctx.stroke_weight > 0:
         J_start += ctx.stroke_weight * float(np.max(np.abs(P0 - Y0) ** 2 / np.abs(P0) ** 2))
-    out = ccp(problem, grid, (r1, rn, h), dense, v0, P0, Pd0,
-              lambda v: _stable_fast(ctx, dense, v), (wind, Pd0[ctx.wind_index]),
-              max_iter=ctx.max_iter, tol=ctx.tol, extrapolate=ctx.extrapolate,
-              J_start=J_start)
+    out = ccp(
+        problem,
+        grid,
+        (r1, rn, h),
+        dense,
+        v0,
+        P0,
+        Pd0,
+        lambda v: _stable_fast(ctx, dense, v),
+        (wind, Pd0[ctx.wind_index]),
+        max_iter=ctx.max_iter,
+        tol=ctx.tol,
+        extrapolate=ctx.extrapolate,
+        J_start=J_start,
+    )
     # Final verification: closed-loop poles and the dense modulus margin. The dense checks in
     # the iterations make a failure unlikely; if it happens, the newest accepted iterate that
     # passes is returned.
@@ -393,15 +419,26 @@ def _design_mode(ctx: _Context, q1: np.ndarray, qn: np.ndarray, b0: np.ndarray,
         margin, stable = _verify(ctx, b, a)
         if stable and margin >= ctx.mu * (1 - 1e-9):
             if v is not out.iterates[-1]:
-                logger.warning("final iterate failed verification; an earlier verified "
-                               "iterate is returned")
+                logger.warning(
+                    "final iterate failed verification; an earlier verified iterate is returned"
+                )
             break
     else:
-        raise RuntimeError(f"no iterate passed verification (dense modulus margin "
-                           f"{margin:.4g}, required {ctx.mu}; closed-loop stable: {stable})")
-    return {"b": b, "a": a, "history": out.history, "solves": out.solves,
-            "converged": out.converged, "margin": margin, "stable": stable,
-            "refinements": out.added, "start": start}
+        raise RuntimeError(
+            f"no iterate passed verification (dense modulus margin "
+            f"{margin:.4g}, required {ctx.mu}; closed-loop stable: {stable})"
+        )
+    return {
+        "b": b,
+        "a": a,
+        "history": out.history,
+        "solves": out.solves,
+        "converged": out.converged,
+        "margin": margin,
+        "stable": stable,
+        "refinements": out.added,
+        "start": start,
+    }
 
 
 def _design_chunk(ctx: _Context, items: list) -> list:
@@ -416,8 +453,10 @@ def _design_chunk(ctx: _Context, items: list) -> list:
         except (SolveFailure, RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             msg = str(exc)
             if isinstance(exc, SolveFailure) and "infeasible" in exc.status.lower():
-                msg += (" (no controller of this structure meets the modulus margin around "
-                        "the initial controller; lower modulus_margin or give another initial)")
+                msg += (
+                    " (no controller of this structure meets the modulus margin around "
+                    "the initial controller; lower modulus_margin or give another initial)"
+                )
             res = {"mode": mode, "error": msg}
         out.append(res)
     return out
@@ -432,25 +471,39 @@ def _initial_coefficients(initial: object, n_modes: int, fs: float) -> list:
         if abs(initial.fs - fs) > 1e-9 * fs:
             raise ValueError(f"initial runs at fs={initial.fs} Hz, the plant at {fs} Hz")
         if initial.n_modes not in (1, n_modes):
-            raise ValueError(f"initial must have 1 or {n_modes} modes (one per PSD row), "
-                             f"got {initial.n_modes}")
+            raise ValueError(
+                f"initial must have 1 or {n_modes} modes (one per PSD row), got {initial.n_modes}"
+            )
         rows = [min(i, initial.n_modes - 1) for i in range(n_modes)]
         return [(initial.b[r], initial.a[r]) for r in rows]
     if isinstance(initial, control.TransferFunction):
         plant_fs(initial, fs)
         b, a = z_inverse_coefficients(initial)
         return [(b, a)] * n_modes
-    raise TypeError("initial must be an IIRBank (e.g. Integrator), a control.TransferFunction "
-                    f"or None, got {type(initial).__name__}")
+    raise TypeError(
+        "initial must be an IIRBank (e.g. Integrator), a control.TransferFunction "
+        f"or None, got {type(initial).__name__}"
+    )
 
 
-def datadriven(plant: control.TransferFunction | control.FRD, freqs: object, psd: object, *,
-               order: int = 5, noise_psd: object = 0.0, modulus_margin: float = 0.5,
-               stroke_weight: float = 1e-3, fixed_denominator: object = None,
-               initial: IIRBank | control.TransferFunction | None = None,
-               max_iter: int = 60, tol: float = 1e-3, n_grid: int = 80,
-               n_jobs: int | None = None, progress: bool = True,
-               fs: float | None = None) -> DataDrivenResult:
+def datadriven(
+    plant: control.TransferFunction | control.FRD,
+    freqs: object,
+    psd: object,
+    *,
+    order: int = 5,
+    noise_psd: object = 0.0,
+    modulus_margin: float = 0.5,
+    stroke_weight: float = 1e-3,
+    fixed_denominator: object = None,
+    initial: IIRBank | control.TransferFunction | None = None,
+    max_iter: int = 60,
+    tol: float = 1e-3,
+    n_grid: int = 80,
+    n_jobs: int | None = None,
+    progress: bool = True,
+    fs: float | None = None,
+) -> DataDrivenResult:
     r"""Data-driven IIR controllers, one per mode, from disturbance and noise PSDs.
 
     For each mode the controller ``K = X / Y`` (polynomials in ``z^-1``, ``Y = F Y'`` with
@@ -566,10 +619,21 @@ def datadriven(plant: control.TransferFunction | control.FRD, freqs: object, psd
         n_jobs = check_int("n_jobs", n_jobs)
         if n_jobs == 0:
             raise ValueError("n_jobs must be a nonzero integer (negative: joblib convention)")
-    setup = _prepare(plant, freqs, psd, order=order, noise_psd=noise_psd,
-                     modulus_margin=modulus_margin, stroke_weight=stroke_weight,
-                     fixed_denominator=fixed_denominator, initial=initial, max_iter=max_iter,
-                     tol=tol, n_grid=n_grid, fs=fs)
+    setup = _prepare(
+        plant,
+        freqs,
+        psd,
+        order=order,
+        noise_psd=noise_psd,
+        modulus_margin=modulus_margin,
+        stroke_weight=stroke_weight,
+        fixed_denominator=fixed_denominator,
+        initial=initial,
+        max_iter=max_iter,
+        tol=tol,
+        n_grid=n_grid,
+        fs=fs,
+    )
     outcomes = _run(setup.ctx, setup.items, n_jobs, progress)
     return _assemble(setup, outcomes)
 
@@ -588,8 +652,22 @@ class _Setup:
     init_bank: IIRBank
 
 
-def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weight,
-             fixed_denominator, initial, max_iter, tol, n_grid, fs) -> _Setup:
+def _prepare(
+    plant,
+    freqs,
+    psd,
+    *,
+    order,
+    noise_psd,
+    modulus_margin,
+    stroke_weight,
+    fixed_denominator,
+    initial,
+    max_iter,
+    tol,
+    n_grid,
+    fs,
+) -> _Setup:
     """Validate the inputs, build the grids and the initial controllers (see datadriven)."""
     fs_ = plant_fs(plant, fs)
     freqs = check_frequency_grid("freqs", freqs, fs_)
@@ -600,10 +678,12 @@ def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weig
     n_modes = psd2.shape[0]
     noise = check_psd("noise_psd", noise_psd, freqs.size, allow_scalar=True)
     if noise.ndim == 2 and noise.shape[0] not in (1, n_modes):
-        raise ValueError(f"noise_psd must have 1 or {n_modes} rows (one per mode), "
-                         f"got shape {noise.shape}")
-    noise2 = np.broadcast_to(noise if noise.ndim else np.full(freqs.size, float(noise)),
-                             (n_modes, freqs.size))
+        raise ValueError(
+            f"noise_psd must have 1 or {n_modes} rows (one per mode), got shape {noise.shape}"
+        )
+    noise2 = np.broadcast_to(
+        noise if noise.ndim else np.full(freqs.size, float(noise)), (n_modes, freqs.size)
+    )
     order = check_int("order", order, minimum=1)
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
     stroke_weight = check_nonnegative("stroke_weight", stroke_weight)
@@ -613,15 +693,19 @@ def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weig
     if fixed_denominator is None:
         fixed = np.array([1.0])
     else:
-        fixed = np.trim_zeros(check_finite_array("fixed_denominator", fixed_denominator,
-                                                 ndim=1), "b")
+        fixed = np.trim_zeros(
+            check_finite_array("fixed_denominator", fixed_denominator, ndim=1), "b"
+        )
         if fixed.size == 0 or fixed[0] == 0:
-            raise ValueError("fixed_denominator must have a nonzero first coefficient "
-                             f"(causal, powers of z^-1), got {fixed_denominator!r}")
+            raise ValueError(
+                "fixed_denominator must have a nonzero first coefficient "
+                f"(causal, powers of z^-1), got {fixed_denominator!r}"
+            )
         fixed = fixed / fixed[0]
         if fixed.size - 1 > order:
-            raise ValueError(f"order must be >= the degree of fixed_denominator "
-                             f"({fixed.size - 1}), got {order}")
+            raise ValueError(
+                f"order must be >= the degree of fixed_denominator ({fixed.size - 1}), got {order}"
+            )
 
     # Initial controllers.
     if initial is None:
@@ -631,13 +715,16 @@ def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weig
         if fixed.size == 2 and -1.0 <= fixed[1] < 0.0:
             leak = 1.0 + float(fixed[1])
         elif fixed.size > 1:
-            logger.warning("fixed_denominator %s is not an integrator or leak factor: the "
-                           "default integrator start lies outside the parameter set",
-                           fixed.tolist())
+            logger.warning(
+                "fixed_denominator %s is not an integrator or leak factor: the "
+                "default integrator start lies outside the parameter set",
+                fixed.tolist(),
+            )
         # With the design grid's margin (slightly above mu) it is feasible at every step.
         mu_start = min(mu * (1 + _MARGIN_SAFETY), 0.999)
-        init_bank = optimal_modal_gain(plant, freqs, psd2, noise2, modulus_margin=mu_start,
-                                       leak=leak, fs=fs_)
+        init_bank = optimal_modal_gain(
+            plant, freqs, psd2, noise2, modulus_margin=mu_start, leak=leak, fs=fs_
+        )
         init = _initial_coefficients(init_bank, n_modes, fs_)
     else:
         init = _initial_coefficients(initial, n_modes, fs_)
@@ -646,11 +733,14 @@ def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weig
     b0s = np.array([np.pad(b, (0, nb0 - b.size)) for b, _ in init])
     a0s = np.array([np.pad(a, (0, na0 - a.size)) for _, a in init])
     init_bank = IIRBank(b0s, a0s, fs_)
-    unstable = [i for i in range(n_modes)
-                if not is_stable(plant, init_bank.transfer_function(i), fs=fs_)]
+    unstable = [
+        i for i in range(n_modes) if not is_stable(plant, init_bank.transfer_function(i), fs=fs_)
+    ]
     if unstable:
-        raise ValueError(f"initial controller does not stabilise the plant for modes "
-                         f"{unstable[:10]}{' ...' if len(unstable) > 10 else ''}")
+        raise ValueError(
+            f"initial controller does not stabilise the plant for modes "
+            f"{unstable[:10]}{' ...' if len(unstable) > 10 else ''}"
+        )
 
     # Design grid: the input grid (subsampled) plus, for a TF plant, margin-only points
     # covering [0, fs/2] beyond it.
@@ -661,9 +751,14 @@ def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weig
         lo, hi = 0.0, fs_ / 2
         step = (f_h2[-1] - f_h2[0]) / max(f_h2.size - 1, 1)
         first = f_h2[f_h2 > 0][0]
-        extra = np.concatenate([np.arange(0.0, f_h2[0], step),
-                                np.geomspace(hi * 1e-5, first, 8)[:-1] if first > hi * 1e-5
-                                else [], np.arange(f_h2[-1] + step, hi, step), [hi]])
+        extra = np.concatenate(
+            [
+                np.arange(0.0, f_h2[0], step),
+                np.geomspace(hi * 1e-5, first, 8)[:-1] if first > hi * 1e-5 else [],
+                np.arange(f_h2[-1] + step, hi, step),
+                [hi],
+            ]
+        )
         extra = extra[~np.isin(extra, f_h2) & (extra <= hi)]
     else:
         # Constraint-only points between the measured range's start and the first point.
@@ -682,18 +777,30 @@ def _prepare(plant, freqs, psd, *, order, noise_psd, modulus_margin, stroke_weig
     if np.any(g_design == 0):
         raise ValueError("plant response must be nonzero on the design grid")
     f_dense = _dense_grid(f_design, lo, hi)
-    wind_targets = np.concatenate([np.linspace(lo, hi, _N_WIND),
-                                   np.geomspace(max(lo, hi * 2e-6), hi, _N_WIND // 8)])
-    wind_index = np.unique(np.clip(np.searchsorted(f_dense, wind_targets), 0,
-                                   f_dense.size - 1))
-    ctx = _Context(plant=plant, fs=fs_, f_design=f_design, g_design=g_design, f_dense=f_dense,
-                   g_dense=frequency_response(plant, f_dense, fs_), fixed=fixed,
-                   nq=order - (fixed.size - 1), mu=mu, stroke_weight=stroke_weight,
-                   wind_index=wind_index, g_scale=float(np.median(np.abs(g_design))),
-                   plant_poly=(z_inverse_coefficients(plant)
-                               if isinstance(plant, control.TransferFunction) else None),
-                   max_iter=max_iter, tol=tol,
-                   extrapolate=True)
+    wind_targets = np.concatenate(
+        [np.linspace(lo, hi, _N_WIND), np.geomspace(max(lo, hi * 2e-6), hi, _N_WIND // 8)]
+    )
+    wind_index = np.unique(np.clip(np.searchsorted(f_dense, wind_targets), 0, f_dense.size - 1))
+    ctx = _Context(
+        plant=plant,
+        fs=fs_,
+        f_design=f_design,
+        g_design=g_design,
+        f_dense=f_dense,
+        g_dense=frequency_response(plant, f_dense, fs_),
+        fixed=fixed,
+        nq=order - (fixed.size - 1),
+        mu=mu,
+        stroke_weight=stroke_weight,
+        wind_index=wind_index,
+        g_scale=float(np.median(np.abs(g_design))),
+        plant_poly=(
+            z_inverse_coefficients(plant) if isinstance(plant, control.TransferFunction) else None
+        ),
+        max_iter=max_iter,
+        tol=tol,
+        extrapolate=True,
+    )
 
     items = [(i, q1[i], qn[i], b0s[i], a0s[i]) for i in range(n_modes)]
     return _Setup(plant, fs_, freqs, psd2, noise2, ctx, items, init_bank)
@@ -707,13 +814,12 @@ def _run(ctx: _Context, items: list, n_jobs: int | None, progress: bool) -> list
     if n_workers < 0:
         n_workers = max(1, (os.cpu_count() or 1) + 1 + n_workers)
     n_workers = min(n_workers, len(items))
-    bar = tqdm(total=len(items), desc="data-driven synthesis", unit="mode",
-               disable=not progress)
+    bar = tqdm(total=len(items), desc="data-driven synthesis", unit="mode", disable=not progress)
     results = []
     try:
         # Fixed chunks of neighbouring modes (each mode may start from the previous one's
         # design): the result does not depend on the number of workers.
-        chunks = [items[i:i + _CHUNK] for i in range(0, len(items), _CHUNK)]
+        chunks = [items[i : i + _CHUNK] for i in range(0, len(items), _CHUNK)]
         if n_workers <= 1:
             for chunk in chunks:
                 results.extend(_design_chunk(ctx, chunk))
@@ -722,7 +828,8 @@ def _run(ctx: _Context, items: list, n_jobs: int | None, progress: bool) -> list
             from joblib import Parallel, delayed
 
             gen = Parallel(n_jobs=n_workers, return_as="generator_unordered")(
-                delayed(_design_chunk)(ctx, chunk) for chunk in chunks)
+                delayed(_design_chunk)(ctx, chunk) for chunk in chunks
+            )
             for part in gen:
                 results.extend(part)
                 bar.update(len(part))
@@ -747,22 +854,36 @@ def _assemble(setup: _Setup, outcomes: list) -> DataDrivenResult:
         if r["error"]:
             failed[i] = r["error"]
             bi, ai = init_bank.b[i], init_bank.a[i]
-            reports.append(ModeReport(i, False, r["error"], np.empty(0), 0, False, np.nan,
-                                      False, 0, ""))
+            reports.append(
+                ModeReport(i, False, r["error"], np.empty(0), 0, False, np.nan, False, 0, "")
+            )
         else:
             bi, ai = r["b"], r["a"]
-            reports.append(ModeReport(i, True, "", r["history"], r["solves"], r["converged"],
-                                      r["margin"], r["stable"], r["refinements"],
-                                      r["start"]))
+            reports.append(
+                ModeReport(
+                    i,
+                    True,
+                    "",
+                    r["history"],
+                    r["solves"],
+                    r["converged"],
+                    r["margin"],
+                    r["stable"],
+                    r["refinements"],
+                    r["start"],
+                )
+            )
         b[i, : bi.size] = bi
         a[i, : ai.size] = ai
     bank = IIRBank(b, a, fs)
     var = np.trapezoid(residual_psd(plant, bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
-    var0 = np.trapezoid(residual_psd(plant, init_bank, freqs, psd2, noise2, fs=fs), freqs,
-                        axis=-1)
+    var0 = np.trapezoid(residual_psd(plant, init_bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
     result = DataDrivenResult(bank, init_bank, tuple(reports), var, var0, ctx.f_design)
     if failed:
         raise DataDrivenError(failed, result)
-    logger.info("data-driven synthesis of %d modes: median %d convex solves per mode",
-                n_modes, int(np.median(result.solves)))
+    logger.info(
+        "data-driven synthesis of %d modes: median %d convex solves per mode",
+        n_modes,
+        int(np.median(result.solves)),
+    )
     return result

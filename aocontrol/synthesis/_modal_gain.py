@@ -94,8 +94,9 @@ def _stability_limit(plant: object, fs: float, leak: float) -> float:
     return float(-1.0 / min(neg)) if neg else np.inf
 
 
-def _min_return_difference(plant: object, f: np.ndarray, L1: np.ndarray, fs: float,
-                           leak: float, g: float) -> float:
+def _min_return_difference(
+    plant: object, f: np.ndarray, L1: np.ndarray, fs: float, leak: float, g: float
+) -> float:
     """``min_f |1 + g L1|`` on the dense grid, refined around the minimum (TF plants)."""
     finite = np.isfinite(L1)
     d = np.where(finite, np.abs(1.0 + g * np.where(finite, L1, 0.0)), np.inf)
@@ -104,15 +105,22 @@ def _min_return_difference(plant: object, f: np.ndarray, L1: np.ndarray, fs: flo
     if isinstance(plant, control.TransferFunction):
         lo, hi = f[max(i - 1, 0)], f[min(i + 1, f.size - 1)]
         res = optimize.minimize_scalar(
-            lambda fq: float(np.abs(1.0 + g * _open_loop_unit(plant, np.array([fq]), fs,
-                                                             leak)[0])),
-            bounds=(lo, hi), method="bounded", options={"xatol": 1e-10 * fs})
+            lambda fq: float(np.abs(1.0 + g * _open_loop_unit(plant, np.array([fq]), fs, leak)[0])),
+            bounds=(lo, hi),
+            method="bounded",
+            options={"xatol": 1e-10 * fs},
+        )
         best = min(best, float(res.fun))
     return best
 
 
-def integrator_gain_limit(plant: control.TransferFunction | control.FRD, *, leak: float = 0.0,
-                          modulus_margin: float | None = None, fs: float | None = None) -> float:
+def integrator_gain_limit(
+    plant: control.TransferFunction | control.FRD,
+    *,
+    leak: float = 0.0,
+    modulus_margin: float | None = None,
+    fs: float | None = None,
+) -> float:
     """Largest admissible gain of ``g / (1 - (1 - leak) z^-1)`` on ``plant``.
 
     The stability limit (first crossing of -1 by ``g L1`` on the unit circle, refined exactly
@@ -180,8 +188,9 @@ def integrator_gain_limit(plant: control.TransferFunction | control.FRD, *, leak
     return float(min(lo, g_max))
 
 
-def _residual_matrix(L1: np.ndarray, w: np.ndarray, gains: np.ndarray, psd: np.ndarray,
-                     noise: np.ndarray) -> np.ndarray:
+def _residual_matrix(
+    L1: np.ndarray, w: np.ndarray, gains: np.ndarray, psd: np.ndarray, noise: np.ndarray
+) -> np.ndarray:
     """Residual variance for every (mode, gain) of a gain grid shared by all modes."""
     finite = np.isfinite(L1)
     Lf = np.where(finite, L1, 0.0)
@@ -192,8 +201,9 @@ def _residual_matrix(L1: np.ndarray, w: np.ndarray, gains: np.ndarray, psd: np.n
     return psd @ (s2 * w).T + noise @ (t2 * w).T
 
 
-def _residual_per_mode(L1: np.ndarray, w: np.ndarray, g: np.ndarray, psd: np.ndarray,
-                       noise: np.ndarray) -> np.ndarray:
+def _residual_per_mode(
+    L1: np.ndarray, w: np.ndarray, g: np.ndarray, psd: np.ndarray, noise: np.ndarray
+) -> np.ndarray:
     """Residual variance of each mode at its own gain ``g`` (shape (n_modes,))."""
     finite = np.isfinite(L1)
     Lf = np.where(finite, L1, 0.0)
@@ -222,15 +232,25 @@ def _golden(fun, a: np.ndarray, b: np.ndarray, xtol: float) -> np.ndarray:
         # Reuse the surviving interior point, evaluate one new point per entry.
         x_new = np.where(left, new_c, new_d)
         f_new = fun(x_new)
-        fc, fd, c, d = (np.where(left, f_new, fd), np.where(left, fc, f_new),
-                        np.where(left, x_new, d), np.where(left, c, x_new))
+        fc, fd, c, d = (
+            np.where(left, f_new, fd),
+            np.where(left, fc, f_new),
+            np.where(left, x_new, d),
+            np.where(left, c, x_new),
+        )
     return np.where(fc <= fd, c, d)
 
 
-def optimal_modal_gain(plant: control.TransferFunction | control.FRD, freqs: object,
-                       psd: object, noise_psd: object = 0.0, *,
-                       modulus_margin: float | None = None, leak: float = 0.0,
-                       fs: float | None = None) -> Integrator:
+def optimal_modal_gain(
+    plant: control.TransferFunction | control.FRD,
+    freqs: object,
+    psd: object,
+    noise_psd: object = 0.0,
+    *,
+    modulus_margin: float | None = None,
+    leak: float = 0.0,
+    fs: float | None = None,
+) -> Integrator:
     """Integrator bank with the residual-minimising gain per mode (Gendron & Lena 1994).
 
     For each mode, minimises ``J(g) = int (|S|^2 psd + |T|^2 noise_psd) df`` (trapezoid on
@@ -311,15 +331,19 @@ def optimal_modal_gain(plant: control.TransferFunction | control.FRD, freqs: obj
         k = np.argmin(J, axis=1)
         a = coarse[np.maximum(k - 1, 0)]
         b = coarse[np.minimum(k + 1, coarse.size - 1)]
-        best = _golden(lambda g, p=p, n=n: _residual_per_mode(L1, w, g, p, n), a, b,
-                       _GOLDEN_XTOL * g_max)
+        best = _golden(
+            lambda g, p=p, n=n: _residual_per_mode(L1, w, g, p, n), a, b, _GOLDEN_XTOL * g_max
+        )
         # Keep the coarse minimum if the refinement did not improve on it (flat objective).
         j_best = _residual_per_mode(L1, w, best, p, n)
         gains[sl] = np.where(j_best <= J[np.arange(k.size), k], best, coarse[k])
     gains = np.clip(gains, g_min, g_max)
     K = Integrator(gains, fs=fs_, leak=leak)
-    if isinstance(plant, control.TransferFunction) and not is_stable(plant, K, fs=fs_,
-                                                                      mode=int(np.argmax(gains))):
-        raise RuntimeError("internal error: the optimised integrator is not stabilising; "
-                           f"largest gain {gains.max()!r}, limit {g_max!r}")
+    if isinstance(plant, control.TransferFunction) and not is_stable(
+        plant, K, fs=fs_, mode=int(np.argmax(gains))
+    ):
+        raise RuntimeError(
+            "internal error: the optimised integrator is not stabilising; "
+            f"largest gain {gains.max()!r}, limit {g_max!r}"
+        )
     return K

@@ -41,8 +41,7 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-__all__ = ["GridData", "ConvexifiedProblem", "SolveFailure", "ccp", "true_objective",
-           "get_problem"]
+__all__ = ["GridData", "ConvexifiedProblem", "SolveFailure", "ccp", "true_objective", "get_problem"]
 
 logger = logging.getLogger(__name__)
 
@@ -52,9 +51,15 @@ logger = logging.getLogger(__name__)
 # is scaled by construction (Y monic, G normalised, g = s u), and it halves the IPM iterations.
 # Gap 1e-4: each convex step is only a surrogate of the true problem; measured on 6 modes it
 # saves ~35 % of the solver time and moves the final objectives by < 0.5 % either way.
-_SOLVER_OPTS = {"tol_gap_abs": 1e-5, "tol_gap_rel": 1e-4, "tol_feas": 1e-7,
-                "max_iter": 100, "presolve_enable": False, "accept_unknown": True,
-                "equilibrate_enable": False}
+_SOLVER_OPTS = {
+    "tol_gap_abs": 1e-5,
+    "tol_gap_rel": 1e-4,
+    "tol_feas": 1e-7,
+    "max_iter": 100,
+    "presolve_enable": False,
+    "accept_unknown": True,
+    "equilibrate_enable": False,
+}
 # Winding constraints: Re(P conj Pc) >= _WIND_MIN |Pc|^2 keeps the phase of P within ~87 deg
 # of the previous controller's at every point of the winding grid.
 _WIND_MIN = 0.05
@@ -107,8 +112,13 @@ class GridData:
 
     def join(self, other: GridData) -> GridData:
         """This grid followed by the rows of ``other``."""
-        return GridData(np.vstack([self.AY, other.AY]), np.vstack([self.AX, other.AX]),
-                        np.concatenate([self.F, other.F]), self.mu, self.stroke_weight)
+        return GridData(
+            np.vstack([self.AY, other.AY]),
+            np.vstack([self.AX, other.AX]),
+            np.concatenate([self.F, other.F]),
+            self.mu,
+            self.stroke_weight,
+        )
 
 
 class ConvexifiedProblem:
@@ -136,11 +146,13 @@ class ConvexifiedProblem:
         shapes = {"h_yr": ny, "h_yi": ny, "m_yr": ny, "m_yi": ny, "h_xr": nx, "h_xi": nx}
         if stroke:
             shapes.update({"s_xr": nx, "s_xi": nx})
-        P = self._params = {name: cp.Parameter((slots, n), name=name)
-                            for name, n in shapes.items() if n > 0}
+        P = self._params = {
+            name: cp.Parameter((slots, n), name=name) for name, n in shapes.items() if n > 0
+        }
         P["M"] = cp.Parameter((slots, nv), name="M")
-        off = self._offsets = {name: cp.Parameter(slots, name=name)
-                               for name in ("o_yr", "o_yi", "o_mr", "o_mi", "c")}
+        off = self._offsets = {
+            name: cp.Parameter(slots, name=name) for name in ("o_yr", "o_yi", "o_mr", "o_mi", "c")
+        }
         self.s = cp.Parameter(slots, nonneg=True, name="s")
         self.h = cp.Parameter(slots, nonneg=True, name="h")
 
@@ -152,16 +164,31 @@ class ConvexifiedProblem:
         phi = P["M"] @ v + off["c"]
         g = cp.multiply(self.s, u)
         cons = [
-            cp.SOC(g + phi, cp.vstack([y_row("h_yr", "o_yr"), y_row("h_yi", "o_yi"),
-                                       P["h_xr"] @ vx, P["h_xi"] @ vx, g - phi]), axis=0),
-            cp.SOC(1 + phi, cp.vstack([y_row("m_yr", "o_mr"), y_row("m_yi", "o_mi"),
-                                       1 - phi]), axis=0),
+            cp.SOC(
+                g + phi,
+                cp.vstack(
+                    [
+                        y_row("h_yr", "o_yr"),
+                        y_row("h_yi", "o_yi"),
+                        P["h_xr"] @ vx,
+                        P["h_xi"] @ vx,
+                        g - phi,
+                    ]
+                ),
+                axis=0,
+            ),
+            cp.SOC(
+                1 + phi, cp.vstack([y_row("m_yr", "o_mr"), y_row("m_yi", "o_mi"), 1 - phi]), axis=0
+            ),
         ]
         objective = self.h @ u
         if stroke:
             gamma = cp.Variable(name="gamma")
-            cons.append(cp.SOC(gamma + phi, cp.vstack([P["s_xr"] @ vx, P["s_xi"] @ vx,
-                                                       gamma - phi]), axis=0))
+            cons.append(
+                cp.SOC(
+                    gamma + phi, cp.vstack([P["s_xr"] @ vx, P["s_xi"] @ vx, gamma - phi]), axis=0
+                )
+            )
             objective = objective + gamma
         if n_wind:
             # Same winding number on a fine grid, |P| bounded below (linear, see set_winding).
@@ -188,9 +215,14 @@ class ConvexifiedProblem:
 
         r1, rn = 2 * self.weights[0][:, None], 2 * self.weights[1][:, None]
         AY, AX = data.AY[:, nx:], data.AX[:, :nx]
-        values = {"h_yr": r1 * AY.real, "h_yi": r1 * AY.imag, "h_xr": rn * AX.real,
-                  "h_xi": rn * AX.imag, "m_yr": 2 * data.mu * AY.real,
-                  "m_yi": 2 * data.mu * AY.imag}
+        values = {
+            "h_yr": r1 * AY.real,
+            "h_yi": r1 * AY.imag,
+            "h_xr": rn * AX.real,
+            "h_xi": rn * AX.imag,
+            "m_yr": 2 * data.mu * AY.real,
+            "m_yi": 2 * data.mu * AY.imag,
+        }
         if self.stroke:
             sw = 2 * np.sqrt(data.stroke_weight)
             values.update({"s_xr": sw * AX.real, "s_xi": sw * AX.imag})
@@ -212,8 +244,9 @@ class ConvexifiedProblem:
         The previous controller (``P = Pw``) satisfies both.
         """
         scale = 1.0 / np.abs(Pw)  # row scaling: each row has unit size
-        self.wind_A.value = (Pw.real[:, None] * wind.A.real
-                             + Pw.imag[:, None] * wind.A.imag) * scale[:, None]
+        self.wind_A.value = (
+            Pw.real[:, None] * wind.A.real + Pw.imag[:, None] * wind.A.imag
+        ) * scale[:, None]
         floor = np.maximum(_WIND_MIN * np.abs(Pw), np.minimum(_P_FLOOR, np.abs(Pw)))
         self.wind_b.value = (Pw.real * wind.F.real + Pw.imag * wind.F.imag) * scale - floor
 
@@ -260,8 +293,9 @@ def get_problem(slots: int, nv: int, stroke: bool, n_wind: int = 0) -> Convexifi
     return prob
 
 
-def true_objective(data: GridData, v: np.ndarray, r1: np.ndarray, rn: np.ndarray,
-                   h: np.ndarray) -> tuple[float, np.ndarray]:
+def true_objective(
+    data: GridData, v: np.ndarray, r1: np.ndarray, rn: np.ndarray, h: np.ndarray
+) -> tuple[float, np.ndarray]:
     """Objective of the controller ``v`` on the grid (not convexified) and its ``P``."""
     Y = data.AY @ v + data.F
     GX = data.AX @ v
@@ -269,13 +303,13 @@ def true_objective(data: GridData, v: np.ndarray, r1: np.ndarray, rn: np.ndarray
     p2 = np.abs(P) ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         h2 = np.sum(h * (r1**2 * np.abs(Y) ** 2 + rn**2 * np.abs(GX) ** 2) / p2)
-        hinf = (data.stroke_weight * np.max(np.abs(GX) ** 2 / p2)
-                if data.stroke_weight > 0 else 0.0)
+        hinf = data.stroke_weight * np.max(np.abs(GX) ** 2 / p2) if data.stroke_weight > 0 else 0.0
     return float(h2 + hinf), P
 
 
-def _g_scale(data: GridData, Pc: np.ndarray, vc: np.ndarray | None, r1: np.ndarray,
-             rn: np.ndarray) -> np.ndarray:
+def _g_scale(
+    data: GridData, Pc: np.ndarray, vc: np.ndarray | None, r1: np.ndarray, rn: np.ndarray
+) -> np.ndarray:
     """Per-frequency size of ``g`` at the previous controller (ones if unknown)."""
     if vc is None:
         return np.ones_like(r1)
@@ -305,11 +339,22 @@ _PATIENCE = 3
 _ADD_PER_CHECK = 4
 
 
-def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: GridData,
-        v0: np.ndarray | None, P0: np.ndarray, Pd0: np.ndarray,
-        stable: Callable[[np.ndarray], bool], wind: tuple | None = None, *,
-        max_iter: int, tol: float, extrapolate: bool = True,
-        J_start: float = np.inf) -> CcpOutcome:
+def ccp(
+    problem: ConvexifiedProblem,
+    grid: GridData,
+    weights: tuple,
+    dense: GridData,
+    v0: np.ndarray | None,
+    P0: np.ndarray,
+    Pd0: np.ndarray,
+    stable: Callable[[np.ndarray], bool],
+    wind: tuple | None = None,
+    *,
+    max_iter: int,
+    tol: float,
+    extrapolate: bool = True,
+    J_start: float = np.inf,
+) -> CcpOutcome:
     """Iterate the convexified problem from ``P0`` until the objective stops decreasing.
 
     Each convex solve gives ``v_new`` with a lower objective than the previous controller
@@ -375,8 +420,11 @@ def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: Grid
             excess = np.nan_to_num(dense.mu * np.abs(Y) / np.abs(P) - 1.0, nan=1.0)
         bad = np.flatnonzero(excess > 0)
         if bad.size and log:
-            logger.debug("dense margin check failed at %d points (max excess %.3g)",
-                         bad.size, float(excess.max()))
+            logger.debug(
+                "dense margin check failed at %d points (max excess %.3g)",
+                bad.size,
+                float(excess.max()),
+            )
             return bad[np.argsort(excess[bad])[::-1]]
         if not stable(v):
             # A closed-loop pole crossed the circle between grid points: there P turned by
@@ -384,8 +432,10 @@ def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: Grid
             Pb = dense.A @ v_best + dense.F if v_best is not None else Pd0
             cos = (P * np.conj(Pb)).real / (np.abs(P) * np.abs(Pb) + 1e-300)
             if log:
-                logger.debug("stability check failed; min cos(P, P_prev) on the dense grid "
-                             "%.3g", float(cos.min()))
+                logger.debug(
+                    "stability check failed; min cos(P, P_prev) on the dense grid %.3g",
+                    float(cos.min()),
+                )
             return np.argsort(cos)[:_ADD_PER_CHECK]
         return bad
 
@@ -401,8 +451,9 @@ def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: Grid
         except SolveFailure as exc:
             if free or "infeasible" in exc.status:
                 raise
-            logger.debug("solver failed at iteration %d (%s); keeping the last iterate",
-                         it, exc.status)
+            logger.debug(
+                "solver failed at iteration %d (%s); keeping the last iterate", it, exc.status
+            )
             converged = True
             break
         solves += 1
@@ -416,8 +467,11 @@ def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: Grid
             # The worst point and its neighbours' worst: a few points per failed check.
             pick = np.unique(bad[: min(_ADD_PER_CHECK, room)])
             grid = grid.join(dense.take(pick))
-            Pc = np.concatenate([Pc, dense.A[pick] @ v_best + dense.F[pick]]
-                                if v_best is not None else [Pc, Pd0[pick]])
+            Pc = np.concatenate(
+                [Pc, dense.A[pick] @ v_best + dense.F[pick]]
+                if v_best is not None
+                else [Pc, Pd0[pick]]
+            )
             added += pick.size
             problem.set_grid(grid, *weights_on(grid))
             continue
@@ -431,8 +485,9 @@ def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: Grid
         if not free and J > J_best * (1 + 1e-9) + 1e-12:
             # The previous controller is feasible: a higher value means the iteration has
             # stalled at the solver's accuracy.
-            logger.debug("objective rose from %.8g to %.8g at iteration %d; stopping",
-                         J_best, J, it)
+            logger.debug(
+                "objective rose from %.8g to %.8g at iteration %d; stopping", J_best, J, it
+            )
             converged = True
             break
         if extrapolate and not free:
@@ -442,8 +497,11 @@ def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: Grid
                 Je, Pe = true_objective(grid, ve, *w_grid)
                 # Same constraints as the convex steps: the grid's margin (the next problem
                 # then starts from a feasible point) and the dense checks.
-                if (not Je < J or np.any(grid.mu * np.abs(grid.AY @ ve + grid.F) > np.abs(Pe))
-                        or dense_fail(ve, log=False).size):
+                if (
+                    not Je < J
+                    or np.any(grid.mu * np.abs(grid.AY @ ve + grid.F) > np.abs(Pe))
+                    or dense_fail(ve, log=False).size
+                ):
                     break
                 v, J, P = ve, Je, Pe
         history.append(J)
@@ -458,5 +516,4 @@ def ccp(problem: ConvexifiedProblem, grid: GridData, weights: tuple, dense: Grid
                 break
     if v_best is None:
         raise SolveFailure("without an iterate that passes the dense check", it)
-    return CcpOutcome(np.asarray(v_best), np.asarray(history), iterates, converged, solves,
-                      added)
+    return CcpOutcome(np.asarray(v_best), np.asarray(history), iterates, converged, solves, added)

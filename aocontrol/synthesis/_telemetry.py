@@ -73,8 +73,9 @@ class TelemetryPSD:
         if self.psd.ndim != 2 or self.psd.shape[1] != n_f:
             raise ValueError(f"psd must have shape (n_modes, {n_f}), got {self.psd.shape}")
         if self.noise_psd.shape != (self.psd.shape[0],):
-            raise ValueError(f"noise_psd must have shape ({self.psd.shape[0]},), "
-                             f"got {self.noise_psd.shape}")
+            raise ValueError(
+                f"noise_psd must have shape ({self.psd.shape[0]},), got {self.noise_psd.shape}"
+            )
         for arr in (self.freqs, self.psd, self.noise_psd, self.pseudo_open_loop, self.pol_psd):
             arr.setflags(write=False)
 
@@ -94,9 +95,13 @@ def _check_telemetry(name: str, value: object) -> np.ndarray:
     return arr[:, None] if arr.ndim == 1 else arr
 
 
-def pseudo_open_loop(measurements: object, commands: object,
-                     plant: control.TransferFunction, *, fs: float | None = None,
-                     ) -> np.ndarray:
+def pseudo_open_loop(
+    measurements: object,
+    commands: object,
+    plant: control.TransferFunction,
+    *,
+    fs: float | None = None,
+) -> np.ndarray:
     """Pseudo-open-loop reconstruction ``m + G u`` [units], shape ``(n_frames, n_modes)``.
 
     ``G u`` is ``scipy.signal.lfilter`` of the plant's ``z^-1`` coefficients along the frame
@@ -121,14 +126,18 @@ def pseudo_open_loop(measurements: object, commands: object,
     array([1., 1., 1.])
     """
     if not isinstance(plant, control.TransferFunction):
-        raise TypeError("plant must be a control.TransferFunction to rebuild the pseudo open "
-                        f"loop (z^-1 coefficients), got {type(plant).__name__}")
+        raise TypeError(
+            "plant must be a control.TransferFunction to rebuild the pseudo open "
+            f"loop (z^-1 coefficients), got {type(plant).__name__}"
+        )
     plant_fs(plant, fs)
     m = _check_telemetry("measurements", measurements)
     u = _check_telemetry("commands", commands)
     if m.shape != u.shape:
-        raise ValueError(f"measurements and commands must have the same shape (n_frames, "
-                         f"n_modes), got {m.shape} and {u.shape}")
+        raise ValueError(
+            f"measurements and commands must have the same shape (n_frames, "
+            f"n_modes), got {m.shape} and {u.shape}"
+        )
     b, a = z_inverse_coefficients(plant)
     return m + signal.lfilter(b, a, u, axis=0)
 
@@ -152,10 +161,15 @@ def _median_to_mean(dof: float) -> float:
     return float(dof / stats.chi2.median(dof))
 
 
-def disturbance_from_telemetry(measurements: object, commands: object,
-                               plant: control.TransferFunction, *, fs: float | None = None,
-                               nperseg: int | None = None,
-                               noise_band: tuple[float, float] = (0.8, 1.0)) -> TelemetryPSD:
+def disturbance_from_telemetry(
+    measurements: object,
+    commands: object,
+    plant: control.TransferFunction,
+    *,
+    fs: float | None = None,
+    nperseg: int | None = None,
+    noise_band: tuple[float, float] = (0.8, 1.0),
+) -> TelemetryPSD:
     """Disturbance PSD and white noise level per mode from closed-loop telemetry.
 
     1. Pseudo open loop ``pol = m + G u`` (:func:`pseudo_open_loop`) = ``z^-1 d + n``.
@@ -209,8 +223,9 @@ def disturbance_from_telemetry(measurements: object, commands: object,
         nperseg = min(n_frames, 1024)
     nperseg = check_int("nperseg", nperseg, minimum=8)
     if n_frames < nperseg:
-        raise ValueError(f"measurements must have at least nperseg={nperseg} frames, "
-                         f"got {n_frames}")
+        raise ValueError(
+            f"measurements must have at least nperseg={nperseg} frames, got {n_frames}"
+        )
     try:
         lo, hi = (float(x) for x in noise_band)
     except (TypeError, ValueError) as exc:
@@ -222,9 +237,17 @@ def disturbance_from_telemetry(measurements: object, commands: object,
 
     # The mean over the whole record is removed once (a per-segment detrend would also
     # suppress the lowest bins of a disturbance that is strong at low frequency).
-    freqs, pxx = signal.welch(pol - pol.mean(axis=0), fs=fs_, window="hann",
-                              nperseg=nperseg, noverlap=nperseg // 2, detrend=False,
-                              return_onesided=True, scaling="density", axis=0)
+    freqs, pxx = signal.welch(
+        pol - pol.mean(axis=0),
+        fs=fs_,
+        window="hann",
+        nperseg=nperseg,
+        noverlap=nperseg // 2,
+        detrend=False,
+        return_onesided=True,
+        scaling="density",
+        axis=0,
+    )
     pxx = pxx.T.copy()  # (n_modes, n_freqs)
     # scipy leaves the 0 and Nyquist bins two-sided (not doubled); double them so that the
     # PSD is the one-sided density at every frequency of the grid (white noise: flat).
@@ -234,21 +257,34 @@ def disturbance_from_telemetry(measurements: object, commands: object,
     nyq = fs_ / 2
     band = (freqs >= lo * nyq) & (freqs <= hi * nyq) & (freqs < nyq) & (freqs > 0)
     if not band.any():
-        raise ValueError(f"noise_band {noise_band!r} contains no Welch frequency bin "
-                         f"(resolution {freqs[1]:.4g} Hz); widen it or increase nperseg")
+        raise ValueError(
+            f"noise_band {noise_band!r} contains no Welch frequency bin "
+            f"(resolution {freqs[1]:.4g} Hz); widen it or increase nperseg"
+        )
     noise = np.median(pxx[:, band], axis=1) * _median_to_mean(_welch_dof(n_frames, nperseg))
     idx = np.flatnonzero(band)
     if idx.size >= 8:
         # A floor that still falls across the band is not white noise: the disturbance is
         # not negligible there and the noise level is overestimated.
         lower = np.median(pxx[:, idx[: idx.size // 2]], axis=1)
-        upper = np.median(pxx[:, idx[idx.size // 2:]], axis=1)
+        upper = np.median(pxx[:, idx[idx.size // 2 :]], axis=1)
         sloped = np.flatnonzero(lower > _FLATNESS_RATIO * upper)
         if sloped.size:
-            logger.warning("POL PSD not flat in the noise band %s of Nyquist for modes %s: "
-                           "noise level overestimated", (lo, hi), sloped[:10].tolist())
+            logger.warning(
+                "POL PSD not flat in the noise band %s of Nyquist for modes %s: "
+                "noise level overestimated",
+                (lo, hi),
+                sloped[:10].tolist(),
+            )
     floor = _PSD_FLOOR_FRACTION * np.where(noise > 0, noise, pxx.max(axis=1))
     floor = np.where(floor > 0, floor, np.finfo(float).tiny)
     psd = np.maximum(pxx - noise[:, None], floor[:, None])
-    return TelemetryPSD(freqs=freqs, psd=psd, noise_psd=noise, pseudo_open_loop=pol,
-                        pol_psd=pxx, fs=fs_, noise_band=(lo, hi))
+    return TelemetryPSD(
+        freqs=freqs,
+        psd=psd,
+        noise_psd=noise,
+        pseudo_open_loop=pol,
+        pol_psd=pxx,
+        fs=fs_,
+        noise_band=(lo, hi),
+    )

@@ -62,13 +62,20 @@ def _modes_and_pupil(wfs: Any, basis: Any) -> tuple[np.ndarray, Pupil]:
         modes = modes[None, :]
     if modes.ndim != 2 or modes.shape[1] != pupil.n_valid:
         raise ValueError(
-            f"modes must have shape (n_modes, n_valid={pupil.n_valid}), got {modes.shape}")
+            f"modes must have shape (n_modes, n_valid={pupil.n_valid}), got {modes.shape}"
+        )
     return modes, pupil
 
 
-def interaction_matrix(wfs: Any, basis_or_modes: Any, amplitude: float = 10.0, *,
-                       offset_opd: np.ndarray | None = None, batch: int = 16,
-                       method: str = "push-pull") -> np.ndarray:
+def interaction_matrix(
+    wfs: Any,
+    basis_or_modes: Any,
+    amplitude: float = 10.0,
+    *,
+    offset_opd: np.ndarray | None = None,
+    batch: int = 16,
+    method: str = "push-pull",
+) -> np.ndarray:
     """Interaction matrix by push-pull (or exact linearisation).
 
     Parameters
@@ -100,31 +107,34 @@ def interaction_matrix(wfs: Any, basis_or_modes: Any, amplitude: float = 10.0, *
     if method not in ("push-pull", "derivative"):
         raise ValueError(f"method must be 'push-pull' or 'derivative', got {method!r}")
     if method == "derivative" and not hasattr(wfs, "signal_derivative"):
-        raise ValueError(f"method='derivative' needs a WFS with signal_derivative, "
-                         f"got {type(wfs).__name__}")
+        raise ValueError(
+            f"method='derivative' needs a WFS with signal_derivative, got {type(wfs).__name__}"
+        )
     offset = 0.0
     if offset_opd is not None:
         offset = check_finite_array("offset_opd", offset_opd, ndim=2)
         if offset.shape != (pupil.n_pix, pupil.n_pix):
-            raise ValueError(f"offset_opd must have shape ({pupil.n_pix}, {pupil.n_pix}), "
-                             f"got {offset.shape}")
+            raise ValueError(
+                f"offset_opd must have shape ({pupil.n_pix}, {pupil.n_pix}), got {offset.shape}"
+            )
     out = np.empty((wfs.n_signals, modes.shape[0]))
     if method == "derivative":
         base = np.zeros((pupil.n_pix, pupil.n_pix)) + offset
         for i0 in range(0, modes.shape[0], batch):
-            maps = pupil.to_map(modes[i0:i0 + batch])
-            out[:, i0:i0 + maps.shape[0]] = wfs.signal_derivative(base, maps).T
+            maps = pupil.to_map(modes[i0 : i0 + batch])
+            out[:, i0 : i0 + maps.shape[0]] = wfs.signal_derivative(base, maps).T
         return out
     for i0 in range(0, modes.shape[0], batch):
-        maps = pupil.to_map(a * modes[i0:i0 + batch])
+        maps = pupil.to_map(a * modes[i0 : i0 + batch])
         s = wfs.signals(np.concatenate([offset + maps, offset - maps]))
         k = maps.shape[0]
-        out[:, i0:i0 + k] = ((s[:k] - s[k:]) / (2 * a)).T
+        out[:, i0 : i0 + k] = ((s[:k] - s[k:]) / (2 * a)).T
     return out
 
 
-def reconstructor(imat: np.ndarray, *, n_modes: int | None = None,
-                  max_condition: float | None = None) -> np.ndarray:
+def reconstructor(
+    imat: np.ndarray, *, n_modes: int | None = None, max_condition: float | None = None
+) -> np.ndarray:
     """Truncated pseudo-inverse of an interaction matrix (signals -> modes).
 
     Parameters
@@ -157,8 +167,9 @@ def reconstructor(imat: np.ndarray, *, n_modes: int | None = None,
     return (vt.T * inv) @ u.T
 
 
-def noise_propagation(wfs: Any, recon: np.ndarray, frame: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def noise_propagation(
+    wfs: Any, recon: np.ndarray, frame: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-mode noise coefficients from photon and read noise on the detector pixels.
 
     Parameters
@@ -205,9 +216,15 @@ def white_noise_propagation(recon: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", r, r)
 
 
-def fitting_residual_screens(pupil: Pupil, rms: float, n_screens: int,
-                             rng: np.random.Generator, *, cutoff_frequency: float,
-                             L0: float = 25.0) -> np.ndarray:
+def fitting_residual_screens(
+    pupil: Pupil,
+    rms: float,
+    n_screens: int,
+    rng: np.random.Generator,
+    *,
+    cutoff_frequency: float,
+    L0: float = 25.0,
+) -> np.ndarray:
     """Random residual phase screens with a fitting-error-like spectrum.
 
     Von Kármán spectrum high-passed above ``cutoff_frequency`` (the DM's correction radius,
@@ -242,16 +259,22 @@ def fitting_residual_screens(pupil: Pupil, rms: float, n_screens: int,
     amp = np.sqrt(von_karman_psd(np.where(kappa > 0, kappa, 1.0), r0=0.1, L0=L0))
     amp = np.where(kappa > fc, amp, 0.0)
     noise = rng.standard_normal((n, big, big)) + 1j * rng.standard_normal((n, big, big))
-    screens = np.fft.ifft2(noise * amp).real[:, :pupil.n_pix, :pupil.n_pix]
+    screens = np.fft.ifft2(noise * amp).real[:, : pupil.n_pix, : pupil.n_pix]
     vec = pupil.to_vector(screens)
     vec -= vec.mean(axis=-1, keepdims=True)
     norm = np.sqrt(np.mean(vec**2, axis=-1, keepdims=True))
     return pupil.to_map(vec * (rms / norm))
 
 
-def optical_gains(wfs: Any, basis_or_modes: Any, residual_opd: np.ndarray, *,
-                  amplitude: float = 10.0, recon: np.ndarray | None = None,
-                  method: str = "push-pull") -> np.ndarray:
+def optical_gains(
+    wfs: Any,
+    basis_or_modes: Any,
+    residual_opd: np.ndarray,
+    *,
+    amplitude: float = 10.0,
+    recon: np.ndarray | None = None,
+    method: str = "push-pull",
+) -> np.ndarray:
     """Per-mode optical gains around residual phase screens.
 
     Parameters
@@ -278,13 +301,13 @@ def optical_gains(wfs: Any, basis_or_modes: Any, residual_opd: np.ndarray, *,
     if res.ndim == 2:
         res = res[None]
     if recon is None:
-        recon = reconstructor(interaction_matrix(wfs, basis_or_modes, amplitude,
-                                                 method=method))
+        recon = reconstructor(interaction_matrix(wfs, basis_or_modes, amplitude, method=method))
     n_modes = recon.shape[0]
     gains = np.zeros(n_modes)
     for screen in res:
-        d = interaction_matrix(wfs, basis_or_modes, amplitude, offset_opd=screen,
-                               method=method)[:, :n_modes]
+        d = interaction_matrix(wfs, basis_or_modes, amplitude, offset_opd=screen, method=method)[
+            :, :n_modes
+        ]
         gains += np.einsum("ij,ji->i", recon, d)
     return gains / res.shape[0]
 
@@ -350,9 +373,16 @@ class WFSCalibration:
         return var
 
 
-def calibrate(wfs: Any, basis_or_modes: Any, amplitude: float = 10.0, *,
-              n_modes: int | None = None, max_condition: float | None = None,
-              batch: int = 16, method: str = "push-pull") -> WFSCalibration:
+def calibrate(
+    wfs: Any,
+    basis_or_modes: Any,
+    amplitude: float = 10.0,
+    *,
+    n_modes: int | None = None,
+    max_condition: float | None = None,
+    batch: int = 16,
+    method: str = "push-pull",
+) -> WFSCalibration:
     """Interaction matrix, reconstructor and noise coefficients of ``wfs`` on a basis.
 
     ``method`` as for :func:`interaction_matrix`.
@@ -367,9 +397,15 @@ def calibrate(wfs: Any, basis_or_modes: Any, amplitude: float = 10.0, *,
     if hasattr(wfs, "pixel_jacobian_product") and getattr(wfs, "model", "") != "geometric":
         ph, ro = noise_propagation(wfs, r)
         n_norm, f_norm = wfs.normalisation
-    return WFSCalibration(imat=d, recon=r, photon_coeff=ph, read_coeff=ro,
-                          amplitude=float(amplitude), norm_pixels=n_norm,
-                          norm_fraction=f_norm)
+    return WFSCalibration(
+        imat=d,
+        recon=r,
+        photon_coeff=ph,
+        read_coeff=ro,
+        amplitude=float(amplitude),
+        norm_pixels=n_norm,
+        norm_fraction=f_norm,
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -408,8 +444,10 @@ class LinearModalWFS:
         g = check_finite_array("optical_gain", self.optical_gain, ndim=1)
         s = check_finite_array("noise_std", self.noise_std, ndim=1)
         if g.shape != s.shape:
-            raise ValueError(f"optical_gain and noise_std must have the same shape (n_modes,), "
-                             f"got {g.shape} and {s.shape}")
+            raise ValueError(
+                f"optical_gain and noise_std must have the same shape (n_modes,), "
+                f"got {g.shape} and {s.shape}"
+            )
         if np.any(s < 0):
             raise ValueError(f"noise_std must be >= 0 [nm], found min {s.min()!r}")
         g.setflags(write=False)
@@ -436,16 +474,22 @@ class LinearModalWFS:
         """
         x = np.asarray(residual, dtype=float)
         if x.shape[-1:] != (self.n_modes,) or x.ndim > 2:
-            raise ValueError(f"residual must have shape (n_modes,) or (n_frames, n_modes) with "
-                             f"n_modes={self.n_modes}, got {x.shape}")
+            raise ValueError(
+                f"residual must have shape (n_modes,) or (n_frames, n_modes) with "
+                f"n_modes={self.n_modes}, got {x.shape}"
+            )
         if not isinstance(rng, np.random.Generator):
             raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
         return self.optical_gain * x + self.noise_std * rng.standard_normal(x.shape)
 
     @classmethod
-    def from_calibration(cls, calibration: WFSCalibration, photons_per_frame: float,
-                         read_noise: float,
-                         optical_gain: np.ndarray | None = None) -> LinearModalWFS:
+    def from_calibration(
+        cls,
+        calibration: WFSCalibration,
+        photons_per_frame: float,
+        read_noise: float,
+        optical_gain: np.ndarray | None = None,
+    ) -> LinearModalWFS:
         """Linear model from a :class:`WFSCalibration` at a given flux and read noise.
 
         ``photons_per_frame`` [e-] and ``read_noise`` [e- RMS per pixel] as for
@@ -456,11 +500,18 @@ class LinearModalWFS:
         return cls(optical_gain=g, noise_std=np.sqrt(var), calibration=calibration)
 
     @classmethod
-    def from_diffractive(cls, wfs: Any, basis_or_modes: Any, photons_per_frame: float,
-                         read_noise: float, *, amplitude: float = 10.0,
-                         residual_opd: np.ndarray | None = None,
-                         n_modes: int | None = None,
-                         max_condition: float | None = None) -> LinearModalWFS:
+    def from_diffractive(
+        cls,
+        wfs: Any,
+        basis_or_modes: Any,
+        photons_per_frame: float,
+        read_noise: float,
+        *,
+        amplitude: float = 10.0,
+        residual_opd: np.ndarray | None = None,
+        n_modes: int | None = None,
+        max_condition: float | None = None,
+    ) -> LinearModalWFS:
         """Calibrate a diffractive WFS and return the equivalent linear modal model.
 
         Parameters
@@ -478,10 +529,12 @@ class LinearModalWFS:
         n_modes, max_condition
             Passed to :func:`reconstructor`.
         """
-        cal = calibrate(wfs, basis_or_modes, amplitude, n_modes=n_modes,
-                        max_condition=max_condition)
+        cal = calibrate(
+            wfs, basis_or_modes, amplitude, n_modes=n_modes, max_condition=max_condition
+        )
         gains = None
         if residual_opd is not None:
-            gains = optical_gains(wfs, basis_or_modes, residual_opd, amplitude=amplitude,
-                                  recon=cal.recon)
+            gains = optical_gains(
+                wfs, basis_or_modes, residual_opd, amplitude=amplitude, recon=cal.recon
+            )
         return cls.from_calibration(cal, photons_per_frame, read_noise, optical_gain=gains)

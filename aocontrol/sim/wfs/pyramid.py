@@ -141,10 +141,17 @@ class PyramidWFS:
             check_int("n_modulation_points", self.n_modulation_points, minimum=1)
         if self.signal_type not in ("slopes", "full_frame"):
             raise ValueError(
-                f"signal_type must be 'slopes' or 'full_frame', got {self.signal_type!r}")
+                f"signal_type must be 'slopes' or 'full_frame', got {self.signal_type!r}"
+            )
         check_nonnegative("pupil_separation", self.pupil_separation)
-        check_in_range("valid_threshold", self.valid_threshold, 0.0, 1.0,
-                       low_inclusive=False, high_inclusive=True)
+        check_in_range(
+            "valid_threshold",
+            self.valid_threshold,
+            0.0,
+            1.0,
+            low_inclusive=False,
+            high_inclusive=True,
+        )
         if self.precision not in ("single", "double"):
             raise ValueError(f"precision must be 'single' or 'double', got {self.precision!r}")
         check_int("workers", self.workers, minimum=1)
@@ -229,7 +236,7 @@ class PyramidWFS:
         r0 = (n - n_pix) // 2
         for h, shift in enumerate((-n // 4, n // 4)):
             start = r0 + shift
-            out[h * n_sub:(h + 1) * n_sub, start:start + n_pix] = b
+            out[h * n_sub : (h + 1) * n_sub, start : start + n_pix] = b
         return out
 
     @cached_property
@@ -335,8 +342,10 @@ class PyramidWFS:
         opd = check_finite_array("opd", opd, ndim=2)
         delta = check_finite_array("delta_opd", delta_opd, ndim=3)
         if opd.shape != (n_pix, n_pix) or delta.shape[1:] != (n_pix, n_pix):
-            raise ValueError(f"opd and delta_opd must end with shape ({n_pix}, {n_pix}), got "
-                             f"{opd.shape} and {delta.shape}")
+            raise ValueError(
+                f"opd and delta_opd must end with shape ({n_pix}, {n_pix}), got "
+                f"{opd.shape} and {delta.shape}"
+            )
         field = self._field(opd_to_phase(opd, self.wavelength))
         base = list(self._fields(field))
         dphase = opd_to_phase(delta, self.wavelength)
@@ -375,8 +384,10 @@ class PyramidWFS:
         # s = A p / n(p) with n = sum(p) / nv: ds = (A dp - s_raw dn) / n
         q = dp.reshape(dp.shape[0], 4, nv)
         if self.signal_type == "slopes":
-            a_dp = np.concatenate([q[:, 0] + q[:, 2] - q[:, 1] - q[:, 3],
-                                   q[:, 0] + q[:, 1] - q[:, 2] - q[:, 3]], axis=-1)
+            a_dp = np.concatenate(
+                [q[:, 0] + q[:, 2] - q[:, 1] - q[:, 3], q[:, 0] + q[:, 1] - q[:, 2] - q[:, 3]],
+                axis=-1,
+            )
         else:
             a_dp = dp
         dnorm = dp.sum(axis=-1, keepdims=True) / nv
@@ -450,8 +461,9 @@ class PyramidWFS:
         n_pix)`` [nm]."""
         return self.signals_from_frame(self.detector_image(opd))
 
-    def measure(self, opd: np.ndarray, photons: float, read_noise: float,
-                rng: np.random.Generator) -> np.ndarray:
+    def measure(
+        self, opd: np.ndarray, photons: float, read_noise: float, rng: np.random.Generator
+    ) -> np.ndarray:
         """Noisy signals: Poisson + read noise on the detector pixels, then the signals.
 
         Parameters
@@ -498,8 +510,9 @@ class PyramidWFS:
         m = np.atleast_2d(np.asarray(matrix, dtype=float))
         nv = self.n_valid_subapertures
         if m.shape[-1] != self.n_signals:
-            raise ValueError(f"matrix must have n_signals={self.n_signals} columns, "
-                             f"got shape {m.shape}")
+            raise ValueError(
+                f"matrix must have n_signals={self.n_signals} columns, got shape {m.shape}"
+            )
         if self.signal_type == "slopes":
             mx, my = m[:, :nv], m[:, nv:]
             ma = np.concatenate([mx + my, -mx + my, mx - my, -mx - my], axis=1)

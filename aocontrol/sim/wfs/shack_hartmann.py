@@ -82,8 +82,14 @@ class ShackHartmannWFS:
                 "sampling too coarse or not commensurate"
             )
         check_int("oversampling", self.oversampling, minimum=1)
-        check_in_range("valid_threshold", self.valid_threshold, 0.0, 1.0,
-                       low_inclusive=False, high_inclusive=True)
+        check_in_range(
+            "valid_threshold",
+            self.valid_threshold,
+            0.0,
+            1.0,
+            low_inclusive=False,
+            high_inclusive=True,
+        )
 
     @property
     def samples_per_subaperture(self) -> int:
@@ -140,7 +146,8 @@ class ShackHartmannWFS:
             vals += [w, -w]
         return scipy.sparse.csr_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-            shape=(self.n_signals, n_pix * n_pix))
+            shape=(self.n_signals, n_pix * n_pix),
+        )
 
     # ------------------------------------------------------------------ diffractive model
     @property
@@ -212,16 +219,17 @@ class ShackHartmannWFS:
     def detector_image(self, opd: np.ndarray) -> np.ndarray:
         """Spot images (diffractive model only), see :meth:`spots`."""
         if self.model != "diffractive":
-            raise ValueError("detector_image needs model='diffractive' (the geometric model "
-                             f"has no detector), got model={self.model!r}")
+            raise ValueError(
+                "detector_image needs model='diffractive' (the geometric model "
+                f"has no detector), got model={self.model!r}"
+            )
         return self.spots(opd)
 
     @property
     def reference_frame(self) -> np.ndarray:
         """Flat-wavefront detector image (diffractive model)."""
         if self.model != "diffractive":
-            raise ValueError("reference_frame needs model='diffractive', got "
-                             f"model={self.model!r}")
+            raise ValueError(f"reference_frame needs model='diffractive', got model={self.model!r}")
         return self.reference_spots
 
     def signals_from_frame(self, frames: np.ndarray) -> np.ndarray:
@@ -257,8 +265,9 @@ class ShackHartmannWFS:
         m_ = np.atleast_2d(np.asarray(matrix, dtype=float))
         nv, m = self.n_valid_subapertures, self.spot_size
         if m_.shape[-1] != self.n_signals:
-            raise ValueError(f"matrix must have n_signals={self.n_signals} columns, "
-                             f"got shape {m_.shape}")
+            raise ValueError(
+                f"matrix must have n_signals={self.n_signals} columns, got shape {m_.shape}"
+            )
         scale = self.wavelength * 1e9 / self.oversampling
         c = self._coordinates
         tot = f.sum(axis=(-2, -1))
@@ -271,8 +280,9 @@ class ShackHartmannWFS:
         out = m_[:, :nv, None, None] * jx + m_[:, nv:, None, None] * jy
         return out.reshape(m_.shape[0], -1)
 
-    def measure(self, opd: np.ndarray, photons: float, read_noise: float,
-                rng: np.random.Generator) -> np.ndarray:
+    def measure(
+        self, opd: np.ndarray, photons: float, read_noise: float, rng: np.random.Generator
+    ) -> np.ndarray:
         """Noisy signals (diffractive model): Poisson + read noise on the spot pixels."""
         n_ph = check_positive("photons", photons)
         frames = add_detector_noise(self.detector_image(opd) * n_ph, read_noise, rng)
