@@ -171,7 +171,7 @@ def main() -> None:
         initial=None,
         max_iter=60,
         tol=1e-3,
-        n_grid=80,
+        n_grid=64,
         fs=None,
     )
     t0 = time.perf_counter()
