@@ -10,6 +10,7 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
 from aocontrol.sim.loop import (
+    DiffractiveSensor,
     LinearModalSensor,
     LoopDivergedError,
     LoopResult,
@@ -50,6 +51,7 @@ from aocontrol.sim.wfs import (
 )
 
 __all__ = [
+    "DiffractiveSensor",
     "Atmosphere",
     "Layer",
     "eso_median_profile",

@@ -49,6 +49,8 @@ TELEMETRY = ("disturbance", "measurements", "commands", "dm", "residuals")
 # A residual larger than this factor times the largest disturbance of any mode (or 10 sigma
 # of the measurement noise, plus 1 nm) seen so far is taken as a diverging loop.
 _DIVERGENCE_FACTOR = 1e3
+# Flat-wavefront measurements used to estimate a diffractive sensor's noise level.
+_NOISE_PROBES = 8
 
 
 class LoopDivergedError(RuntimeError):
@@ -480,6 +482,14 @@ def run_loop(
     if noisy and rng is None:
         raise ValueError("rng is required with a noisy sensor (reproducibility)")
     rng = np.random.default_rng(rng)
+    if diffractive and stage.sensor.photons is not None:
+        # Modal noise level of the diffractive sensor (for the divergence guard only), from a
+        # few measurements of a flat wavefront with a child generator: the loop's own noise
+        # stream is unchanged.
+        probe_rng = rng.spawn(1)[0]
+        flat = basis.pupil.to_map(np.zeros(basis.pupil.n_valid))
+        probe = np.array([stage.sensor.measure_map(flat, probe_rng) for _ in range(_NOISE_PROBES)])
+        noise_std = probe.std(axis=0)
     settle = (
         max(20, n_frames // 100)
         if settle_frames is None
@@ -533,8 +543,11 @@ def run_loop(
                 )
             if diffractive and resid_map is None:
                 resid_map = basis.pupil.to_map(np.zeros(maps.shape[1]))
+            linear_noise = noisy and not diffractive  # a DiffractiveSensor draws its own
             noise = (
-                rng.standard_normal((m_chunk, n)) * noise_std if noisy else np.zeros((m_chunk, n))
+                rng.standard_normal((m_chunk, n)) * noise_std
+                if linear_noise
+                else np.zeros((m_chunk, n))
             )
             np.maximum(dmax, np.abs(d).max(axis=0), out=dmax)
             # Scale of a healthy residual: the largest disturbance or noise (through T) of any
