@@ -51,6 +51,14 @@ def controller_response(controller: object, freqs: object, fs: float) -> np.ndar
 
     Returns shape ``(n_freqs,)`` for a SISO TF/FRD, ``(n_modes, n_freqs)`` for a bank
     (evaluated from the bank's coefficients, vectorised over modes).
+
+    Parameters
+    ----------
+    controller : control.TransferFunction, control.FRD or ControllerBank
+    freqs : array_like, shape (n_freqs,)
+        Frequencies [Hz] in [0, fs/2].
+    fs : float
+        Loop rate [Hz] (must match the controller's).
     """
     fs = check_positive("fs", fs)
     controller = _as_siso_controller(controller, fs)
@@ -133,14 +141,38 @@ def loop_response(
 def sensitivity(
     plant: object, controller: object, freqs: object, fs: float | None = None
 ) -> np.ndarray:
-    """Sensitivity ``S = 1/(1+GK)`` (disturbance to residual) at ``freqs`` [Hz]."""
+    """Sensitivity ``S = 1/(1+GK)`` (disturbance to residual) at ``freqs`` [Hz].
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction, control.FRD or ControllerBank
+        Controller (a bank gives every mode, shape ``(n_modes, n_freqs)``).
+    freqs : array_like, shape (n_freqs,)
+        Frequencies [Hz] in [0, fs/2].
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    """
     return loop_response(plant, controller, freqs, fs).sensitivity
 
 
 def complementary_sensitivity(
     plant: object, controller: object, freqs: object, fs: float | None = None
 ) -> np.ndarray:
-    """Complementary sensitivity ``T = GK/(1+GK)`` at ``freqs`` [Hz]."""
+    """Complementary sensitivity ``T = GK/(1+GK)`` at ``freqs`` [Hz].
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction, control.FRD or ControllerBank
+        Controller (a bank gives every mode, shape ``(n_modes, n_freqs)``).
+    freqs : array_like, shape (n_freqs,)
+        Frequencies [Hz] in [0, fs/2].
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    """
     return loop_response(plant, controller, freqs, fs).complementary
 
 
@@ -151,6 +183,17 @@ def noise_transfer(
 
     Equal to ``-T`` up to a pure delay (unit modulus); its squared modulus multiplies the
     noise PSD in the residual PSD.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction, control.FRD or ControllerBank
+        Controller (a bank gives every mode, shape ``(n_modes, n_freqs)``).
+    freqs : array_like, shape (n_freqs,)
+        Frequencies [Hz] in [0, fs/2].
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
     """
     return -loop_response(plant, controller, freqs, fs).complementary
 
@@ -158,7 +201,19 @@ def noise_transfer(
 def command_transfer(
     plant: object, controller: object, freqs: object, fs: float | None = None
 ) -> np.ndarray:
-    """Measurement noise to command transfer ``K S`` at ``freqs`` [Hz]."""
+    """Measurement noise to command transfer ``K S`` at ``freqs`` [Hz].
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction, control.FRD or ControllerBank
+        Controller (a bank gives every mode, shape ``(n_modes, n_freqs)``).
+    freqs : array_like, shape (n_freqs,)
+        Frequencies [Hz] in [0, fs/2].
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    """
     return loop_response(plant, controller, freqs, fs).command
 
 

@@ -235,6 +235,17 @@ def closed_loop_poles(
 ) -> np.ndarray:
     """Roots of the unreduced characteristic polynomial ``Dg Dk + Ng Nk`` (z-plane).
 
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction or ControllerBank
+        Controller; for a bank, ``mode`` selects the SISO controller.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    mode : int, default 0
+        Mode of a controller bank.
+
     Raises
     ------
     TypeError
@@ -274,7 +285,21 @@ def winding_stability(
     With ``w = z^-1``, ``P(w)`` is analytic on the closed unit disc when ``G`` is stable and
     causal; the closed loop is stable iff ``P`` has no zero there, i.e. iff the winding number
     of ``P`` around 0 along the unit circle is zero and ``P`` does not vanish on it. Works for
-    FRD plants (evaluated on their grid, or ``freqs``) and TF plants (dense grid).
+    FRD plants (evaluated on their grid, or ``freqs``) and TF plants (dense grid, refined
+    where the phase of ``P`` moves fast).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction or ControllerBank
+        Controller; for a bank, ``mode`` selects the SISO controller.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    mode : int, default 0
+        Mode of a controller bank.
+    freqs : array_like, optional
+        Grid [Hz] for a TF plant instead of the default dense one.
 
     Raises
     ------
@@ -339,6 +364,17 @@ def is_stable(
 
     TF plant: all roots of the characteristic polynomial strictly inside the unit circle.
     FRD plant: winding-number test (the FRD is assumed stable, as AO plants are).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction or ControllerBank
+        Controller; for a bank, ``mode`` selects the SISO controller.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    mode : int, default 0
+        Mode of a controller bank.
 
     Examples
     --------

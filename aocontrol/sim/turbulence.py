@@ -133,5 +133,15 @@ def effective_wind_speed(speeds: object, weights: object) -> float:
 
 
 def tau0(r0: float, speeds: object, weights: object) -> float:
-    """Coherence time [s]: ``0.314 r0 / v_bar`` with the 5/3-weighted mean wind speed."""
+    """Coherence time [s]: ``0.314 r0 / v_bar`` with the 5/3-weighted mean wind speed.
+
+    Parameters
+    ----------
+    r0 : float
+        Fried parameter at 500 nm [m].
+    speeds : array_like, shape (n_layers,)
+        Wind speeds [m/s].
+    weights : array_like, shape (n_layers,)
+        Cn2 fractions of the layers.
+    """
     return 0.314 * check_positive("r0", r0) / effective_wind_speed(speeds, weights)

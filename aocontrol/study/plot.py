@@ -62,7 +62,17 @@ def plot_rejection(
 def plot_residual_psd(
     freqs: np.ndarray, psds: Mapping[str, np.ndarray], *, ax=None, title: str | None = None
 ):
-    """Plot one-sided PSDs [nm^2/Hz] (e.g. open loop and residuals) on log-log axes."""
+    """Plot one-sided PSDs [nm^2/Hz] (e.g. open loop and residuals) on log-log axes.
+
+    Parameters
+    ----------
+    freqs : ndarray, shape (n,)
+        Frequencies [Hz] (0 Hz dropped on the log axis).
+    psds : mapping label -> ndarray (n,)
+        One-sided PSDs [nm^2/Hz].
+    ax : matplotlib Axes, optional
+    title : str, optional
+    """
     fig, ax = _axes(ax)
     keep = freqs > 0
     for label, p in psds.items():
@@ -79,7 +89,17 @@ def plot_residual_psd(
 def plot_contrast(
     radii_ld: np.ndarray, profiles: Mapping[str, np.ndarray], *, ax=None, title: str | None = None
 ):
-    """Plot raw-contrast radial profiles against separation [lambda/D]."""
+    """Plot raw-contrast radial profiles against separation [lambda/D].
+
+    Parameters
+    ----------
+    radii_ld : ndarray, shape (n,)
+        Separations [lambda/D].
+    profiles : mapping label -> ndarray (n,)
+        Raw contrast (relative to the star's peak).
+    ax : matplotlib Axes, optional
+    title : str, optional
+    """
     fig, ax = _axes(ax)
     for label, prof in profiles.items():
         ax.semilogy(radii_ld, prof, label=label)
@@ -94,7 +114,15 @@ def plot_contrast(
 
 
 def save_figure(fig, path: str, *, dpi: int = 120) -> str:
-    """Save ``fig`` to ``path`` and close it (frees memory in long sweeps); returns ``path``."""
+    """Save ``fig`` to ``path`` and close it (frees memory in long sweeps); returns ``path``.
+
+    Parameters
+    ----------
+    fig : matplotlib Figure
+    path : str
+        Output file (format from the extension).
+    dpi : int
+    """
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path

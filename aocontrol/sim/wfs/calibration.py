@@ -389,6 +389,19 @@ def calibrate(
 
     Noise coefficients are computed when the WFS has a pixel model (pyramid, diffractive
     Shack-Hartmann), linearised around the flat-wavefront frame.
+
+    Parameters
+    ----------
+    wfs : PyramidWFS or ShackHartmannWFS
+    basis_or_modes : ModalBasis-like or ndarray (n_modes, n_valid)
+        Modes to calibrate (unit coefficient = 1 nm RMS).
+    amplitude : float
+        Push-pull amplitude [nm RMS].
+    n_modes, max_condition : optional
+        Truncation of the reconstructor (see :func:`reconstructor`).
+    batch : int
+        Modes per call to the WFS model.
+    method : {"push-pull", "derivative"}
     """
     d = interaction_matrix(wfs, basis_or_modes, amplitude, batch=batch, method=method)
     r = reconstructor(d, n_modes=n_modes, max_condition=max_condition)
