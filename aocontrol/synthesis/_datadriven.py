@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import control
 import numpy as np
@@ -32,16 +32,19 @@ from aocontrol._validation import (
 from aocontrol.analysis import is_stable, residual_psd, winding_stability
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import frequency_response, plant_fs, tf_from_z_inverse, z_inverse_coefficients
+from aocontrol.synthesis._dd_grids import (
+    _dense_grid,
+    _design_indices,
+    _interp_matrix,
+    _trapezoid_weights,
+)
+from aocontrol.synthesis._dd_results import DataDrivenError, DataDrivenResult, ModeReport
 from aocontrol.synthesis._socp import GridData, SolveFailure, ccp, get_problem, true_objective
 
 __all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport", "datadriven"]
 
 logger = logging.getLogger(__name__)
 
-# Verification grid: at least this many times denser than the design grid, and at least
-# _MIN_DENSE points over [0, fs/2].
-_DENSE_FACTOR = 10
-_MIN_DENSE = 4096
 # Points of the fine grid on which each step keeps the winding number (linear constraints).
 _N_WIND = 256
 # Modes per work item; within a chunk each mode may start from the previous mode's design.
@@ -50,187 +53,6 @@ _CHUNK = 8
 _SPARE_SLOTS = 16
 # The design enforces the margin with this relative safety; the dense check enforces it exactly.
 _MARGIN_SAFETY = 0.05
-# Relative prominence of a PSD peak (in decades) for its frequency to join the design grid.
-_PEAK_PROMINENCE_DECADES = 0.5
-_MAX_PEAKS = 12
-
-
-class DataDrivenError(RuntimeError):
-    """Synthesis failed for some modes.
-
-    Attributes
-    ----------
-    failed : dict[int, str]
-        Mode index -> reason.
-    result : DataDrivenResult
-        Every mode: designed controllers for the modes that succeeded, the initial controller
-        for the failed ones (``result.ok`` tells which).
-    """
-
-    def __init__(self, failed: dict[int, str], result: DataDrivenResult) -> None:
-        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
-        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
-        super().__init__(
-            f"data-driven synthesis failed for {len(failed)} of {result.controller.n_modes} "
-            f"modes: {lines}{more}. The other modes are in this error's .result"
-        )
-        self.failed = failed
-        self.result = result
-
-
-@dataclass(frozen=True)
-class ModeReport:
-    """Diagnostics of one mode's design.
-
-    Attributes
-    ----------
-    mode : int
-        Mode index.
-    ok : bool
-        True if the design succeeded and passed verification.
-    message : str
-        Failure reason (empty when ``ok``).
-    objective_history : ndarray, shape (n_accepted + 1,)
-        Normalised objective ``J`` on the design grid, the initial controller first
-        (non-increasing when the initial controller lies in the parameter set).
-    solves : int
-        Number of convex problems solved (all grid refinements included).
-    converged : bool
-        The last iterations lowered ``J`` by less than ``tol``.
-    modulus_margin : float
-        ``min |1 + G K|`` verified on the dense grid.
-    stable : bool
-        Closed-loop stability (:func:`aocontrol.analysis.is_stable`).
-    refinements : int
-        Constraint-only points added to the design grid by the dense checks.
-    start : str
-        ``"initial"`` (the initial controller) or ``"previous mode"`` (the design of the
-        previous mode of the same chunk, used when it is feasible and better for this mode).
-    """
-
-    mode: int
-    ok: bool
-    message: str
-    objective_history: np.ndarray
-    solves: int
-    converged: bool
-    modulus_margin: float
-    stable: bool
-    refinements: int
-    start: str
-
-
-@dataclass(frozen=True)
-class DataDrivenResult:
-    """Result of :func:`datadriven`.
-
-    Attributes
-    ----------
-    controller : IIRBank
-        One row of coefficients per mode (powers of ``z^-1``, ``a[:, 0] == 1``).
-    initial : IIRBank
-        The starting controllers (by default the optimal modal-gain integrators).
-    reports : tuple of ModeReport
-        Per-mode diagnostics.
-    residual_variance : ndarray, shape (n_modes,)
-        Predicted residual variance ``int (|S|^2 psd + |T|^2 noise_psd) df`` [units^2] on the
-        input grid (trapezoid, as :func:`aocontrol.analysis.residual_variance`).
-    initial_residual_variance : ndarray, shape (n_modes,)
-        The same for ``initial``.
-    design_freqs : ndarray, shape (n_design,)
-        Design grid [Hz] (before refinements).
-    """
-
-    controller: IIRBank
-    initial: IIRBank
-    reports: tuple[ModeReport, ...]
-    residual_variance: np.ndarray
-    initial_residual_variance: np.ndarray
-    design_freqs: np.ndarray = field(repr=False)
-
-    @property
-    def ok(self) -> np.ndarray:
-        """Per-mode success flags, shape ``(n_modes,)``."""
-        return np.array([r.ok for r in self.reports])
-
-    @property
-    def modulus_margin(self) -> np.ndarray:
-        """Verified modulus margins, shape ``(n_modes,)``."""
-        return np.array([r.modulus_margin for r in self.reports])
-
-    @property
-    def stable(self) -> np.ndarray:
-        """Closed-loop stability per mode, shape ``(n_modes,)``."""
-        return np.array([r.stable for r in self.reports])
-
-    @property
-    def solves(self) -> np.ndarray:
-        """Convex solves per mode, shape ``(n_modes,)``."""
-        return np.array([r.solves for r in self.reports])
-
-    @property
-    def objective_history(self) -> list[np.ndarray]:
-        """Normalised objective per iteration, one array per mode."""
-        return [r.objective_history for r in self.reports]
-
-
-# ---------------------------------------------------------------------------------------------
-# Grids and weights
-# ---------------------------------------------------------------------------------------------
-def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
-    """Weights ``t`` with ``sum(t * y) == np.trapezoid(y, f)``."""
-    t = np.zeros_like(f)
-    df = np.diff(f)
-    t[:-1] += df / 2
-    t[1:] += df / 2
-    return t
-
-
-def _design_indices(freqs: np.ndarray, psd: np.ndarray, n_grid: int) -> np.ndarray:
-    """Indices of the input grid used for design: log + linear spread and the PSD peaks."""
-    n = freqs.size
-    if n <= n_grid:
-        return np.arange(n)
-    fpos = freqs[freqs > 0]
-    n_log = int(round(0.6 * n_grid))
-    targets = [
-        np.geomspace(fpos[0], freqs[-1], n_log),
-        np.linspace(freqs[0], freqs[-1], n_grid - n_log),
-    ]
-    idx = [np.clip(np.searchsorted(freqs, t), 0, n - 1) for t in targets]
-    idx.append(np.array([0, n - 1]))
-    # Resonances (vibrations): the local maxima that stand out of the smoothed log-PSD.
-    from scipy.signal import find_peaks
-
-    logp = np.log10(np.maximum(psd, 1e-300 + psd.max(axis=-1, keepdims=True) * 1e-30))
-    for row in np.atleast_2d(logp):
-        peaks, props = find_peaks(row, prominence=_PEAK_PROMINENCE_DECADES)
-        if peaks.size:
-            keep = peaks[np.argsort(props["prominences"])[::-1][:_MAX_PEAKS]]
-            idx.append(np.clip((keep[:, None] + np.arange(-2, 3)).ravel(), 0, n - 1))
-    return np.unique(np.concatenate(idx))
-
-
-def _interp_matrix(f_design: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Hat-function matrix ``H`` (n_design, n): linear interpolation from design points."""
-    H = np.zeros((f_design.size, f.size))
-    j = np.clip(np.searchsorted(f_design, f, side="right") - 1, 0, f_design.size - 2)
-    lo, hi = f_design[j], f_design[j + 1]
-    t = np.clip((f - lo) / (hi - lo), 0.0, 1.0)
-    cols = np.arange(f.size)
-    H[j, cols] += 1.0 - t
-    H[j + 1, cols] += t
-    return H
-
-
-def _dense_grid(f_design: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Verification grid over [lo, hi]: linear and log-spaced, >= 10x the design grid."""
-    n = max(_DENSE_FACTOR * f_design.size, _MIN_DENSE)
-    lin = np.linspace(lo, hi, n)
-    # Log-spaced down to 1e-6 fs/2: a near pole-zero cancellation close to z = 1 can hide a
-    # closed-loop pole pair crossing the circle at a tiny frequency.
-    log = np.geomspace(max(lo, hi * 2e-6), hi, n // 2)
-    return np.unique(np.concatenate([lin, log, f_design]))
 
 
 # ---------------------------------------------------------------------------------------------

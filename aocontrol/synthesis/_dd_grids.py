@@ -1,0 +1,68 @@
+"""Frequency grids and quadrature weights of the data-driven synthesis (private)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import find_peaks
+
+# Verification grid: at least this many times denser than the design grid, and at least
+# _MIN_DENSE points over [0, fs/2].
+_DENSE_FACTOR = 10
+_MIN_DENSE = 4096
+# Relative prominence of a PSD peak (in decades) for its frequency to join the design grid.
+_PEAK_PROMINENCE_DECADES = 0.5
+_MAX_PEAKS = 12
+
+
+def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
+    """Weights ``t`` with ``sum(t * y) == np.trapezoid(y, f)``."""
+    t = np.zeros_like(f)
+    df = np.diff(f)
+    t[:-1] += df / 2
+    t[1:] += df / 2
+    return t
+
+
+def _design_indices(freqs: np.ndarray, psd: np.ndarray, n_grid: int) -> np.ndarray:
+    """Indices of the input grid used for design: log + linear spread and the PSD peaks."""
+    n = freqs.size
+    if n <= n_grid:
+        return np.arange(n)
+    fpos = freqs[freqs > 0]
+    n_log = int(round(0.6 * n_grid))
+    targets = [
+        np.geomspace(fpos[0], freqs[-1], n_log),
+        np.linspace(freqs[0], freqs[-1], n_grid - n_log),
+    ]
+    idx = [np.clip(np.searchsorted(freqs, t), 0, n - 1) for t in targets]
+    idx.append(np.array([0, n - 1]))
+    # Resonances (vibrations): the local maxima that stand out of the smoothed log-PSD.
+    logp = np.log10(np.maximum(psd, 1e-300 + psd.max(axis=-1, keepdims=True) * 1e-30))
+    for row in np.atleast_2d(logp):
+        peaks, props = find_peaks(row, prominence=_PEAK_PROMINENCE_DECADES)
+        if peaks.size:
+            keep = peaks[np.argsort(props["prominences"])[::-1][:_MAX_PEAKS]]
+            idx.append(np.clip((keep[:, None] + np.arange(-2, 3)).ravel(), 0, n - 1))
+    return np.unique(np.concatenate(idx))
+
+
+def _interp_matrix(f_design: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Hat-function matrix ``H`` (n_design, n): linear interpolation from design points."""
+    H = np.zeros((f_design.size, f.size))
+    j = np.clip(np.searchsorted(f_design, f, side="right") - 1, 0, f_design.size - 2)
+    lo, hi = f_design[j], f_design[j + 1]
+    t = np.clip((f - lo) / (hi - lo), 0.0, 1.0)
+    cols = np.arange(f.size)
+    H[j, cols] += 1.0 - t
+    H[j + 1, cols] += t
+    return H
+
+
+def _dense_grid(f_design: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Verification grid over [lo, hi]: linear and log-spaced, >= 10x the design grid."""
+    n = max(_DENSE_FACTOR * f_design.size, _MIN_DENSE)
+    lin = np.linspace(lo, hi, n)
+    # Log-spaced down to 1e-6 fs/2: a near pole-zero cancellation close to z = 1 can hide a
+    # closed-loop pole pair crossing the circle at a tiny frequency.
+    log = np.geomspace(max(lo, hi * 2e-6), hi, n // 2)
+    return np.unique(np.concatenate([lin, log, f_design]))

@@ -1,0 +1,130 @@
+"""Results and errors of the data-driven synthesis (see :mod:`aocontrol.synthesis._datadriven`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from aocontrol.controllers import IIRBank
+
+__all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport"]
+
+
+class DataDrivenError(RuntimeError):
+    """Synthesis failed for some modes.
+
+    Attributes
+    ----------
+    failed : dict[int, str]
+        Mode index -> reason.
+    result : DataDrivenResult
+        Every mode: designed controllers for the modes that succeeded, the initial controller
+        for the failed ones (``result.ok`` tells which).
+    """
+
+    def __init__(self, failed: dict[int, str], result: DataDrivenResult) -> None:
+        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
+        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
+        super().__init__(
+            f"data-driven synthesis failed for {len(failed)} of {result.controller.n_modes} "
+            f"modes: {lines}{more}. The other modes are in this error's .result"
+        )
+        self.failed = failed
+        self.result = result
+
+
+@dataclass(frozen=True)
+class ModeReport:
+    """Diagnostics of one mode's design.
+
+    Attributes
+    ----------
+    mode : int
+        Mode index.
+    ok : bool
+        True if the design succeeded and passed verification.
+    message : str
+        Failure reason (empty when ``ok``).
+    objective_history : ndarray, shape (n_accepted + 1,)
+        Normalised objective ``J`` on the design grid, the initial controller first
+        (non-increasing when the initial controller lies in the parameter set).
+    solves : int
+        Number of convex problems solved (all grid refinements included).
+    converged : bool
+        The last iterations lowered ``J`` by less than ``tol``.
+    modulus_margin : float
+        ``min |1 + G K|`` verified on the dense grid.
+    stable : bool
+        Closed-loop stability (:func:`aocontrol.analysis.is_stable`).
+    refinements : int
+        Constraint-only points added to the design grid by the dense checks.
+    start : str
+        ``"initial"`` (the initial controller) or ``"previous mode"`` (the design of the
+        previous mode of the same chunk, used when it is feasible and better for this mode).
+    """
+
+    mode: int
+    ok: bool
+    message: str
+    objective_history: np.ndarray
+    solves: int
+    converged: bool
+    modulus_margin: float
+    stable: bool
+    refinements: int
+    start: str
+
+
+@dataclass(frozen=True)
+class DataDrivenResult:
+    """Result of :func:`datadriven`.
+
+    Attributes
+    ----------
+    controller : IIRBank
+        One row of coefficients per mode (powers of ``z^-1``, ``a[:, 0] == 1``).
+    initial : IIRBank
+        The starting controllers (by default the optimal modal-gain integrators).
+    reports : tuple of ModeReport
+        Per-mode diagnostics.
+    residual_variance : ndarray, shape (n_modes,)
+        Predicted residual variance ``int (|S|^2 psd + |T|^2 noise_psd) df`` [units^2] on the
+        input grid (trapezoid, as :func:`aocontrol.analysis.residual_variance`).
+    initial_residual_variance : ndarray, shape (n_modes,)
+        The same for ``initial``.
+    design_freqs : ndarray, shape (n_design,)
+        Design grid [Hz] (before refinements).
+    """
+
+    controller: IIRBank
+    initial: IIRBank
+    reports: tuple[ModeReport, ...]
+    residual_variance: np.ndarray
+    initial_residual_variance: np.ndarray
+    design_freqs: np.ndarray = field(repr=False)
+
+    @property
+    def ok(self) -> np.ndarray:
+        """Per-mode success flags, shape ``(n_modes,)``."""
+        return np.array([r.ok for r in self.reports])
+
+    @property
+    def modulus_margin(self) -> np.ndarray:
+        """Verified modulus margins, shape ``(n_modes,)``."""
+        return np.array([r.modulus_margin for r in self.reports])
+
+    @property
+    def stable(self) -> np.ndarray:
+        """Closed-loop stability per mode, shape ``(n_modes,)``."""
+        return np.array([r.stable for r in self.reports])
+
+    @property
+    def solves(self) -> np.ndarray:
+        """Convex solves per mode, shape ``(n_modes,)``."""
+        return np.array([r.solves for r in self.reports])
+
+    @property
+    def objective_history(self) -> list[np.ndarray]:
+        """Normalised objective per iteration, one array per mode."""
+        return [r.objective_history for r in self.reports]
