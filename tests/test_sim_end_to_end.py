@@ -59,14 +59,16 @@ def test_residual_is_the_disturbance_filtered_by_S(run):
 def test_residual_matches_prediction_from_measured_psd(run):
     # Oracle: residual variance per mode = integral |S|^2 PSD_d (aocontrol.analysis) with the
     # disturbance PSD measured in the same run. Statistical: the dominant low-order modes
-    # decorrelate in ~D/v ~ 0.5-1 s, so 6 s hold ~10 independent samples (~30% scatter for
-    # one mode); the median over 60 modes and the total are far tighter.
+    # decorrelate in ~D/v ~ 0.5-1 s (6 s hold ~10 independent samples), and their PSD is
+    # steep below a few Hz, so short Welch segments leak it into bins where |S|^2 is larger.
+    # 2048-frame segments balance leakage and averaging: median and total within ~7 % over
+    # seeds; the tolerances leave room for the scatter of one mode.
     res, ctrl, _ = run
-    f, psd = res.psd("disturbance", nperseg=1024)
+    f, psd = res.psd("disturbance", nperseg=2048)
     pred = residual_variance(loop_plant(FS, LATENCY), ctrl, f, psd)
     meas = res.residual_variance
     assert np.median(np.abs(meas / pred - 1)) < 0.12
-    assert abs(meas.sum() / pred.sum() - 1) < 0.2
+    assert abs(meas.sum() / pred.sum() - 1) < 0.12
 
 
 def test_disturbance_variances_follow_kl_order(run):
@@ -207,3 +209,50 @@ def test_diffractive_sensor_with_photon_noise_is_reproducible_and_noisy():
     assert np.std(a.telemetry["measurements"]) > 0.0  # photon noise reaches the loop
     with pytest.raises(ValueError, match="reconstructs 12 modes, the controller has 5"):
         Stage(Integrator(0.3, fs=FS, n_modes=5), sensor)
+
+
+@pytest.mark.slow
+def test_telemetry_to_datadriven_to_better_loop():
+    # The user's workflow across the layers: run an integrator, estimate the disturbance and
+    # noise from its closed-loop telemetry, design the data-driven controller, run again on
+    # the same turbulence and noise. Oracles: the new loop beats the integrator; its residual
+    # is what aocontrol.analysis predicts from the true disturbance PSD and noise (10 %: a
+    # 4-s run); the prediction from the telemetry estimates is not optimistic (the noise
+    # floor subtracted per bin and clipped at zero biases the disturbance PSD upward where it
+    # is below the noise).
+    from aocontrol.synthesis import datadriven, disturbance_from_telemetry
+
+    fs, latency, n_frames = 1000.0, LATENCY, 4000
+    pupil = vlt_pupil(24)
+    basis = kl_basis(DeformableMirror(pupil, n_actuators=9), 10, r0=0.12)
+    sensor = LinearModalSensor(1.0, 3.0)
+    plant = loop_plant(fs, latency)
+
+    def run(ctrl):
+        atm = Atmosphere(pupil, 0.12, [Layer(0.0, 1.0, 25.0, 20.0)], fs, rng=11)
+        return run_loop(
+            Stage(ctrl, sensor, latency),
+            TurbulenceSource(atm, basis),
+            n_frames,
+            rng=12,
+            settle_frames=200,
+        )
+
+    first = run(Integrator(0.3, fs=fs, n_modes=basis.n_modes))
+    tel = disturbance_from_telemetry(
+        first.telemetry["measurements"].astype(float),
+        first.telemetry["commands"].astype(float),
+        plant,
+        nperseg=512,
+    )
+    design = datadriven(
+        plant, tel.freqs, tel.psd, noise_psd=tel.noise_psd, order=4, progress=False, n_jobs=1
+    )
+    second = run(design.controller)
+    assert second.residual_variance.sum() < 0.9 * first.residual_variance.sum()
+    measured = second.residual_variance.sum()
+    f, psd_true = second.psd("disturbance", nperseg=512)
+    true_pred = residual_variance(plant, design.controller, f, psd_true, 2 * 3.0**2 / fs)
+    assert abs(measured / true_pred.sum() - 1) < 0.1
+    est_pred = residual_variance(plant, design.controller, tel.freqs, tel.psd, tel.noise_psd)
+    assert 0.95 * measured <= est_pred.sum() <= 1.5 * measured

@@ -21,6 +21,7 @@ from aocontrol.analysis._margins import (
     margins,
     winding_stability,
 )
+from aocontrol.analysis._psd import welch_psd
 from aocontrol.analysis._residual import residual_psd, residual_variance
 from aocontrol.analysis._wiener import wiener_bound
 
@@ -38,6 +39,7 @@ __all__ = [
     "residual_psd",
     "residual_variance",
     "sensitivity",
+    "welch_psd",
     "white_noise_psd",
     "wiener_bound",
     "winding_stability",

@@ -6,10 +6,9 @@ import logging
 
 import numpy as np
 
-from aocontrol._validation import check_frequency_grid
+from aocontrol._validation import check_frequency_grid, mode_psds
 from aocontrol.analysis._loop import loop_response
 from aocontrol.analysis._margins import is_stable
-from aocontrol.analysis._wiener import mode_psds
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import plant_fs
 

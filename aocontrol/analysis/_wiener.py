@@ -11,57 +11,10 @@ import warnings
 import control
 import numpy as np
 
-from aocontrol._validation import check_finite_array, check_frequency_grid, check_int, check_psd
+from aocontrol._validation import check_frequency_grid, check_int, mode_psds
 from aocontrol.plant import frequency_response, plant_fs, z_inverse_coefficients
 
 __all__ = ["mode_psds", "wiener_bound"]
-
-
-def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Validate a disturbance and a noise PSD and broadcast both to ``(n_modes, n_freqs)``.
-
-    Parameters
-    ----------
-    psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
-        Disturbance PSD, one-sided [units^2/Hz], >= 0, finite.
-    noise_psd : float or array_like
-        Noise PSD, one-sided [units^2/Hz]: a scalar (white, every mode), shape ``(n_freqs,)``
-        (every mode), ``(n_modes, n_freqs)``, ``(n_modes, 1)`` or ``(n_modes,)`` (one white
-        level per mode; a 1-D array of length ``n_freqs`` is read per frequency).
-    n_freqs : int
-        Number of frequencies.
-
-    Returns
-    -------
-    psd, noise : ndarray, shape (n_modes, n_freqs)
-    squeeze : bool
-        True when the inputs describe a single mode given as 1-D (callers return a scalar).
-    """
-    psd = check_psd("psd", psd, n_freqs)
-    noise = check_finite_array("noise_psd", noise_psd, ndim=(0, 1, 2))
-    if np.any(noise < 0):
-        raise ValueError(f"noise_psd must be >= 0 everywhere (a PSD), found min {noise.min()!r}")
-    n_modes = psd.shape[0] if psd.ndim == 2 else None
-    if noise.ndim == 1 and noise.size != n_freqs:
-        if n_modes is None or noise.size != n_modes:
-            raise ValueError(
-                f"noise_psd of shape {noise.shape} must have {n_freqs} values (one per "
-                f"frequency) or {n_modes if n_modes is not None else 'n_modes'} (one white "
-                "level per mode, with a 2-D psd)"
-            )
-        noise = noise[:, None]
-    if noise.ndim == 2:
-        if noise.shape[1] not in (1, n_freqs):
-            raise ValueError(f"noise_psd must have 1 or {n_freqs} columns, got {noise.shape}")
-        if n_modes is None:
-            n_modes = noise.shape[0]
-        elif noise.shape[0] != n_modes:
-            raise ValueError(f"noise_psd has {noise.shape[0]} modes, psd has {n_modes}")
-    squeeze = psd.ndim == 1 and noise.ndim < 2
-    n_modes = 1 if n_modes is None else n_modes
-    psd2 = np.broadcast_to(psd, (n_modes, n_freqs))
-    noise2 = np.broadcast_to(noise if noise.ndim else noise[None, None], (n_modes, n_freqs))
-    return psd2, noise2, squeeze
 
 
 # Default size of the full-circle FFT grid (frequency step fs / n_fft).

@@ -28,6 +28,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from aocontrol._validation import check_int, check_nonnegative, check_positive
+from aocontrol.analysis import welch_psd
 from aocontrol.controllers import ControllerBank
 
 __all__ = [
@@ -337,18 +338,15 @@ class LoopResult:
         return float(np.sqrt(np.sum(self.residual_variance)))
 
     def psd(self, name: str = "residuals", *, nperseg: int = 1024) -> tuple[np.ndarray, np.ndarray]:
-        """One-sided Welch PSD [nm^2/Hz] of a recorded signal after settling.
+        """One-sided PSD [nm^2/Hz] of a recorded signal after settling.
 
-        Returns ``freqs`` (n_f,) [Hz] and ``psd`` (n_modes, n_f).
+        :func:`aocontrol.analysis.welch_psd` (record mean removed once, one-sided at every
+        bin). Returns ``freqs`` (n_f,) [Hz] and ``psd`` (n_modes, n_f).
         """
-        from scipy import signal
-
         if name not in self.telemetry:
             raise KeyError(f"{name!r} was not recorded; recorded: {sorted(self.telemetry)}")
         x = np.asarray(self.telemetry[name][self.settle_frames :], dtype=float)
-        nper = min(nperseg, x.shape[0])
-        f, p = signal.welch(x, fs=self.fs, nperseg=nper, axis=0, scaling="density")
-        return f, p.T
+        return welch_psd(x, self.fs, nperseg)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the result to ``path`` (.npz: arrays + JSON metadata), atomically."""

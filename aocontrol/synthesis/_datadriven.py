@@ -28,6 +28,7 @@ from aocontrol._validation import (
     check_int,
     check_nonnegative,
     check_psd,
+    mode_psds,
 )
 from aocontrol.analysis import is_stable, residual_psd, winding_stability
 from aocontrol.controllers import IIRBank
@@ -384,8 +385,10 @@ def datadriven(
         Controller order ``n``: the degree of ``Y`` (``F`` included) and of ``X``. With a fixed
         factor ``F`` of degree ``d``, ``K = X / (F Y')`` with ``X``, ``Y'`` free of degree
         ``n - d`` (``order = 1`` with ``F = 1 - z^-1`` is the integrator ``g / (1 - z^-1)``).
-    noise_psd : float or array_like like ``psd``, default 0.0
-        Measurement-noise PSD, one-sided [units^2/Hz]; a scalar is white.
+    noise_psd : float or array_like, default 0.0
+        Measurement-noise PSD, one-sided [units^2/Hz]: a scalar (white), ``(n_freqs,)``,
+        ``(n_modes, n_freqs)`` or ``(n_modes,)`` (one white level per mode, as returned by
+        :func:`aocontrol.synthesis.disturbance_from_telemetry`).
     modulus_margin : float, default 0.5
         Required ``min |1 + G K|`` in (0, 1), i.e. ``||S||_inf <= 1/modulus_margin``.
     stroke_weight : float, default 1e-3
@@ -497,17 +500,9 @@ def _prepare(
     freqs = check_frequency_grid("freqs", freqs, fs_)
     if freqs.size < 3:
         raise ValueError(f"freqs must have at least 3 points, got {freqs.size}")
-    psd_in = check_psd("psd", psd, freqs.size, allow_all_zero=False)
-    psd2 = np.atleast_2d(psd_in)
+    check_psd("psd", psd, freqs.size, allow_all_zero=False)
+    psd2, noise2, _ = mode_psds(psd, noise_psd, freqs.size)
     n_modes = psd2.shape[0]
-    noise = check_psd("noise_psd", noise_psd, freqs.size, allow_scalar=True)
-    if noise.ndim == 2 and noise.shape[0] not in (1, n_modes):
-        raise ValueError(
-            f"noise_psd must have 1 or {n_modes} rows (one per mode), got shape {noise.shape}"
-        )
-    noise2 = np.broadcast_to(
-        noise if noise.ndim else np.full(freqs.size, float(noise)), (n_modes, freqs.size)
-    )
     order = check_int("order", order, minimum=1)
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
     stroke_weight = check_nonnegative("stroke_weight", stroke_weight)

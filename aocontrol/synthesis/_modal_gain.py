@@ -19,9 +19,8 @@ import control
 import numpy as np
 from scipy import optimize
 
-from aocontrol._validation import check_frequency_grid, check_in_range
+from aocontrol._validation import check_frequency_grid, check_in_range, mode_psds
 from aocontrol.analysis import is_stable
-from aocontrol.analysis._wiener import mode_psds
 from aocontrol.controllers import Integrator
 from aocontrol.plant import frequency_response, plant_fs
 

@@ -22,6 +22,7 @@ import numpy as np
 from scipy import signal, stats
 
 from aocontrol._validation import check_finite_array, check_in_range, check_int
+from aocontrol.analysis._psd import welch_psd
 from aocontrol.plant import plant_fs, z_inverse_coefficients
 
 __all__ = ["TelemetryPSD", "disturbance_from_telemetry", "pseudo_open_loop"]
@@ -235,25 +236,8 @@ def disturbance_from_telemetry(
     if not lo < hi:
         raise ValueError(f"noise_band must satisfy lo < hi, got {noise_band!r}")
 
-    # The mean over the whole record is removed once (a per-segment detrend would also
-    # suppress the lowest bins of a disturbance that is strong at low frequency).
-    freqs, pxx = signal.welch(
-        pol - pol.mean(axis=0),
-        fs=fs_,
-        window="hann",
-        nperseg=nperseg,
-        noverlap=nperseg // 2,
-        detrend=False,
-        return_onesided=True,
-        scaling="density",
-        axis=0,
-    )
-    pxx = pxx.T.copy()  # (n_modes, n_freqs)
-    # scipy leaves the 0 and Nyquist bins two-sided (not doubled); double them so that the
-    # PSD is the one-sided density at every frequency of the grid (white noise: flat).
-    pxx[:, 0] *= 2
-    if nperseg % 2 == 0:
-        pxx[:, -1] *= 2
+    # Record mean removed once, one-sided at every bin (see aocontrol.analysis.welch_psd).
+    freqs, pxx = welch_psd(pol, fs_, nperseg)
     nyq = fs_ / 2
     band = (freqs >= lo * nyq) & (freqs <= hi * nyq) & (freqs < nyq) & (freqs > 0)
     if not band.any():
