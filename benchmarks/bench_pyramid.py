@@ -40,6 +40,14 @@ import time
 RESULT_TAG = "BENCH_RESULT_JSON:"
 
 
+def _time_per_call(fn, n_calls: int) -> tuple[float, float]:
+    """Wall-clock and CPU seconds per call of ``fn()``, over ``n_calls`` calls."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(n_calls):
+        fn()
+    return (time.perf_counter() - t0) / n_calls, (time.process_time() - c0) / n_calls
+
+
 def _peak_rss_mb() -> float:
     """Peak resident set size of this process [MB] (Linux ru_maxrss is in kB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -118,11 +126,7 @@ def run_ours(args: argparse.Namespace) -> dict:
             c_loop += time.process_time() - c0
             res_rms.append(float(np.std(res)))
     opd = pupil.to_map(res)
-    t0, c0 = time.perf_counter(), time.process_time()
-    for _ in range(n_frames):
-        wfs.signals(opd)
-    t_wfs_only = (time.perf_counter() - t0) / n_frames
-    c_wfs_only = (time.process_time() - c0) / n_frames
+    t_wfs_only, c_wfs_only = _time_per_call(lambda: wfs.signals(opd), n_frames)
     return dict(
         code="aocontrol",
         loop_fps=n_frames / t_loop,
@@ -242,11 +246,7 @@ def run_oopao(args: argparse.Namespace) -> dict:
             c_loop += time.process_time() - c0
             res_rms.append(float(np.std(tel.OPD[pupil]) * 1e9))
     phase = tel.src.phase.copy()
-    t0, c0 = time.perf_counter(), time.process_time()
-    for _ in range(n_frames):
-        wfs.wfs_measure(phase_in=phase)
-    t_wfs_only = (time.perf_counter() - t0) / n_frames
-    c_wfs_only = (time.process_time() - c0) / n_frames
+    t_wfs_only, c_wfs_only = _time_per_call(lambda: wfs.wfs_measure(phase_in=phase), n_frames)
     return dict(
         code="OOPAO",
         loop_fps=n_frames / t_loop,
