@@ -21,7 +21,12 @@ import math
 import control
 import numpy as np
 
-from aocontrol._validation import check_finite_array, check_nonnegative, check_positive
+from aocontrol._validation import (
+    check_finite_array,
+    check_frequency_grid,
+    check_nonnegative,
+    check_positive,
+)
 
 __all__ = [
     "loop_plant",
@@ -146,8 +151,6 @@ def measured_plant(freqs: object, response: object, fs: float) -> control.FRD:
     fs : float
         Loop rate [Hz].
     """
-    from aocontrol._validation import check_frequency_grid
-
     fs = check_positive("fs", fs)
     freqs = check_frequency_grid("freqs", freqs, fs)
     resp = check_finite_array("response", response, ndim=1, dtype=complex)

@@ -28,8 +28,6 @@ __all__ = [
     "white_noise_psd",
 ]
 
-ControllerLike = control.TransferFunction | control.FRD | ControllerBank
-
 
 def _as_siso_controller(controller: object, fs: float) -> object:
     """Validate a controller for analysis: TF/FRD (discrete, same rate) or a bank."""

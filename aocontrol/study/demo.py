@@ -13,10 +13,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aocontrol.analysis import Margins, margins, residual_variance, sensitivity, wiener_bound
+from aocontrol.analysis import (
+    Margins,
+    margins,
+    residual_variance,
+    sensitivity,
+    white_noise_psd,
+    wiener_bound,
+)
 from aocontrol.controllers import Integrator
 from aocontrol.disturbance import synthetic_turbulence_psd
 from aocontrol.plant import loop_plant
+from aocontrol.study.plot import plot_rejection, save_figure
 from aocontrol.synthesis import datadriven, optimal_modal_gain
 
 __all__ = ["DemoResult", "run_demo"]
@@ -58,9 +66,6 @@ def run_demo(
     noise_rms : float
         Modal measurement noise per frame [nm RMS].
     """
-    from aocontrol.analysis import white_noise_psd
-    from aocontrol.study.plot import plot_rejection, save_figure
-
     plant = loop_plant(fs, latency_frames)
     # Log-spaced at low frequency so that the PSD (and the Wiener bound) are resolved.
     freqs = np.concatenate([[0.0], np.geomspace(1e-2, fs / 2, 2000)])
