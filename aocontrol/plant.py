@@ -37,11 +37,62 @@ __all__ = [
     "z_inverse_coefficients",
     "check_plant",
     "plant_delay_frames",
+    "split_latency",
+    "MAX_LATENCY_FRAMES",
 ]
 
 # Relative tolerance to decide that a fractional delay is an integer (numerical noise of
 # e.g. 0.83 * 3 computed in floating point).
 _INTEGER_DELAY_RTOL = 1e-9
+#: Largest accepted latency [frames]: an AO loop's RTC latency is a few frames; beyond this a
+#: request is taken for a unit error (seconds or microseconds passed as frames) rather than
+#: allocating a delay line of that length.
+MAX_LATENCY_FRAMES = 1000.0
+
+
+def split_latency(latency_frames: float) -> tuple[int, float]:
+    """Split a latency into whole and fractional frames, ``(k, f)`` with ``0 <= f < 1``.
+
+    The one owner of this split: :func:`loop_plant` and the simulator's delay line both use
+    it, so that the simulated timing is the plant's. A fractional part within a relative
+    ``1e-9`` of an integer (floating-point noise of e.g. ``0.83 * 3``) is taken as zero.
+
+    Parameters
+    ----------
+    latency_frames : float
+        RTC latency beyond the one-frame WFS integration [frames], in
+        ``[0, MAX_LATENCY_FRAMES]``.
+
+    Returns
+    -------
+    k : int
+        Whole frames, ``floor(latency_frames)`` (rounded when ``f`` is numerical noise).
+    f : float
+        Fractional part in ``[0, 1)``.
+
+    Raises
+    ------
+    ValueError
+        If ``latency_frames`` is negative, not finite or above ``MAX_LATENCY_FRAMES``.
+
+    Examples
+    --------
+    >>> split_latency(0.83)
+    (0, 0.83)
+    >>> split_latency(3 * (1 / 3))
+    (1, 0.0)
+    """
+    latency = check_nonnegative("latency_frames", latency_frames)
+    if latency > MAX_LATENCY_FRAMES:
+        raise ValueError(
+            f"latency_frames must be <= {MAX_LATENCY_FRAMES:g} frames (an RTC latency of a few "
+            f"frames; a unit error?), got {latency!r}"
+        )
+    k = math.floor(latency)
+    f = latency - k
+    if abs(f - round(f)) < _INTEGER_DELAY_RTOL * max(1.0, latency):
+        k, f = int(round(latency)), 0.0
+    return int(k), float(f)
 
 
 def tf_from_z_inverse(b: object, a: object, dt: float) -> control.TransferFunction:
@@ -114,11 +165,7 @@ def loop_plant(fs: float, latency_frames: float) -> control.TransferFunction:
     True
     """
     fs = check_positive("fs", fs)
-    latency = check_nonnegative("latency_frames", latency_frames)
-    k = math.floor(latency)
-    f = latency - k
-    if abs(f - round(f)) < _INTEGER_DELAY_RTOL * max(1.0, latency):
-        k, f = int(round(latency)), 0.0
+    k, f = split_latency(latency_frames)
     b = np.zeros(k + 3)
     b[k + 1] = 1.0 - f
     b[k + 2] = f
