@@ -149,3 +149,78 @@ def test_step_wrong_shape_raises():
         c.step(np.zeros(2))
     with pytest.raises(ValueError, match="mode must be in"):
         c.transfer_function(3)
+
+
+# -- real-time policy for non-finite frames (shared by every ControllerBank) -------------------
+
+
+@pytest.mark.parametrize("ctrl", _controllers(), ids=repr)
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_nonfinite_frame_is_rejected_and_state_kept_clean(ctrl, bad):
+    # Oracle: the run with a bad frame at j equals the run with frame j removed, the command
+    # of frame j being the held command of frame j-1 (bit for bit: same operations).
+    rng = np.random.default_rng(2)
+    n, j = 60, 23
+    x = rng.normal(size=(n, ctrl.n_modes))
+    x_bad = x.copy()
+    x_bad[j, ctrl.n_modes // 2] = bad
+    ctrl.reset()
+    y_bad = np.array([ctrl.step(xk) for xk in x_bad])
+    assert ctrl.n_rejected == 1
+    ctrl.reset()
+    assert ctrl.n_rejected == 0
+    y_ref = np.array([ctrl.step(xk) for xk in np.delete(x, j, axis=0)])
+    np.testing.assert_array_equal(y_bad[:j], y_ref[:j])
+    np.testing.assert_array_equal(y_bad[j], y_bad[j - 1])
+    np.testing.assert_array_equal(y_bad[j + 1 :], y_ref[j:])
+
+
+def test_rejected_frame_after_reset_holds_zero_and_logs_sparingly(caplog):
+    c = Integrator([0.5, 0.5], fs=1000.0)
+    c.step(np.array([1.0, 1.0]))
+    c.reset()
+    with caplog.at_level("WARNING", logger="aocontrol.controllers._base"):
+        for _ in range(2500):
+            np.testing.assert_array_equal(c.step(np.array([np.nan, 1.0])), [0.0, 0.0])
+    assert c.n_rejected == 2500
+    # First rejection, then the 1000th and 2000th: not one line per frame.
+    assert len(caplog.records) == 3
+    assert "not finite for 1 mode" in caplog.records[0].getMessage()
+    # The state is clean: the next valid frame is the first integrator step.
+    np.testing.assert_array_equal(c.step(np.array([1.0, 1.0])), [0.5, 0.5])
+
+
+def test_held_command_is_not_aliased():
+    # Mutating a returned held command must not change what the controller holds.
+    c = Integrator(1.0, fs=1000.0)
+    c.step(np.array([2.0]))
+    held = c.step(np.array([np.nan]))
+    held[0] = 99.0
+    assert c.step(np.array([np.inf]))[0] == 2.0
+
+
+def test_subclass_implementing_step_hook_shares_the_policy():
+    # A new controller implements _step/reset only; the base's step applies the policy and
+    # its reset also clears the shared real-time state.
+    class Gain(ControllerBank):
+        n_modes = 2
+        fs = 100.0
+
+        def _step(self, m):
+            self.calls += 1
+            return 2.0 * m
+
+        def reset(self):
+            self.calls = 0
+
+        def transfer_function(self, mode=0):
+            return control.tf([2.0], [1.0], 1.0 / self.fs)
+
+    g = Gain()
+    g.reset()
+    np.testing.assert_array_equal(g.step([1.0, 2.0]), [2.0, 4.0])
+    np.testing.assert_array_equal(g.step([np.nan, 2.0]), [2.0, 4.0])
+    assert (g.calls, g.n_rejected) == (1, 1)
+    g.reset()
+    assert g.n_rejected == 0
+    np.testing.assert_array_equal(g.step([np.inf, 0.0]), [0.0, 0.0])

@@ -8,11 +8,23 @@ Every controller is a bank of ``n_modes`` independent SISO controllers (modal co
 * ``transfer_function(mode=0) -> control.TransferFunction``: the linear controller of one mode,
   ``dt = 1/fs``. The real-time path and the transfer function agree (impulse responses equal
   to rounding; tested for every controller).
+
+Real-time policy for bad frames (shared by every controller)
+-----------------------------------------------------------
+The public :meth:`ControllerBank.step` lives in the base class; subclasses implement the
+protected ``_step(m)`` on a validated, finite measurement. A frame whose measurement holds any
+NaN or inf is **rejected as a whole**: the controller's state is not touched, the previous
+command is returned again (zeros after :meth:`~ControllerBank.reset`), ``n_rejected`` (frames
+rejected since the last reset) is incremented and a warning is logged on the first rejection
+and then on every 1000th, not on every frame. A real RTC does not stop on one bad frame, and
+a rejected frame never poisons the filter history: the commands that follow are exactly those
+of the same run with that frame removed and the command held.
 """
 
 from __future__ import annotations
 
 import abc
+import functools
 import logging
 
 import control
@@ -26,8 +38,36 @@ __all__ = ["ControllerBank", "IIRBank"]
 logger = logging.getLogger(__name__)
 
 
+#: A rejected frame is logged on its first occurrence and then every this many rejections.
+_REJECT_LOG_EVERY = 1000
+
+
 class ControllerBank(abc.ABC):
-    """Abstract bank of per-mode SISO controllers running at ``fs`` [Hz]."""
+    """Abstract bank of per-mode SISO controllers running at ``fs`` [Hz].
+
+    Subclasses implement ``n_modes``, ``fs``, ``_step``, ``reset`` and ``transfer_function``;
+    the public :meth:`step` (shape check, rejection of non-finite frames, held command) is
+    shared. A subclass's ``reset`` also clears the shared real-time state (``n_rejected`` and
+    the held command): the base class wraps it.
+
+    Attributes
+    ----------
+    n_rejected : int
+        Frames rejected since the last reset because their measurement was not finite.
+    """
+
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        own_reset = cls.__dict__.get("reset")
+        if own_reset is not None and not getattr(own_reset, "_clears_rt_state", False):
+
+            @functools.wraps(own_reset)
+            def reset(self: ControllerBank) -> None:
+                own_reset(self)
+                self._clear_rt_state()
+
+            reset._clears_rt_state = True  # type: ignore[attr-defined]
+            cls.reset = reset  # type: ignore[method-assign]
 
     @property
     @abc.abstractmethod
@@ -39,9 +79,40 @@ class ControllerBank(abc.ABC):
     def fs(self) -> float:
         """Loop rate [Hz]."""
 
-    @abc.abstractmethod
     def step(self, measurement: np.ndarray) -> np.ndarray:
-        """Advance one frame: modal measurement ``(n_modes,)`` -> modal command ``(n_modes,)``."""
+        """Advance one frame: modal measurement ``(n_modes,)`` -> modal command ``(n_modes,)``.
+
+        Real-time policy: a measurement with any NaN or inf is rejected as a whole. The
+        state is not touched, the previous command is returned (zeros after a reset),
+        ``n_rejected`` is incremented and a warning is logged (first rejection, then every
+        1000th). Otherwise the subclass's ``_step`` computes the command.
+
+        Parameters
+        ----------
+        measurement : array_like, shape (n_modes,)
+            Modal measurement of this frame (the unit of the controller's input).
+
+        Returns
+        -------
+        numpy.ndarray, shape (n_modes,)
+            Modal command (a new array; the held command is returned as a copy).
+
+        Raises
+        ------
+        ValueError
+            If ``measurement`` does not have shape ``(n_modes,)``.
+        """
+        m = self._check_measurement(measurement)
+        if not np.isfinite(m).all():
+            return self._reject(m)
+        u = self._step(m)
+        # A copy: a caller that edits the returned command in place cannot change the held one.
+        self._last_command = u.copy()
+        return u
+
+    @abc.abstractmethod
+    def _step(self, m: np.ndarray) -> np.ndarray:
+        """One frame of the controller on a finite measurement ``m`` of shape ``(n_modes,)``."""
 
     @abc.abstractmethod
     def reset(self) -> None:
@@ -50,6 +121,32 @@ class ControllerBank(abc.ABC):
     @abc.abstractmethod
     def transfer_function(self, mode: int = 0) -> control.TransferFunction:
         """Linear controller of ``mode`` (measurement to command), ``dt = 1/fs``."""
+
+    # -- real-time state shared by every controller ----------------------------------------
+    @property
+    def n_rejected(self) -> int:
+        """Frames rejected since the last reset (non-finite measurement)."""
+        return self.__dict__.get("_n_rejected", 0)
+
+    def _clear_rt_state(self) -> None:
+        self._n_rejected = 0
+        self._last_command = None
+
+    def _reject(self, m: np.ndarray) -> np.ndarray:
+        n = self.n_rejected + 1
+        self._n_rejected = n
+        if n == 1 or n % _REJECT_LOG_EVERY == 0:
+            bad = np.flatnonzero(~np.isfinite(m))
+            logger.warning(
+                "%s: frame rejected, measurement not finite for %d mode(s) (first %s); "
+                "command held (%d frame(s) rejected since reset)",
+                type(self).__name__,
+                bad.size,
+                bad[:10].tolist(),
+                n,
+            )
+        last = self.__dict__.get("_last_command")
+        return np.zeros(self.n_modes) if last is None else last.copy()
 
     # -- shared helpers -------------------------------------------------------------------
     def _check_mode(self, mode: int) -> int:
@@ -195,8 +292,7 @@ class IIRBank(ControllerBank):
         self._u_hist = np.zeros((self._n, max(self._a.shape[1] - 1, 0)))
         self.n_saturated = np.zeros(self._n, dtype=np.int64)
 
-    def step(self, measurement: np.ndarray) -> np.ndarray:
-        m = self._check_measurement(measurement)
+    def _step(self, m: np.ndarray) -> np.ndarray:
         mh, uh = self._m_hist, self._u_hist
         if mh.shape[1] > 1:
             mh[:, 1:] = mh[:, :-1]
