@@ -13,7 +13,15 @@ telemetry shaped ``(n_frames, n_modes)``; randomness only through a passed
 ``numpy.random.Generator`` or seed.
 """
 
+from aocontrol.controllers import load_controller
 from aocontrol.plant import frequency_response, loop_plant, measured_plant
 
 __version__ = "0.1.0"
-__all__ = ["frequency_response", "loop_plant", "measured_plant", "__version__"]
+__all__ = [
+    "frequency_response",
+    "loop_plant",
+    "measured_plant",
+    "load_controller",
+    "__version__",
+]
+

@@ -5,5 +5,13 @@ Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.stud
 
 from aocontrol.controllers._base import ControllerBank, IIRBank
 from aocontrol.controllers._integrator import Integrator
+from aocontrol.controllers._io import load_controller, register_controller_format, save_controller
 
-__all__ = ["ControllerBank", "IIRBank", "Integrator"]
+__all__ = [
+    "ControllerBank",
+    "IIRBank",
+    "Integrator",
+    "save_controller",
+    "load_controller",
+    "register_controller_format",
+]
