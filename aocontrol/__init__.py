@@ -22,6 +22,16 @@ __all__ = [
     "loop_plant",
     "measured_plant",
     "load_controller",
+    "load_result",
     "__version__",
 ]
 
+
+def __getattr__(name: str):
+    # load_result lives in the study layer: imported on first use so that importing
+    # aocontrol (the control layer) does not import the simulator or the study layer.
+    if name == "load_result":
+        from aocontrol.study.results import load_result
+
+        return load_result
+    raise AttributeError(f"module 'aocontrol' has no attribute {name!r}")

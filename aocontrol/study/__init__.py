@@ -3,4 +3,20 @@
 Only :mod:`aocontrol.study.plot` imports matplotlib.
 """
 
-__all__: list[str] = []
+from aocontrol.study.results import (
+    convert_npz,
+    load_result,
+    read_psds,
+    read_settings,
+    save_result,
+    summary_table,
+)
+
+__all__: list[str] = [
+    "save_result",
+    "load_result",
+    "convert_npz",
+    "read_psds",
+    "read_settings",
+    "summary_table",
+]
