@@ -1,0 +1,763 @@
+"""Parameter sweeps on ``dask.distributed``: many runs, one self-describing file each, resumable.
+
+A sweep spec (TOML) lists cases x controllers x schemes x seeds, optional overrides (each key a
+list of values; the sweep takes every combination), the simulated ``seconds`` per run and
+``quick``::
+
+    cases = ["bright1-best", "red5-best"]
+    controllers = ["integrator", "datadriven"]
+    schemes = ["standalone", "dcao"]
+    seeds = [0, 1]
+    seconds = 1.0
+    quick = false
+
+    [overrides]
+    seeing = [0.6, 0.8]
+    "stage2.fs" = [1250, 3000]
+
+The spec is validated completely before any run starts: an unknown key, a wrong type, an unknown
+case, controller or scheme, or an override the case does not have fails with a
+:class:`SweepSpecError` that names the file, the key and the valid values.
+
+Each run is described by a settings dict ``{case, controller, scheme, seed, seconds, quick,
+overrides}``; its file is ``<hash>.h5`` with ``hash`` = the first 16 hex digits of the SHA-256
+of the settings as sorted, compact JSON (floats with an integral value hashed as integers, so
+``1250`` and ``1250.0`` name the same run). The hash identifies the *request*: a changed case
+file or a new software version does not rename its runs; sweep into a new folder then.
+
+Execution: every run whose file is missing is submitted to a Dask cluster (a ``LocalCluster``
+of 2 processes with 1 thread each by default, or the scheduler at ``scheduler=``; a remote
+cluster's workers must see ``out`` on a shared file system). The *worker* writes the result in
+``out/.partial/`` and renames it to ``out/<hash>.h5`` when complete, so a file with a final name
+is always complete and a killed sweep loses at most the runs in flight; run it again and it
+skips what exists. A run that raises leaves ``out/<hash>.error.json`` (settings, error,
+traceback) instead of a result, and the other runs go on. Start one sweep per folder at a time:
+a sweep clears ``out/.partial/`` (temporary files of interrupted sweeps) when it starts.
+
+The summary table (:func:`summary_table`, one row per file, also written to
+``out/summary.csv``) is rebuilt from the files alone.
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import hashlib
+import io
+import itertools
+import json
+import logging
+import os
+import pathlib
+import shutil
+import sys
+import time
+import traceback
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = [
+    "SweepSpec",
+    "SweepSpecError",
+    "SweepRun",
+    "SweepRunner",
+    "SweepReport",
+    "load_sweep_spec",
+    "run_hash",
+    "run_sweep",
+    "summary_table",
+    "default_runner",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Keys of a sweep spec file.
+SPEC_KEYS = ("cases", "controllers", "schemes", "seeds", "seconds", "quick", "overrides")
+#: Sub-folder of ``out`` holding the files of runs in flight.
+PARTIAL_DIR = ".partial"
+#: Seconds to wait for a scheduler at ``scheduler=`` before failing.
+CONNECT_TIMEOUT_S = 5.0
+_HASH_LEN = 16
+_NAME_KEYS = {"cases": "cases", "controllers": "controllers", "schemes": "schemes"}
+
+
+class SweepSpecError(ValueError):
+    """A sweep spec that cannot run: names the file, the key and what was expected."""
+
+
+def _canonical(value: Any) -> Any:
+    """JSON-ready copy of ``value`` with integral floats as ints (stable hashing)."""
+    if isinstance(value, Mapping):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_canonical(v) for v in value]
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+def run_hash(settings: Mapping[str, Any]) -> str:
+    """Stable name of a run: first 16 hex digits of the SHA-256 of its sorted, compact JSON.
+
+    Parameters
+    ----------
+    settings : mapping
+        JSON-serialisable run settings (nested mappings allowed).
+
+    Returns
+    -------
+    str
+        16 lowercase hex digits.
+
+    Examples
+    --------
+    >>> run_hash({"a": 1, "b": [0.5]}) == run_hash({"b": [0.5], "a": 1.0})
+    True
+    >>> len(run_hash({"a": 1}))
+    16
+    """
+    text = json.dumps(_canonical(settings), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:_HASH_LEN]
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    """One run of a sweep.
+
+    Parameters
+    ----------
+    settings : mapping
+        ``{case, controller, scheme, seed, seconds, quick, overrides}`` (JSON-serialisable).
+    """
+
+    settings: Mapping[str, Any]
+
+    @property
+    def hash(self) -> str:
+        """The run's file stem, :func:`run_hash` of its settings."""
+        return run_hash(self.settings)
+
+
+def _fail(source: str, key: str, message: str) -> SweepSpecError:
+    return SweepSpecError(f"{source}: {key}: {message}")
+
+
+def _names(source: str, key: str, value: Any, valid: Sequence[str] | None) -> tuple[str, ...]:
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list | tuple) or not value:
+        raise _fail(source, key, f"must be a non-empty list of names, got {value!r}")
+    for v in value:
+        if not isinstance(v, str) or not v:
+            raise _fail(source, key, f"must contain names (strings), got {v!r}")
+        if valid is not None and v not in valid:
+            hint = difflib.get_close_matches(v, list(valid), n=1)
+            maybe = f" (did you mean {hint[0]!r}?)" if hint else ""
+            raise _fail(
+                source, key, f"unknown name {v!r}{maybe}; valid: {', '.join(sorted(valid))}"
+            )
+    if len(set(value)) != len(value):
+        dup = sorted({v for v in value if list(value).count(v) > 1})
+        raise _fail(source, key, f"lists {dup} more than once")
+    return tuple(value)
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A validated sweep: cases x controllers x schemes x override combinations x seeds.
+
+    Parameters
+    ----------
+    cases, controllers, schemes : tuple of str
+        Names (validated against the runner's registries by :func:`load_sweep_spec`).
+    seeds : tuple of int, default (0,)
+        Seeds, integers >= 0, no repeats.
+    seconds : float, default 5.0
+        Simulated exposure per run [s], > 0.
+    quick : bool, default False
+        Quick mode of the runner (short calibration, fewer scan points).
+    overrides : tuple of (key, tuple of values), default ()
+        Case values to replace, each with the list of values to sweep (every combination).
+    source : str, default "<spec>"
+        Where the spec came from (named in error messages).
+    """
+
+    cases: tuple[str, ...]
+    controllers: tuple[str, ...]
+    schemes: tuple[str, ...]
+    seeds: tuple[int, ...] = (0,)
+    seconds: float = 5.0
+    quick: bool = False
+    overrides: tuple[tuple[str, tuple[Any, ...]], ...] = ()
+    source: str = "<spec>"
+
+    def __post_init__(self) -> None:
+        src = self.source
+        for key in ("cases", "controllers", "schemes"):
+            object.__setattr__(self, key, _names(src, key, getattr(self, key), None))
+        seeds = self.seeds
+        if isinstance(seeds, int) and not isinstance(seeds, bool):
+            seeds = (seeds,)
+        if not isinstance(seeds, list | tuple) or not seeds:
+            raise _fail(src, "seeds", f"must be a non-empty list of integers >= 0, got {seeds!r}")
+        for s in seeds:
+            if isinstance(s, bool) or not isinstance(s, int) or s < 0:
+                raise _fail(src, "seeds", f"must contain integers >= 0, got {s!r}")
+        if len(set(seeds)) != len(seeds):
+            raise _fail(src, "seeds", f"lists a seed more than once: {list(seeds)}")
+        object.__setattr__(self, "seeds", tuple(int(s) for s in seeds))
+        sec = self.seconds
+        if isinstance(sec, bool) or not isinstance(sec, int | float) or not 0 < sec < float("inf"):
+            raise _fail(src, "seconds", f"must be a finite number > 0 [s], got {sec!r}")
+        object.__setattr__(self, "seconds", float(sec))
+        if not isinstance(self.quick, bool):
+            raise _fail(src, "quick", f"must be true or false, got {self.quick!r}")
+        over = self.overrides
+        items = over.items() if isinstance(over, Mapping) else over
+        clean = []
+        for item in items:
+            if not (isinstance(item, list | tuple) and len(item) == 2):
+                raise _fail(src, "overrides", f"must map keys to lists of values, got {item!r}")
+            key, values = item
+            if not isinstance(key, str) or not key:
+                raise _fail(src, "overrides", f"keys must be non-empty strings, got {key!r}")
+            if not isinstance(values, list | tuple):
+                values = (values,)
+            if not values:
+                raise _fail(src, f"overrides.{key}", "must list at least one value, got []")
+            for v in values:
+                if isinstance(v, Mapping | list | tuple) or v is None:
+                    raise _fail(
+                        src, f"overrides.{key}", f"values must be numbers or strings, got {v!r}"
+                    )
+            if len({json.dumps(_canonical(v)) for v in values}) != len(values):
+                raise _fail(src, f"overrides.{key}", f"lists a value twice: {list(values)}")
+            clean.append((key, tuple(values)))
+        keys = [k for k, _ in clean]
+        if len(set(keys)) != len(keys):
+            raise _fail(src, "overrides", f"repeats a key: {keys}")
+        object.__setattr__(self, "overrides", tuple(sorted(clean)))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], *, source: str = "<spec>") -> SweepSpec:
+        """Spec from a parsed TOML table, rejecting unknown keys.
+
+        Parameters
+        ----------
+        data : mapping
+            The spec's keys (:data:`SPEC_KEYS`); ``cases``, ``controllers``, ``schemes`` needed.
+        source : str
+            File name for the error messages.
+
+        Raises
+        ------
+        SweepSpecError
+            Unknown or missing key, wrong type.
+        """
+        if not isinstance(data, Mapping):
+            raise _fail(source, "<root>", f"must be a table, got {type(data).__name__}")
+        for key in data:
+            if key not in SPEC_KEYS:
+                hint = difflib.get_close_matches(key, SPEC_KEYS, n=1)
+                maybe = f" (did you mean {hint[0]!r}?)" if hint else ""
+                raise _fail(source, key, f"unknown key{maybe}; valid keys: {', '.join(SPEC_KEYS)}")
+        for key in ("cases", "controllers", "schemes"):
+            if key not in data:
+                raise _fail(source, key, "missing (a list of names is required)")
+        overrides = data.get("overrides", {})
+        if not isinstance(overrides, Mapping):
+            raise _fail(source, "overrides", f"must be a table, got {overrides!r}")
+        return cls(
+            cases=data["cases"],
+            controllers=data["controllers"],
+            schemes=data["schemes"],
+            seeds=data.get("seeds", (0,)),
+            seconds=data.get("seconds", 5.0),
+            quick=data.get("quick", False),
+            overrides=tuple(overrides.items()),
+            source=source,
+        )
+
+    def runs(self) -> tuple[SweepRun, ...]:
+        """Every run, in the order cases, controllers, schemes, overrides, seeds."""
+        keys = [k for k, _ in self.overrides]
+        combos = list(itertools.product(*(v for _, v in self.overrides)))
+        out = []
+        for case, ctrl, scheme, combo, seed in itertools.product(
+            self.cases, self.controllers, self.schemes, combos, self.seeds
+        ):
+            settings = {
+                "case": case,
+                "controller": ctrl,
+                "scheme": scheme,
+                "seed": seed,
+                "seconds": self.seconds,
+                "quick": self.quick,
+                "overrides": dict(zip(keys, combo, strict=True)),
+            }
+            out.append(SweepRun(settings))
+        return tuple(out)
+
+
+# ------------------------------------------------------------------------------------ runners
+@dataclass(frozen=True)
+class SweepRunner:
+    """What a sweep calls: the run itself, the reader of its file and the valid names.
+
+    Parameters
+    ----------
+    run : callable ``(settings: dict, path: pathlib.Path) -> None``
+        Runs one configuration and writes its result file at ``path`` (any format the
+        ``read`` callable understands). Must be importable by the workers (a module-level
+        function or an instance of a module-level class).
+    read : callable ``(path: pathlib.Path) -> dict``
+        One summary row from a result file: ``{"settings": <the run's settings dict>, ...
+        figures of merit}``.
+    valid : mapping, optional
+        Valid names per spec key (``"cases"``, ``"controllers"``, ``"schemes"``); a key that is
+        absent is not checked.
+    check : callable ``(settings: dict) -> None``, optional
+        Raises ``ValueError`` for a run that cannot work (e.g. an override the case lacks);
+        called on every run before any starts.
+    """
+
+    run: Callable[[dict, pathlib.Path], None]
+    read: Callable[[pathlib.Path], dict]
+    valid: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    check: Callable[[dict], None] | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("run", "read"):
+            if not callable(getattr(self, name)):
+                raise TypeError(f"{name} must be callable, got {getattr(self, name)!r}")
+        if self.check is not None and not callable(self.check):
+            raise TypeError(f"check must be callable or None, got {self.check!r}")
+        bad = set(self.valid) - set(_NAME_KEYS)
+        if bad:
+            raise ValueError(f"valid keys must be among {sorted(_NAME_KEYS)}, got {sorted(bad)}")
+
+
+def _run_configuration_and_save(settings: dict, path: pathlib.Path) -> None:
+    """Default run: :func:`aocontrol.study.compare.run_configuration` + ``save_result``."""
+    from aocontrol.study.compare import run_configuration
+    from aocontrol.study.results import save_result
+
+    outcome = run_configuration(
+        settings["case"],
+        controller=settings["controller"],
+        scheme=settings["scheme"],
+        seconds=settings["seconds"],
+        seed=settings["seed"],
+        overrides=dict(settings["overrides"]) or None,
+        quick=settings["quick"],
+        progress=False,
+    )
+    full = dict(outcome.settings)
+    full["sweep"] = {"hash": run_hash(settings), "request": settings}
+    save_result(outcome.result, path, settings=full)
+
+
+def _read_result_row(path: pathlib.Path) -> dict:
+    """Default read: the run's request and figures of merit from a results file."""
+    from aocontrol.study.results import summary_row
+
+    row = dict(summary_row(path))
+    settings = row.get("settings", {})
+    if isinstance(settings, str):
+        settings = json.loads(settings)
+    row["settings"] = settings.get("sweep", {}).get("request", settings)
+    return row
+
+
+def default_runner() -> SweepRunner:
+    """The real runner: ``run_configuration`` of the case comparison, HDF5 results files.
+
+    Returns
+    -------
+    SweepRunner
+        Valid names from :func:`aocontrol.study.cases.list_cases`, the controller registry and
+        the schemes of :mod:`aocontrol.study.compare`.
+    """
+    from aocontrol.study import compare
+    from aocontrol.study.cases import list_cases
+
+    valid = {
+        "cases": tuple(list_cases()),
+        "controllers": tuple(compare.CONTROLLERS),
+        "schemes": tuple(compare.SCHEMES),
+    }
+    return SweepRunner(run=_run_configuration_and_save, read=_read_result_row, valid=valid)
+
+
+def load_sweep_spec(
+    path: str | os.PathLike, *, runner: SweepRunner | None = None
+) -> tuple[SweepSpec, tuple[SweepRun, ...]]:
+    """Read and validate a sweep spec file completely (before any run starts).
+
+    Parameters
+    ----------
+    path : str or path-like
+        TOML file (module docstring).
+    runner : SweepRunner, optional
+        Supplies the valid names and the per-run check; default :func:`default_runner`.
+
+    Returns
+    -------
+    spec : SweepSpec
+    runs : tuple of SweepRun
+        Every run of the spec.
+
+    Raises
+    ------
+    SweepSpecError
+        Unreadable file, TOML syntax error, unknown key, wrong type, unknown name, or a run
+        that the runner's check rejects; the message names the file and the key.
+    """
+    path = pathlib.Path(path)
+    source = str(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise SweepSpecError(f"{source}: cannot read the sweep spec: {exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise SweepSpecError(f"{source}: not valid TOML: {exc}") from exc
+    spec = SweepSpec.from_dict(data, source=source)
+    return spec, _validated_runs(spec, runner or default_runner())
+
+
+def _validated_runs(spec: SweepSpec, runner: SweepRunner) -> tuple[SweepRun, ...]:
+    for key in _NAME_KEYS:
+        if key in runner.valid:
+            _names(spec.source, key, getattr(spec, key), runner.valid[key])
+    runs = spec.runs()
+    if runner.check is not None:
+        for run in runs:
+            try:
+                runner.check(dict(run.settings))
+            except (ValueError, TypeError, KeyError) as exc:
+                s = run.settings
+                raise _fail(
+                    spec.source,
+                    "overrides" if s["overrides"] else "cases",
+                    f"run case={s['case']!r} controller={s['controller']!r} "
+                    f"scheme={s['scheme']!r} overrides={s['overrides']} is invalid: {exc}",
+                ) from exc
+    return runs
+
+
+# ------------------------------------------------------------------------------------ execution
+def _write_json_atomic(path: pathlib.Path, data: dict) -> None:
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    with open(tmp, "w") as fh:
+        json.dump(data, fh, indent=1, sort_keys=True, default=str)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _error_record(settings: Mapping, hash_: str, exc: BaseException, where: str) -> dict:
+    return {
+        "hash": hash_,
+        "settings": dict(settings),
+        "error_type": type(exc).__name__,
+        "error": str(exc),
+        "traceback": "".join(traceback.format_exception(exc)),
+        "where": where,
+    }
+
+
+def _execute(
+    run: Callable[[dict, pathlib.Path], None], settings: dict, hash_: str, out: str
+) -> dict:
+    """Worker side of one run: write to ``.partial/``, rename when complete, or record the error."""
+    out_dir = pathlib.Path(out)
+    final = out_dir / f"{hash_}.h5"
+    if final.exists():
+        return {"hash": hash_, "status": "skipped", "seconds": 0.0}
+    partial = out_dir / PARTIAL_DIR
+    partial.mkdir(parents=True, exist_ok=True)
+    tmp = partial / f"{hash_}.{uuid.uuid4().hex}.h5"
+    error_file = out_dir / f"{hash_}.error.json"
+    t0 = time.perf_counter()
+    try:
+        run(dict(settings), tmp)
+        if not tmp.is_file():
+            raise RuntimeError(f"the runner returned without writing its result file {tmp}")
+        os.replace(tmp, final)
+    except Exception as exc:  # one failing run never stops the others
+        tmp.unlink(missing_ok=True)
+        _write_json_atomic(error_file, _error_record(settings, hash_, exc, "worker"))
+        return {"hash": hash_, "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+    error_file.unlink(missing_ok=True)
+    return {"hash": hash_, "status": "done", "seconds": time.perf_counter() - t0}
+
+
+@dataclass(frozen=True)
+class SweepReport:
+    """What a sweep did.
+
+    Parameters
+    ----------
+    out : pathlib.Path
+        Results folder.
+    ran, skipped : tuple of str
+        Hashes of the runs executed now / found complete.
+    failed : tuple of (str, str)
+        ``(hash, error)`` of the runs that raised (``<hash>.error.json`` has the details).
+    table : tuple of dict
+        :func:`summary_table` of the folder after the sweep.
+    wall_s : float
+        Wall-clock time of the sweep [s], cluster start-up included.
+    """
+
+    out: pathlib.Path
+    ran: tuple[str, ...]
+    skipped: tuple[str, ...]
+    failed: tuple[tuple[str, str], ...]
+    table: tuple[dict, ...]
+    wall_s: float
+
+
+def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
+    from distributed import Client, LocalCluster
+
+    if scheduler is None:
+        cluster = stack.enter_context(
+            LocalCluster(
+                n_workers=n_workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+            )
+        )
+        return stack.enter_context(Client(cluster))
+    if isinstance(scheduler, Client):
+        return scheduler
+    if not isinstance(scheduler, str) or not scheduler:
+        raise TypeError(
+            f"scheduler must be None, an address string or a distributed.Client, got {scheduler!r}"
+        )
+    try:
+        client = Client(scheduler, timeout=timeout)
+    except (OSError, TimeoutError) as exc:
+        raise ConnectionError(
+            f"scheduler={scheduler!r}: no Dask scheduler answered within {timeout:g} s "
+            f"({type(exc).__name__}: {exc}); start one with `dask scheduler` or leave scheduler "
+            "unset for a local cluster"
+        ) from exc
+    return stack.enter_context(client)
+
+
+def _clear_partial(out: pathlib.Path) -> None:
+    partial = out / PARTIAL_DIR
+    if partial.is_dir():
+        stale = list(partial.iterdir())
+        if stale:
+            logger.info("removing %d temporary file(s) of an interrupted sweep", len(stale))
+        shutil.rmtree(partial)
+
+
+def run_sweep(
+    spec: str | os.PathLike | SweepSpec,
+    *,
+    out: str | os.PathLike,
+    scheduler: Any = None,
+    runner: SweepRunner | None = None,
+    n_workers: int = 2,
+    progress: bool = False,
+    timeout: float = CONNECT_TIMEOUT_S,
+) -> SweepReport:
+    """Run every missing run of a sweep on Dask and rebuild the summary table.
+
+    Parameters
+    ----------
+    spec : path or SweepSpec
+        Sweep spec file (validated completely first) or a spec object.
+    out : path
+        Results folder (created): ``<hash>.h5`` per run, ``<hash>.error.json`` per failure,
+        ``summary.csv``. With a remote scheduler the workers must see it.
+    scheduler : str or distributed.Client, optional
+        Address of a running scheduler (``"tcp://host:8786"``) or a client; default a
+        ``LocalCluster`` of ``n_workers`` processes with one thread each.
+    runner : SweepRunner, optional
+        Default :func:`default_runner` (the case comparison's ``run_configuration``).
+    n_workers : int, default 2
+        Processes of the local cluster (ignored with ``scheduler``).
+    progress : bool, default False
+        Show a tqdm progress bar over the runs (completion order).
+    timeout : float, default 5.0
+        Seconds to wait for the scheduler at ``scheduler``.
+
+    Returns
+    -------
+    SweepReport
+
+    Raises
+    ------
+    SweepSpecError
+        Invalid spec (before anything runs).
+    ConnectionError
+        No scheduler at ``scheduler`` within ``timeout`` seconds.
+    """
+    t0 = time.perf_counter()
+    runner = runner or default_runner()
+    if isinstance(spec, SweepSpec):
+        runs = _validated_runs(spec, runner)
+    else:
+        spec, runs = load_sweep_spec(spec, runner=runner)
+    if isinstance(n_workers, bool) or not isinstance(n_workers, int) or n_workers < 1:
+        raise ValueError(f"n_workers must be an integer >= 1, got {n_workers!r}")
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _clear_partial(out)
+    todo = [r for r in runs if not (out / f"{r.hash}.h5").exists()]
+    skipped = [r.hash for r in runs if (out / f"{r.hash}.h5").exists()]
+    logger.info(
+        "sweep %s: %d runs, %d present, %d to run", spec.source, len(runs), len(skipped), len(todo)
+    )
+    ran: list[str] = []
+    failed: list[tuple[str, str]] = []
+    if todo:
+        from contextlib import ExitStack
+
+        from distributed import as_completed
+
+        with ExitStack() as stack:
+            client = _connect(scheduler, n_workers, timeout, stack)
+            token = uuid.uuid4().hex[:8]
+            futures = {}
+            for r in todo:
+                fut = client.submit(
+                    _execute,
+                    runner.run,
+                    dict(r.settings),
+                    r.hash,
+                    str(out.resolve()),
+                    key=f"aocontrol-run-{r.hash}-{token}",
+                    pure=False,
+                    retries=0,
+                )
+                futures[fut] = r
+            bar = None
+            if progress:
+                from tqdm.auto import tqdm
+
+                bar = stack.enter_context(tqdm(total=len(todo), desc="sweep", unit="run"))
+            for fut in as_completed(futures):
+                r = futures[fut]
+                try:
+                    status = fut.result()
+                except Exception as exc:  # the worker died (killed, out of memory)
+                    record = _error_record(r.settings, r.hash, exc, "scheduler")
+                    _write_json_atomic(out / f"{r.hash}.error.json", record)
+                    status = {"hash": r.hash, "status": "failed", "error": record["error"]}
+                if status["status"] == "failed":
+                    failed.append((r.hash, status["error"]))
+                    logger.warning("run %s failed: %s", r.hash, status["error"])
+                elif status["status"] == "skipped":
+                    skipped.append(r.hash)
+                else:
+                    ran.append(r.hash)
+                    logger.info("run %s done in %.1f s", r.hash, status["seconds"])
+                if bar is not None:
+                    bar.update(1)
+    partial = out / PARTIAL_DIR
+    if partial.is_dir() and not any(partial.iterdir()):
+        partial.rmdir()
+    table = summary_table(out, runner=runner)
+    return SweepReport(
+        out=out,
+        ran=tuple(ran),
+        skipped=tuple(skipped),
+        failed=tuple(failed),
+        table=tuple(table),
+        wall_s=time.perf_counter() - t0,
+    )
+
+
+# ------------------------------------------------------------------------------------ summary
+def _flat_item(prefix: str, key: str, value: Any, row: dict) -> None:
+    name = f"{prefix}{key}"
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            _flat_item(f"{name}.", k, v, row)
+    elif isinstance(value, list | tuple):
+        row[name] = json.dumps(_canonical(value))
+    else:
+        row[name] = value
+
+
+_FIRST = ("hash", "status", "case", "controller", "scheme", "seed", "seconds", "quick")
+
+
+def summary_table(
+    out: str | os.PathLike,
+    *,
+    runner: SweepRunner | None = None,
+    csv_path: str | os.PathLike | None = "summary.csv",
+) -> list[dict]:
+    """One row per run file in ``out``, rebuilt from the files alone (and written as CSV).
+
+    Parameters
+    ----------
+    out : path
+        Results folder of a sweep.
+    runner : SweepRunner, optional
+        Its ``read`` turns a result file into a row; default :func:`default_runner`'s.
+    csv_path : path or None, default "summary.csv"
+        CSV file written (atomically); relative paths are inside ``out``; None writes nothing.
+
+    Returns
+    -------
+    list of dict
+        Sorted by hash. Keys: ``hash``, ``status`` (``"done"`` or ``"failed"``), the request
+        (``case``, ``controller``, ``scheme``, ``seed``, ``seconds``, ``quick``,
+        ``overrides.<key>``), then the reader's figures (nested keys joined by dots); failed
+        runs have ``error``.
+    """
+    out = pathlib.Path(out)
+    read = (runner or default_runner()).read
+    rows = []
+    for path in sorted(out.glob("*.h5")):
+        if len(path.stem) != _HASH_LEN:
+            continue
+        data = dict(read(path))
+        settings = data.pop("settings", {})
+        row = {"hash": path.stem, "status": "done"}
+        for k, v in settings.items():
+            _flat_item("", k, v, row)
+        for k, v in data.items():
+            _flat_item("", k, v, row)
+        rows.append(row)
+    for path in sorted(out.glob("*.error.json")):
+        hash_ = path.name.split(".")[0]
+        if (out / f"{hash_}.h5").exists():
+            continue  # a later attempt succeeded
+        record = json.loads(path.read_text())
+        row = {"hash": hash_, "status": "failed"}
+        for k, v in record.get("settings", {}).items():
+            _flat_item("", k, v, row)
+        row["error"] = f"{record.get('error_type')}: {record.get('error')}"
+        rows.append(row)
+    rows.sort(key=lambda r: r["hash"])
+    if csv_path is not None:
+        target = pathlib.Path(csv_path)
+        target = target if target.is_absolute() else out / target
+        keys = [k for k in _FIRST if any(k in r for r in rows)]
+        keys += sorted({k for r in rows for k in r} - set(keys))
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=keys, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
+        tmp.write_text(buf.getvalue())
+        os.replace(tmp, target)
+    return rows

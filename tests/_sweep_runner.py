@@ -1,0 +1,81 @@
+"""A tiny sweep runner for tests/test_sweep.py, importable by Dask workers (module level).
+
+Each call leaves a marker file ``<hash>.<uuid>`` in ``marker_dir`` when it starts (so a test
+counts the runs executed), sleeps, then writes a small HDF5 result (its settings as a JSON root
+attribute and one figure ``value = 10 * seed + len(case)``). A run of case ``fail_case`` raises.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import sys
+import time
+import uuid
+from dataclasses import dataclass
+
+import h5py
+
+from aocontrol.study.sweep import SweepRunner, run_hash, run_sweep
+
+VALID = {
+    "cases": ("alpha", "beta", "gamma"),
+    "controllers": ("integrator", "datadriven"),
+    "schemes": ("single", "dcao"),
+}
+
+
+def expected_value(settings: dict) -> float:
+    """The figure the runner writes for ``settings`` (the oracle of the summary table)."""
+    return 10.0 * settings["seed"] + len(settings["case"])
+
+
+@dataclass(frozen=True)
+class MarkerRunner:
+    """Callable run: marker, sleep, HDF5 result (or an error for ``fail_case``)."""
+
+    marker_dir: str
+    sleep_s: float = 0.3
+    fail_case: str | None = None
+
+    def __call__(self, settings: dict, path: pathlib.Path) -> None:
+        marker = pathlib.Path(self.marker_dir) / f"{run_hash(settings)}.{uuid.uuid4().hex}"
+        marker.touch()
+        time.sleep(self.sleep_s)
+        if settings["case"] == self.fail_case:
+            raise RuntimeError(f"case {self.fail_case!r} is set to fail")
+        with h5py.File(path, "w") as f:
+            f.attrs["settings"] = json.dumps(settings)
+            f.attrs["value"] = expected_value(settings)
+
+
+def read_row(path: pathlib.Path) -> dict:
+    """Summary row of a MarkerRunner result."""
+    with h5py.File(path, "r") as f:
+        return {"settings": json.loads(f.attrs["settings"]), "value": float(f.attrs["value"])}
+
+
+def check(settings: dict) -> None:
+    """Reject overrides other than ``seeing`` (as a real case would reject unknown keys)."""
+    for key in settings["overrides"]:
+        if key != "seeing":
+            raise ValueError(f"case {settings['case']!r} has no value {key!r}; known: seeing")
+
+
+def make_runner(marker_dir: str, sleep_s: float = 0.3, fail_case: str | None = None):
+    """A SweepRunner around MarkerRunner with the fake registries of VALID."""
+    return SweepRunner(
+        run=MarkerRunner(str(marker_dir), sleep_s, fail_case),
+        read=read_row,
+        valid=VALID,
+        check=check,
+    )
+
+
+def main(spec: str, out: str, marker_dir: str, sleep_s: str) -> None:
+    """Entry point of the subprocess that the kill test kills mid-way."""
+    run_sweep(spec, out=out, runner=make_runner(marker_dir, float(sleep_s)))
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])

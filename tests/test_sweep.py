@@ -1,0 +1,236 @@
+"""Sweeps on dask.distributed: validation before any run, hashing, kill and resume, failures."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pathlib
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from _sweep_runner import VALID, expected_value, make_runner
+
+from aocontrol.study.sweep import (
+    PARTIAL_DIR,
+    SweepSpec,
+    SweepSpecError,
+    load_sweep_spec,
+    run_hash,
+    run_sweep,
+    summary_table,
+)
+
+HERE = pathlib.Path(__file__).resolve().parent
+
+SPEC = """\
+cases = ["alpha", "beta"]
+controllers = ["integrator", "datadriven"]
+schemes = ["single"]
+seeds = [0, 1, 2]
+seconds = 0.1
+quick = true
+"""
+
+
+@pytest.fixture(scope="module")
+def scheduler_address():
+    """One local cluster for the module's in-process sweeps, reached by its address (the
+    ``scheduler=`` path); the killed sweep starts its own default cluster in a subprocess."""
+    from distributed import LocalCluster
+
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, dashboard_address=None, silence_logs=50
+    ) as cluster:
+        yield cluster.scheduler_address
+
+
+def _write(tmp_path: pathlib.Path, text: str, name: str = "sweep.toml") -> pathlib.Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def _hashes(out: pathlib.Path) -> list[str]:
+    return sorted(p.stem for p in out.glob("*.h5"))
+
+
+def _markers(marker_dir: pathlib.Path) -> list[str]:
+    return sorted(p.name for p in marker_dir.iterdir())
+
+
+def test_run_hash_is_sha256_of_sorted_compact_json():
+    # Oracle: the documented recipe written out by hand.
+    settings = {"seed": 3, "case": "alpha", "overrides": {"seeing": 0.6}, "seconds": 0.5}
+    text = '{"case":"alpha","overrides":{"seeing":0.6},"seconds":0.5,"seed":3}'
+    assert run_hash(settings) == hashlib.sha256(text.encode()).hexdigest()[:16]
+    # key order and an integral float written as 1250.0 do not change the name ...
+    assert run_hash({"fs": 1250.0, "a": 1}) == run_hash({"a": 1, "fs": 1250})
+    # ... any value does
+    assert run_hash({**settings, "seed": 4}) != run_hash(settings)
+
+
+def test_spec_expands_every_combination(tmp_path):
+    text = SPEC + "\n[overrides]\nseeing = [0.6, 0.8]\n"
+    spec, runs = load_sweep_spec(_write(tmp_path, text), runner=make_runner(tmp_path))
+    # 2 cases x 2 controllers x 1 scheme x 2 seeings x 3 seeds
+    assert len(runs) == 24
+    assert len({r.hash for r in runs}) == 24
+    seen = {
+        (r.settings["case"], r.settings["overrides"]["seeing"], r.settings["seed"]) for r in runs
+    }
+    assert len(seen) == 12
+    assert spec.seconds == 0.1 and spec.quick is True
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "needle"),
+    [
+        (SPEC.replace("controllers", "controlers"), "controlers", "did you mean 'controllers'"),
+        (SPEC.replace('"beta"', '"betta"'), "cases", "valid: alpha, beta, gamma"),
+        (SPEC.replace('"single"', '"dCAO"'), "schemes", "valid: dcao, single"),
+        (SPEC.replace('"integrator"', '"lqq"'), "controllers", "valid: datadriven, integrator"),
+        (SPEC.replace("seconds = 0.1", 'seconds = "fast"'), "seconds", "finite number > 0"),
+        (SPEC.replace("seeds = [0, 1, 2]", "seeds = [0, 0]"), "seeds", "more than once"),
+        (SPEC.replace("seeds = [0, 1, 2]", "seeds = [-1]"), "seeds", "integers >= 0"),
+        (SPEC.replace("quick = true", "quick = 1"), "quick", "true or false"),
+        (SPEC.replace('schemes = ["single"]\n', ""), "schemes", "missing"),
+        (SPEC + "\n[overrides]\nseeing = []\n", "overrides.seeing", "at least one value"),
+        (SPEC + "\n[overrides]\nseing = [0.6]\n", "overrides", "has no value 'seing'"),
+        (SPEC + "cases = 3\n", "", "not valid TOML"),
+    ],
+)
+def test_spec_typo_fails_before_any_run(tmp_path, text, key, needle):
+    spec = _write(tmp_path, text)
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    with pytest.raises(SweepSpecError) as info:
+        run_sweep(spec, out=out, runner=make_runner(markers))
+    message = str(info.value)
+    assert str(spec) in message  # the file ...
+    assert f": {key}:" in message or not key  # ... the key ...
+    assert needle in message  # ... and what is valid
+    assert _markers(markers) == []  # no run started
+    assert not out.exists()  # nothing written
+    assert time.perf_counter() - t0 < 2.0  # no cluster was started
+
+
+def test_spec_object_validates_its_fields():
+    with pytest.raises(SweepSpecError, match="seconds: must be a finite number > 0"):
+        SweepSpec(cases=("a",), controllers=("b",), schemes=("c",), seconds=-1.0)
+    spec = SweepSpec(cases="a", controllers=["b"], schemes=("c",), overrides={"x": 1})
+    assert spec.cases == ("a",) and spec.overrides == (("x", (1,)),)
+
+
+def test_unreachable_scheduler_fails_fast(tmp_path):
+    with socket.socket() as s:  # a free local port: nothing listens there once closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    t0 = time.perf_counter()
+    with pytest.raises(ConnectionError, match=f"scheduler='{address}'.*within 1 s"):
+        run_sweep(
+            _write(tmp_path, SPEC),
+            out=tmp_path / "out",
+            scheduler=address,
+            runner=make_runner(markers),
+            timeout=1.0,
+        )
+    # the connection timeout plus the client's shutdown; far below a hang
+    assert time.perf_counter() - t0 < 10.0
+    assert _markers(markers) == []
+
+
+@pytest.mark.slow
+def test_killed_sweep_resumes_without_losing_or_duplicating(tmp_path, scheduler_address):
+    spec_path = _write(tmp_path, SPEC)
+    out, markers = tmp_path / "out", tmp_path / "markers"
+    markers.mkdir()
+    _, runs = load_sweep_spec(spec_path, runner=make_runner(markers))
+    expected = sorted(r.hash for r in runs)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(HERE), *sys.path]))
+    env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1")
+    code = "import _sweep_runner, sys; _sweep_runner.main(*sys.argv[1:])"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(spec_path), str(out), str(markers), "0.4"],
+        env=env,
+        start_new_session=True,  # its own process group: the cluster's workers die with it
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        deadline = time.monotonic() + 40.0
+        while time.monotonic() < deadline and len(_hashes(out) if out.exists() else []) < 3:
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stderr.close()
+    time.sleep(0.5)  # let the killed workers' last writes (if any) land
+    done_before = set(_hashes(out))
+    markers_before = set(_markers(markers))
+    assert 3 <= len(done_before) < len(expected), "the kill must land mid-way"
+    assert done_before <= set(expected)
+    assert {m.split(".")[0] for m in markers_before} >= done_before  # each file had its run
+
+    report = run_sweep(
+        spec_path, out=out, runner=make_runner(markers, sleep_s=0.05), scheduler=scheduler_address
+    )
+
+    # every expected result present exactly once (one file per hash, nothing else)
+    assert _hashes(out) == expected
+    assert sorted(report.skipped) == sorted(done_before)
+    assert sorted(report.ran) == sorted(set(expected) - done_before)
+    assert report.failed == ()
+    # the resumed sweep ran only the missing ones, each once
+    new = sorted(m.split(".")[0] for m in set(_markers(markers)) - markers_before)
+    assert new == sorted(set(expected) - done_before)
+    # no temporary file remains, and no file other than results and the summary
+    assert not (out / PARTIAL_DIR).exists()
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [f"{h}.h5" for h in expected] + ["summary.csv"]
+    )
+    # the summary table is rebuilt from the files: one row per run with its figure
+    rows = summary_table(out, runner=make_runner(markers), csv_path=None)
+    assert [r["hash"] for r in rows] == expected
+    by_hash = {r.hash: r.settings for r in runs}
+    for row in rows:
+        assert row["value"] == expected_value(by_hash[row["hash"]])
+        assert row["case"] == by_hash[row["hash"]]["case"]
+    assert (out / "summary.csv").read_text().count("\n") == len(expected) + 1
+
+
+@pytest.mark.slow
+def test_failing_run_is_recorded_and_the_others_complete(tmp_path, scheduler_address):
+    text = SPEC.replace('"beta"', '"gamma"').replace("seeds = [0, 1, 2]", "seeds = [0]")
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    out = tmp_path / "out"
+    runner = make_runner(markers, sleep_s=0.0, fail_case="gamma")
+    report = run_sweep(_write(tmp_path, text), out=out, runner=runner, scheduler=scheduler_address)
+    _, runs = load_sweep_spec(_write(tmp_path, text), runner=runner)
+    good = sorted(r.hash for r in runs if r.settings["case"] == "alpha")
+    bad = sorted(r.hash for r in runs if r.settings["case"] == "gamma")
+    assert sorted(report.ran) == good and _hashes(out) == good
+    assert sorted(h for h, _ in report.failed) == bad
+    for h in bad:  # an error record, never a file that looks like a result
+        record = json.loads((out / f"{h}.error.json").read_text())
+        assert record["error_type"] == "RuntimeError" and "set to fail" in record["error"]
+        assert record["settings"]["case"] == "gamma"
+        assert not (out / f"{h}.h5").exists()
+    rows = {r["hash"]: r for r in report.table}
+    assert {h: rows[h]["status"] for h in good + bad} == {
+        **{h: "done" for h in good},
+        **{h: "failed" for h in bad},
+    }
+    assert not (out / PARTIAL_DIR).exists()
+    assert set(VALID["cases"]) >= {r["case"] for r in report.table}
