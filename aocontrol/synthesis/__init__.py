@@ -5,12 +5,14 @@ Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.stud
 PSDs are one-sided [units^2/Hz]; telemetry is shaped ``(n_frames, n_modes)``.
 """
 
+from aocontrol.synthesis._armodel import DisturbanceModel, ar2_variance, fit_disturbance_model
 from aocontrol.synthesis._datadriven import (
     DataDrivenError,
     DataDrivenResult,
     ModeReport,
     datadriven,
 )
+from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
 from aocontrol.synthesis._modal_gain import integrator_gain_limit, optimal_modal_gain
 from aocontrol.synthesis._telemetry import (
     TelemetryPSD,
@@ -21,11 +23,18 @@ from aocontrol.synthesis._telemetry import (
 __all__ = [
     "DataDrivenError",
     "DataDrivenResult",
+    "DisturbanceModel",
     "ModeReport",
     "TelemetryPSD",
+    "ar2_variance",
     "datadriven",
     "disturbance_from_telemetry",
+    "fit_disturbance_model",
     "integrator_gain_limit",
+    "lqg",
+    "lqg_from_telemetry",
+    "lqg_state_space",
     "optimal_modal_gain",
+    "plant_latency",
     "pseudo_open_loop",
 ]

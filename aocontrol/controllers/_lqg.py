@@ -1,0 +1,315 @@
+"""LQG controller bank: a steady-state Kalman predictor per mode, vectorised over modes.
+
+The state space (built by :func:`aocontrol.synthesis.lqg_state_space`) is, per mode, with
+the loop plant ``G = z^-1 ((1-f) z^-k + f z^-(k+1))`` (see :mod:`aocontrol.plant`)::
+
+    xi[j] = (x_d[j-1], u[j-1], u[j-2], ..., u[j-n_u])         ns = nx + n_u
+    xi[j+1] = A xi[j] + B u[j] + w[j]                          (disturbance model + delay line)
+    m[j]    = C xi[j] + n[j] = d[j-1] - (1-f) u[j-1-k] - f u[j-2-k] + n[j]
+
+``x_d`` is the disturbance model's state (:class:`aocontrol.synthesis.DisturbanceModel`),
+``n_u = k + 1`` (``f = 0``) or ``k + 2`` command taps. Per frame the real-time path is
+
+    xi+ = xi- + K (m - C xi-)          (Kalman update, steady-state gain K)
+    u   = L xi+                        (control law)
+    xi- = A xi+ + B u                  (prediction of the next frame's state)
+
+which :class:`LQGBank` runs as one batched matrix product ``[xi-; u] = M [xi-; m]`` over all
+modes. Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import control
+import numpy as np
+
+from aocontrol._validation import check_finite_array, check_positive
+from aocontrol.controllers._base import ControllerBank
+
+__all__ = ["LQGBank", "LQGStateSpace", "lqg_reference_commands"]
+
+
+@dataclass(frozen=True)
+class LQGStateSpace:
+    """Steady-state LQG of a bank: estimator, predictor and control law, per mode.
+
+    Built by :func:`aocontrol.synthesis.lqg_state_space`; see the module docstring for the
+    state layout. Every array's first axis is the mode.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n_modes, ns, ns)
+        Loop-state transition (disturbance model and command delay line).
+    B : ndarray, shape (n_modes, ns)
+        Command input: ``u[j]`` enters the delay line's first tap.
+    C : ndarray, shape (n_modes, ns)
+        Measurement ``m[j] = C xi[j] + n[j]``.
+    Q : ndarray, shape (n_modes, ns, ns)
+        Process-noise covariance per frame [units^2] (zero on the delay line).
+    R : ndarray, shape (n_modes,)
+        Measurement-noise variance per frame used by the filter [units^2] (floored above 0).
+    P : ndarray, shape (n_modes, ns, ns)
+        Steady-state prior covariance ``cov(xi[j] - xi-[j])`` (the filter DARE's solution).
+    kalman_gain : ndarray, shape (n_modes, ns)
+        ``K = P C^T / (C P C^T + R)``.
+    control_gain : ndarray, shape (n_modes, ns)
+        ``L``: the command ``u[j] = L xi+[j]``.
+    regulator_A : ndarray, shape (n_modes, nz, nz)
+        Regulator state ``z[j] = (x_d[j+k], u[j-1])``, ``nz = nx + 1``:
+        ``z[j+1] = regulator_A z[j] + regulator_B u[j]`` (plus disturbance noise).
+    regulator_B : ndarray, shape (n_modes, nz)
+        Regulator input.
+    regulator_H : ndarray, shape (n_modes, nz)
+        The residual the command ``u[j]`` first acts on:
+        ``e[j+k] = regulator_H z[j] + regulator_D u[j] = d[j+k] - f u[j-1] - (1-f) u[j]``.
+    regulator_D : ndarray, shape (n_modes,)
+        ``-(1 - f)``.
+    regulator_map : ndarray, shape (n_modes, nz, ns)
+        ``E[z[j] | m[..j]] = regulator_map xi+[j]``: ``x_d[j+k] = A_d^(k+1) x_d[j-1]``.
+    regulator_P : ndarray, shape (n_modes, nz, nz)
+        Regulator DARE solution (cost-to-go ``z^T P z``; an MPC's terminal cost).
+    control_weight : float
+        Weight ``rho`` of ``u^2`` in the stage cost ``e^2 + rho u^2``.
+    nx : int
+        Disturbance-model states per mode.
+    latency_frames : float
+        Plant latency beyond the WFS frame [frames].
+    fs : float
+        Loop rate [Hz].
+
+    Notes
+    -----
+    The regulator minimises ``sum_j (e[j+k]^2 + rho u[j]^2)`` with the standard DARE law
+    ``u = -(R_z + B^T P B)^-1 (B^T P A + S^T) z``; ``control_gain = -that gain @ regulator_map``.
+    An MPC reuses the estimator (``A``, ``B``, ``C``, ``kalman_gain``), maps ``xi+`` to
+    ``z`` with ``regulator_map`` and predicts with ``regulator_A``/``regulator_B``; with the
+    terminal cost ``regulator_P`` and no active constraint it reproduces ``control_gain``.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    P: np.ndarray
+    kalman_gain: np.ndarray
+    control_gain: np.ndarray
+    regulator_A: np.ndarray
+    regulator_B: np.ndarray
+    regulator_H: np.ndarray
+    regulator_D: np.ndarray
+    regulator_map: np.ndarray
+    regulator_P: np.ndarray
+    control_weight: float
+    nx: int
+    latency_frames: float
+    fs: float
+
+    def __post_init__(self) -> None:
+        check_positive("fs", self.fs)
+        n, ns = np.shape(self.A)[0], np.shape(self.A)[-1]
+        shapes = {
+            "A": (n, ns, ns),
+            "B": (n, ns),
+            "C": (n, ns),
+            "Q": (n, ns, ns),
+            "R": (n,),
+            "P": (n, ns, ns),
+            "kalman_gain": (n, ns),
+            "control_gain": (n, ns),
+        }
+        nz = np.shape(self.regulator_A)[-1]
+        shapes.update(
+            regulator_A=(n, nz, nz),
+            regulator_B=(n, nz),
+            regulator_H=(n, nz),
+            regulator_D=(n,),
+            regulator_map=(n, nz, ns),
+            regulator_P=(n, nz, nz),
+        )
+        for name, shape in shapes.items():
+            arr = check_finite_array(name, getattr(self, name))
+            if arr.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+            arr = np.array(arr, dtype=float)
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @property
+    def n_modes(self) -> int:
+        """Number of modes."""
+        return self.A.shape[0]
+
+    @property
+    def ns(self) -> int:
+        """Loop-state dimension per mode."""
+        return self.A.shape[-1]
+
+    @cached_property
+    def controller_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The linear controller ``m -> u`` in state space on ``xi-``, batched over modes.
+
+        ``xi-[j+1] = F xi-[j] + G m[j]``, ``u[j] = H xi-[j] + J m[j]`` with
+        ``F = (A + B L)(I - K C)``, ``G = (A + B L) K``, ``H = L (I - K C)``, ``J = L K``.
+
+        Returns
+        -------
+        F : ndarray, shape (n_modes, ns, ns)
+        G : ndarray, shape (n_modes, ns)
+        H : ndarray, shape (n_modes, ns)
+        J : ndarray, shape (n_modes,)
+        """
+        K, L = self.kalman_gain, self.control_gain
+        eye = np.eye(self.ns)
+        ikc = eye[None] - K[:, :, None] * self.C[:, None, :]
+        abl = self.A + self.B[:, :, None] * L[:, None, :]
+        F = abl @ ikc
+        G = np.einsum("mij,mj->mi", abl, K)
+        H = np.einsum("mi,mij->mj", L, ikc)
+        J = np.einsum("mi,mi->m", L, K)
+        for x in (F, G, H, J):
+            x.setflags(write=False)
+        return F, G, H, J
+
+
+class LQGBank(ControllerBank):
+    """Steady-state LQG bank: per-mode Kalman predictor and minimum-variance control law.
+
+    The real-time path stacks the controller matrices of every mode into one array ``M`` of
+    shape ``(n_modes, ns + 1, ns + 1)`` and advances ``[xi-; u] = M [xi-; m]`` with one
+    batched product (``numpy.matmul`` over modes): no loop over modes.
+
+    Parameters
+    ----------
+    state_space : LQGStateSpace
+        The design (:func:`aocontrol.synthesis.lqg_state_space`).
+    model : object, optional
+        The disturbance model it was designed from (kept for reports; not used).
+
+    Examples
+    --------
+    >>> from aocontrol.synthesis import DisturbanceModel, lqg_state_space
+    >>> d = DisturbanceModel([[0.9, 0.0]], [1.0], np.zeros((1, 0)), np.zeros((1, 0)),
+    ...                      np.zeros((1, 0)), fs=1000.0)
+    >>> bank = LQGBank(lqg_state_space(d, latency_frames=0.0, noise_variance=0.0))
+    >>> float(np.round(bank.step(np.array([1.0]))[0], 6))   # AR(1), no noise: u = a m
+    0.9
+    """
+
+    def __init__(self, state_space: LQGStateSpace, *, model: object = None) -> None:
+        if not isinstance(state_space, LQGStateSpace):
+            raise TypeError(
+                f"state_space must be an LQGStateSpace, got {type(state_space).__name__}"
+            )
+        self._ss = state_space
+        self.model = model
+        F, G, H, J = state_space.controller_matrices
+        n, ns = state_space.n_modes, state_space.ns
+        M = np.zeros((n, ns + 1, ns + 1))
+        M[:, :ns, :ns] = F
+        M[:, :ns, ns] = G
+        M[:, ns, :ns] = H
+        M[:, ns, ns] = J
+        self._M = M
+        self.reset()
+
+    @property
+    def n_modes(self) -> int:
+        return self._ss.n_modes
+
+    @property
+    def fs(self) -> float:
+        return self._ss.fs
+
+    @property
+    def state_space(self) -> LQGStateSpace:
+        """The design this bank runs."""
+        return self._ss
+
+    def reset(self) -> None:
+        # One buffer [xi-; m] per mode, shape (n_modes, ns + 1, 1) for the batched matmul.
+        self._v = np.zeros((self._ss.n_modes, self._ss.ns + 1, 1))
+        self._out = np.empty_like(self._v)
+
+    def _step(self, m: np.ndarray) -> np.ndarray:
+        ns = self._ss.ns
+        self._v[:, ns, 0] = m
+        np.matmul(self._M, self._v, out=self._out)
+        self._v, self._out = self._out, self._v
+        u = self._v[:, ns, 0].copy()
+        if not np.isfinite(u).all():
+            bad = np.flatnonzero(~np.isfinite(u))[:10].tolist()
+            raise FloatingPointError(f"LQG command is not finite for modes {bad}")
+        return u
+
+    @property
+    def predicted_state(self) -> np.ndarray:
+        """Current Kalman prediction ``xi-`` of the loop state, shape ``(n_modes, ns)``."""
+        return self._v[:, : self._ss.ns, 0].copy()
+
+    def transfer_function(self, mode: int = 0) -> control.TransferFunction:
+        """Exact linear equivalent ``m -> u`` of ``mode`` (``J + H (zI - F)^-1 G``), ``dt=1/fs``.
+
+        Parameters
+        ----------
+        mode : int, default 0
+            Mode index.
+        """
+        mode = self._check_mode(mode)
+        F, G, H, J = self._ss.controller_matrices
+        sys = control.ss(F[mode], G[mode][:, None], H[mode][None, :], [[J[mode]]], 1.0 / self.fs)
+        return control.ss2tf(sys)
+
+    def __repr__(self) -> str:
+        s = self._ss
+        return (
+            f"LQGBank(n_modes={s.n_modes}, fs={s.fs}, latency_frames={s.latency_frames}, ns={s.ns})"
+        )
+
+
+def lqg_reference_commands(state_space: LQGStateSpace, measurements: object) -> np.ndarray:
+    """Commands of the LQG computed with filterpy's ``KalmanFilter``, one filter per mode.
+
+    Reference implementation of :class:`LQGBank` (slow: Python loops over modes and frames).
+    Each mode's filter starts at ``x = 0`` with its covariance at the steady-state prior
+    ``state_space.P``; per frame it runs ``update(m)``, the command ``u = L x`` and
+    ``predict(u)``, with filterpy's own covariance recursion (Joseph form).
+
+    Parameters
+    ----------
+    state_space : LQGStateSpace
+        The design.
+    measurements : array_like, shape (n_frames, n_modes)
+        Modal measurements [units].
+
+    Returns
+    -------
+    ndarray, shape (n_frames, n_modes)
+        Commands [units].
+    """
+    from filterpy.kalman import KalmanFilter
+
+    ss = state_space
+    m = check_finite_array("measurements", measurements, ndim=2)
+    if m.shape[1] != ss.n_modes:
+        raise ValueError(f"measurements must have shape (n_frames, {ss.n_modes}), got {m.shape}")
+    out = np.empty_like(m)
+    for mode in range(ss.n_modes):
+        kf = KalmanFilter(dim_x=ss.ns, dim_z=1, dim_u=1)
+        kf.F = ss.A[mode].copy()
+        kf.B = ss.B[mode][:, None].copy()
+        kf.H = ss.C[mode][None, :].copy()
+        kf.Q = ss.Q[mode].copy()
+        kf.R = np.array([[ss.R[mode]]])
+        kf.P = ss.P[mode].copy()
+        kf.x = np.zeros((ss.ns, 1))
+        L = ss.control_gain[mode]
+        for j in range(m.shape[0]):
+            kf.update(np.array([[m[j, mode]]]))
+            u = float(L @ kf.x[:, 0])
+            out[j, mode] = u
+            kf.predict(u=np.array([[u]]))
+    return out
