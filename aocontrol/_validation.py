@@ -19,7 +19,25 @@ __all__ = [
     "check_in_range",
     "check_int",
     "mode_psds",
+    "check_broadcast",
+    "is_programming_error",
+    "PROGRAMMING_ERRORS",
 ]
+
+#: Exception types that signal a bug in our code or a wrong call, never a numerical failure:
+#: per-mode designs report every other exception for the failing mode and keep the others,
+#: and let these propagate.
+PROGRAMMING_ERRORS: tuple[type[BaseException], ...] = (
+    TypeError,
+    AttributeError,
+    NameError,
+    LookupError,
+    AssertionError,
+    ImportError,
+    NotImplementedError,
+    SyntaxError,
+    MemoryError,
+)
 
 
 def _short(value: object) -> str:
@@ -205,3 +223,63 @@ def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray,
     psd2 = np.broadcast_to(psd, (n_modes, n_freqs))
     noise2 = np.broadcast_to(noise if noise.ndim else noise[None, None], (n_modes, n_freqs))
     return psd2, noise2, squeeze
+
+
+def is_programming_error(exc: BaseException) -> bool:
+    """True if ``exc`` is a programming error (see ``PROGRAMMING_ERRORS``), not numerics.
+
+    Parameters
+    ----------
+    exc : BaseException
+        The exception caught while designing one mode.
+
+    Returns
+    -------
+    bool
+        True for ``TypeError``, ``AttributeError``, ``NameError``, ``LookupError``... and for
+        anything not derived from ``Exception`` (``KeyboardInterrupt``); False for solver,
+        linear-algebra and floating-point failures and ``ValueError``/``RuntimeError``.
+    """
+    return isinstance(exc, PROGRAMMING_ERRORS) or not isinstance(exc, Exception)
+
+
+def check_broadcast(name: str, value: object, shape: tuple[int, ...], expected: str) -> np.ndarray:
+    """Return ``value`` broadcast to ``shape``, or a ``ValueError`` naming the argument.
+
+    The one check for arrays that are broadcast against the modes/frequencies of another
+    argument (PSDs, noise levels, optical gains): a mismatch names ``name``, its shape and
+    the expected one instead of surfacing as a bare numpy broadcast error.
+
+    Parameters
+    ----------
+    name : str
+        Argument name.
+    value : array_like
+        The array (already validated for finiteness).
+    shape : tuple of int
+        Target shape.
+    expected : str
+        Human-readable description of the accepted shapes, e.g. ``"(n_modes,) = (3,)"``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Read-only broadcast view of shape ``shape``.
+
+    Raises
+    ------
+    ValueError
+        If ``value`` does not broadcast to ``shape``.
+
+    Examples
+    --------
+    >>> check_broadcast("gain", [1.0, 2.0], (3,), "scalar or (n_modes,) = (3,)")
+    Traceback (most recent call last):
+    ...
+    ValueError: gain must have shape scalar or (n_modes,) = (3,), got shape (2,)
+    """
+    arr = np.asarray(value)
+    try:
+        return np.broadcast_to(arr, shape)
+    except ValueError:
+        raise ValueError(f"{name} must have shape {expected}, got shape {arr.shape}") from None

@@ -36,6 +36,8 @@ __all__ = [
     "tf_from_z_inverse",
     "z_inverse_coefficients",
     "check_plant",
+    "check_system",
+    "check_frd_coverage",
     "plant_delay_frames",
     "split_latency",
     "MAX_LATENCY_FRAMES",
@@ -48,6 +50,13 @@ _INTEGER_DELAY_RTOL = 1e-9
 #: request is taken for a unit error (seconds or microseconds passed as frames) rather than
 #: allocating a delay line of that length.
 MAX_LATENCY_FRAMES = 1000.0
+#: An FRD "covers" [0, fs/2] when its first point lies within this fraction of its first grid
+#: step of 0 Hz and its last point within this fraction of its last step of fs/2. The winding
+#: number closes the contour from the end points to the real axis (where ``P`` is real for
+#: real-coefficient systems); a gap shorter than half a step is bridged under the same
+#: resolution assumption as the interior of the grid (phase steps checked < pi/3), a larger
+#: one is a band that was never measured.
+FRD_END_GAP_FRACTION = 0.5
 
 
 def split_latency(latency_frames: float) -> tuple[int, float]:
@@ -102,39 +111,116 @@ def tf_from_z_inverse(b: object, a: object, dt: float) -> control.TransferFuncti
     :func:`scipy.signal.lfilter`. python-control stores polynomials in positive powers of z;
     both are padded to the same length so that the two forms are the same rational function.
 
+    Parameters
+    ----------
+    b, a : array_like, shape (nb,) and (na,)
+        Numerator and denominator coefficients in powers of ``z^-1`` (finite; ``a`` not all
+        zero, the filter causal).
+    dt : float
+        Sampling period [s], ``1/fs``.
+
+    Returns
+    -------
+    control.TransferFunction
+
+    Raises
+    ------
+    ValueError
+        NaN/inf coefficients, ``a`` zero everywhere, or a non-causal ratio (``a`` starts
+        with more zeros than ``b``, e.g. ``b = [1], a = [0, 1]`` is ``z``).
+
     Examples
     --------
     >>> H = tf_from_z_inverse([0.5], [1.0, -1.0], dt=1e-3)   # 0.5 / (1 - z^-1)
     >>> float(H(1j).real), float(H(1j).imag)                  # z = j
     (0.25, -0.25)
     """
-    b = np.atleast_1d(np.asarray(b, dtype=float))
-    a = np.atleast_1d(np.asarray(a, dtype=float))
+    b = np.atleast_1d(check_finite_array("b", b, ndim=(0, 1)))
+    a = np.atleast_1d(check_finite_array("a", a, ndim=(0, 1)))
+    if not np.any(a):
+        raise ValueError(f"a must not be zero everywhere (a denominator), got {a.tolist()}")
+    # Causal iff the first nonzero coefficient of a comes no later than that of b (a common
+    # leading z^-1 factor cancels): e.g. b = [1], a = [0, 1] is K = z.
+    if np.any(b) and np.flatnonzero(a)[0] > np.flatnonzero(b)[0]:
+        raise ValueError(
+            "b/a must be causal (a[0] != 0 after cancelling common leading zeros; a 1-frame "
+            f"advance z is not realisable), got b={_short_list(b)}, a={_short_list(a)}"
+        )
     n = max(b.size, a.size)
     num = np.concatenate([b, np.zeros(n - b.size)])
     den = np.concatenate([a, np.zeros(n - a.size)])
     return control.tf(num, den, dt)
 
 
-def z_inverse_coefficients(sys: control.TransferFunction) -> tuple[np.ndarray, np.ndarray]:
+def z_inverse_coefficients(
+    sys: control.TransferFunction, name: str = "sys"
+) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(b, a)`` in powers of ``z^-1`` of a discrete SISO transfer function.
 
     Inverse of :func:`tf_from_z_inverse` (up to trailing zeros); ``a[0]`` is normalised to 1.
+
+    Parameters
+    ----------
+    sys : control.TransferFunction
+        Causal (proper) SISO discrete transfer function with finite coefficients.
+    name : str, default "sys"
+        Name of the argument in error messages (``"plant"``, ``"controller"``...).
+
+    Returns
+    -------
+    b, a : numpy.ndarray
+        Coefficients in powers of ``z^-1``, ``a[0] == 1``.
+
+    Raises
+    ------
+    TypeError
+        If ``sys`` is not a ``control.TransferFunction``.
+    ValueError
+        Not SISO, NaN/inf coefficients, a zero denominator or an improper (non-causal)
+        system, e.g. ``3 z``.
     """
     if not isinstance(sys, control.TransferFunction):
-        raise TypeError(f"sys must be a control.TransferFunction, got {type(sys).__name__}")
+        raise TypeError(f"{name} must be a control.TransferFunction, got {type(sys).__name__}")
     if not sys.issiso():
-        raise ValueError(f"sys must be SISO, got {sys.noutputs}x{sys.ninputs}")
-    num = np.atleast_1d(np.asarray(sys.num[0][0], dtype=float))
-    den = np.atleast_1d(np.asarray(sys.den[0][0], dtype=float))
+        raise ValueError(f"{name} must be SISO, got {sys.noutputs}x{sys.ninputs}")
+    num, den = _tf_polynomials(name, sys)
     n = max(num.size, den.size)
     # Positive powers of z, highest first; dividing by z^(n-1) gives powers of z^-1.
     b = np.concatenate([np.zeros(n - num.size), num])
     a = np.concatenate([np.zeros(n - den.size), den])
-    lead = np.flatnonzero(a)[0]
-    b, a = b[lead:], a[lead:]
     scale = a[0]
     return b / scale, a / scale
+
+
+def _short_list(x: np.ndarray) -> str:
+    text = np.array2string(np.asarray(x), precision=4, threshold=8)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _tf_polynomials(name: str, sys: control.TransferFunction) -> tuple[np.ndarray, np.ndarray]:
+    """Numerator and denominator of a SISO TF in powers of z (leading zeros dropped), checked.
+
+    The one check of a transfer function's contents: finite coefficients, a nonzero
+    denominator and causality (``deg num <= deg den`` in ``z``).
+    """
+    num = np.atleast_1d(np.asarray(sys.num[0][0], dtype=float))
+    den = np.atleast_1d(np.asarray(sys.den[0][0], dtype=float))
+    for part, arr in (("numerator", num), ("denominator", den)):
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} has NaN/inf in its {part} coefficients: {_short_list(arr)}")
+    den = np.trim_zeros(den, "f")
+    if den.size == 0:
+        raise ValueError(f"{name} has a zero denominator")
+    num = np.trim_zeros(num, "f")
+    if num.size == 0:
+        num = np.zeros(1)
+    if num.size > den.size:
+        raise ValueError(
+            f"{name} must be causal (proper): its numerator has degree {num.size - 1} in z, "
+            f"above the denominator's {den.size - 1} (e.g. K = 3z needs the next measurement); "
+            f"got num={_short_list(num)}, den={_short_list(den)}"
+        )
+    return num, den
 
 
 def loop_plant(fs: float, latency_frames: float) -> control.TransferFunction:
@@ -206,50 +292,191 @@ def measured_plant(freqs: object, response: object, fs: float) -> control.FRD:
     return control.FRD(resp, 2 * np.pi * freqs, dt=1.0 / fs)
 
 
+def _sampling_period(sys: object) -> float | None:
+    """The system's ``dt`` [s] if it is a definite sampling period > 0, else None.
+
+    python-control keeps ``dt=True`` ("discrete, period unspecified") distinct from
+    ``dt=1.0``; ``True == 1.0`` in Python, so test the type, not the value.
+    """
+    dt = getattr(sys, "dt", None)
+    if dt is None or isinstance(dt, (bool, np.bool_)):
+        return None
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        return None
+    return dt if np.isfinite(dt) and dt > 0 else None
+
+
+def _check_contents(name: str, sys: object) -> None:
+    """Type, SISO and finite (and, for a TF, causal) contents of a control object."""
+    if not isinstance(sys, (control.TransferFunction, control.FRD)):
+        raise TypeError(
+            f"{name} must be a control.TransferFunction or control.FRD, got {type(sys).__name__}"
+        )
+    if sys.ninputs != 1 or sys.noutputs != 1:
+        raise ValueError(f"{name} must be SISO, got {sys.noutputs}x{sys.ninputs}")
+    if isinstance(sys, control.TransferFunction):
+        _tf_polynomials(name, sys)
+    else:
+        omega, data = _frd_data(sys)
+        bad = int(np.count_nonzero(~np.isfinite(data)) + np.count_nonzero(~np.isfinite(omega)))
+        if bad:
+            raise ValueError(f"{name} (FRD) has {bad} NaN/inf frequency or response value(s)")
+
+
+def check_system(name: str, sys: object, fs: float | None = None, *, rate_of: str = "") -> float:
+    """Validate a discrete SISO control object and return its loop rate [Hz].
+
+    The one check of what a control object contains, used by every entry point of the
+    control layer for plants, controllers and initial controllers: type (``TransferFunction``
+    or ``FRD``), SISO, finite coefficients / FRD points, causality of a transfer function
+    (numerator degree in ``z`` not above the denominator's: an AO controller cannot use the
+    next measurement), and the sampling period. ``dt = 1.0`` is a period of 1 s;
+    ``dt = True`` (python-control's "discrete, unspecified") and an FRD that lost ``dt``
+    through arithmetic (``dt = 0``) need ``fs``; a continuous-time transfer function is refused.
+
+    Parameters
+    ----------
+    name : str
+        Argument name for error messages (``"plant"``, ``"controller"``, ``"initial"``...).
+    sys : control.TransferFunction or control.FRD
+        The object to check.
+    fs : float, optional
+        Expected loop rate [Hz]; required when ``sys`` has no definite ``dt``.
+    rate_of : str, optional
+        Where ``fs`` comes from, for messages (e.g. ``"the plant"``).
+
+    Returns
+    -------
+    float
+        Loop rate [Hz]: ``1/dt``, or ``fs``.
+
+    Raises
+    ------
+    TypeError
+        If ``sys`` is not a ``control.TransferFunction`` / ``control.FRD``.
+    ValueError
+        Not SISO; NaN/inf inside; an improper transfer function; a continuous-time transfer
+        function; no ``dt`` and no ``fs``; ``fs`` disagreeing with ``dt``.
+
+    Examples
+    --------
+    >>> check_system("controller", control.tf([0.5], [1.0, -1.0], 1.0))   # dt = 1 s
+    1.0
+    """
+    _check_contents(name, sys)
+    dt = _sampling_period(sys)
+    is_tf = isinstance(sys, control.TransferFunction)
+    if is_tf and not isinstance(sys.dt, (bool, np.bool_)) and (sys.dt is None or sys.dt == 0):
+        raise ValueError(
+            f"{name} must be a discrete-time transfer function with dt = 1/fs > 0, got "
+            f"dt={sys.dt!r} (continuous time); discretise it first (control.sample_system)"
+        )
+    if fs is None:
+        if dt is None:
+            why = "python-control drops dt on FRD arithmetic" if not is_tf else "unspecified"
+            raise ValueError(
+                f"{name} must be discrete-time with dt = 1/fs > 0, got dt={sys.dt!r} ({why}); "
+                "pass fs explicitly"
+            )
+        return 1.0 / dt
+    fs = check_positive("fs", fs)
+    if dt is not None and not math.isclose(1.0 / dt, fs, rel_tol=1e-9):
+        source = f"{rate_of} ({fs!r} Hz)" if rate_of else f"fs={fs!r} Hz"
+        raise ValueError(
+            f"{name} runs at {1.0 / dt!r} Hz (dt={dt!r} s), expected the rate of {source}"
+        )
+    return fs
+
+
 def plant_fs(plant: object, fs: float | None = None) -> float:
     """Loop rate [Hz] of a discrete plant, or ``fs`` when given (must then agree).
+
+    :func:`check_system` with the argument named ``plant``.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    fs : float, optional
+        Loop rate [Hz]; required when the plant has no definite ``dt``.
+
+    Returns
+    -------
+    float
+        Loop rate [Hz].
 
     Raises
     ------
     TypeError
         If ``plant`` is not a SISO ``control.TransferFunction`` / ``control.FRD``.
     ValueError
-        If the plant is continuous-time (``dt == 0``) and no ``fs`` is given, or ``fs`` and
-        the plant's ``dt`` disagree.
+        See :func:`check_system`.
     """
-    check_plant(plant)
-    dt = plant.dt
-    has_dt = dt not in (None, 0, True, False) and np.isfinite(float(dt)) and float(dt) > 0
-    if fs is None:
-        if not has_dt:
-            kind = (
-                "FRD (python-control drops dt on FRD arithmetic)"
-                if isinstance(plant, control.FRD)
-                else "system"
-            )
-            raise ValueError(
-                f"plant must be discrete-time with dt = 1/fs > 0, got dt={dt!r} for a {kind}; "
-                "pass fs explicitly"
-            )
-        return 1.0 / float(dt)
-    fs = check_positive("fs", fs)
-    if has_dt and not math.isclose(1.0 / float(dt), fs, rel_tol=1e-9):
-        raise ValueError(f"fs={fs!r} Hz disagrees with the plant's dt={dt!r} s (1/dt Hz)")
-    if not has_dt and isinstance(plant, control.TransferFunction):
-        raise ValueError(
-            f"plant must be a discrete-time transfer function, got dt={dt!r} (continuous)"
-        )
-    return fs
+    return check_system("plant", plant, fs)
 
 
 def check_plant(plant: object) -> None:
-    """Raise ``TypeError``/``ValueError`` unless ``plant`` is a SISO TF or FRD."""
-    if not isinstance(plant, (control.TransferFunction, control.FRD)):
-        raise TypeError(
-            f"plant must be a control.TransferFunction or control.FRD, got {type(plant).__name__}"
+    """Raise ``TypeError``/``ValueError`` unless ``plant`` is a valid SISO TF or FRD.
+
+    Checks the contents as :func:`check_system` does (finite, causal), not the rate.
+
+    Parameters
+    ----------
+    plant : object
+        Candidate plant.
+    """
+    _check_contents("plant", plant)
+
+
+def _frd_hz(sys: control.FRD) -> np.ndarray:
+    """Grid of an FRD [Hz] (``omega / 2 pi``)."""
+    return np.asarray(sys.omega, dtype=float) / (2 * np.pi)
+
+
+def check_frd_coverage(name: str, freqs: object, fs: float) -> None:
+    """Require a frequency grid (an FRD's, or the one a winding number uses) to span [0, fs/2].
+
+    Stability cannot be certified from a response that was not measured: the winding
+    number would close the contour across the missing band. The first point must lie within
+    ``FRD_END_GAP_FRACTION`` (0.5) of the first grid step of 0 Hz, the last within that
+    fraction of the last step of ``fs/2``.
+
+    Parameters
+    ----------
+    name : str
+        Argument name for the message (e.g. ``"plant"``).
+    freqs : control.FRD or array_like, shape (n_freqs,)
+        An FRD, or its grid [Hz], increasing.
+    fs : float
+        Loop rate [Hz].
+
+    Raises
+    ------
+    ValueError
+        Naming the band(s) of [0, fs/2] that the grid does not cover.
+    """
+    if isinstance(freqs, control.FRD):
+        freqs = _frd_hz(freqs)
+    f = np.asarray(freqs, dtype=float)
+    nyq = fs / 2.0
+    if f.size < 2:
+        raise ValueError(
+            f"{name} must cover [0, fs/2] = [0, {nyq:g}] Hz to certify stability, got "
+            f"{f.size} frequency point(s)"
         )
-    if plant.ninputs != 1 or plant.noutputs != 1:
-        raise ValueError(f"plant must be SISO, got {plant.noutputs}x{plant.ninputs}")
+    missing = []
+    if f[0] > FRD_END_GAP_FRACTION * (f[1] - f[0]) + 1e-12 * nyq:
+        missing.append(f"[0, {f[0]:.6g}] Hz")
+    if nyq - f[-1] > FRD_END_GAP_FRACTION * (f[-1] - f[-2]) + 1e-12 * nyq:
+        missing.append(f"[{f[-1]:.6g}, {nyq:.6g}] Hz")
+    if missing:
+        raise ValueError(
+            f"{name} must cover [0, fs/2] = [0, {nyq:g}] Hz to certify closed-loop stability "
+            f"(winding number), but the band {' and '.join(missing)} is missing; measure the "
+            "response there or use a transfer-function model"
+        )
 
 
 def _frd_data(plant: control.FRD) -> tuple[np.ndarray, np.ndarray]:
@@ -281,7 +508,7 @@ def frequency_response(sys: object, freqs: object, fs: float | None = None) -> n
     -------
     numpy.ndarray of complex, shape (n,)
     """
-    fs = plant_fs(sys, fs)
+    fs = check_system("sys", sys, fs)
     freqs = check_finite_array("freqs", freqs, ndim=(0, 1))
     scalar = freqs.ndim == 0
     freqs = np.atleast_1d(freqs)

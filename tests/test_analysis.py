@@ -25,6 +25,9 @@ FS = 1000.0
 REFINED = 1e-8
 # Trapezoid on 20001 points of smooth integrands.
 QUADRATURE = 1e-5
+# Closed-loop pole modulus within this of 1: a phase of P too fast for an 8001-point FRD grid
+# (step 3.9e-4 rad); there the winding test may refuse instead of answering.
+NEAR_MARGINAL = 1e-3
 
 
 def _stability_limit(d: int) -> float:
@@ -100,8 +103,10 @@ def test_unstable_loop_says_unstable():
     assert not m.stable
     assert m.gain_margin < 1.0
     assert m.phase_margin < 0.0
-    # python-control reports positive-looking numbers without a stability verdict.
-    assert len(control.stability_margins(plant * Integrator(1.2, fs=FS).transfer_function())) == 6
+    # Oracle: for d = 2 the stability limit is g = 1, so the gain margin is 1/1.2, and a
+    # closed-loop pole lies outside the unit circle.
+    assert m.gain_margin == pytest.approx(1.0 / 1.2, rel=REFINED)
+    assert np.max(np.abs(closed_loop_poles(plant, Integrator(1.2, fs=FS)))) > 1.0
 
 
 def test_closed_loop_poles_of_integrator_one_frame():
@@ -119,17 +124,34 @@ def test_hidden_unstable_cancellation_is_caught():
 
 
 def test_pole_and_winding_stability_agree_on_random_controllers():
-    # Two implementations: characteristic-polynomial roots vs winding number of Y + G X.
+    # Two independent verdicts: roots of the characteristic polynomial of the TF plant vs the
+    # winding number of Y + G X on a measured (FRD) copy of the plant. The sample must hold
+    # both stable and unstable loops, or the agreement proves nothing.
     rng = np.random.default_rng(3)
-    plant = loop_plant(3000.0, 0.83)
-    agree = 0
+    fs = 3000.0
+    plant = loop_plant(fs, 0.83)
+    f = np.linspace(0.0, fs / 2, 8001)
+    frd = measured_plant(f, frequency_response(plant, f), fs)
+    verdicts = []
     for _ in range(40):
         a = np.poly(rng.uniform(-0.95, 0.95, size=3))
         b = rng.normal(scale=0.3, size=4)
-        ctrl = IIRBank(b, a, fs=3000.0)
-        assert is_stable(plant, ctrl) == winding_stability(plant, ctrl)
-        agree += 1
-    assert agree == 40
+        ctrl = IIRBank(b, a, fs=fs)
+        by_poles = is_stable(plant, ctrl)
+        rho = np.max(np.abs(closed_loop_poles(plant, ctrl)))
+        if abs(rho - 1.0) < NEAR_MARGINAL:
+            # A pole this close to the circle turns the phase of P faster than the FRD grid
+            # resolves: the verdict must be right or refused, never wrong.
+            try:
+                assert winding_stability(frd, ctrl) == by_poles, (b, a)
+            except ValueError as exc:
+                assert "too coarse" in str(exc)
+            continue
+        assert winding_stability(frd, ctrl) == by_poles, (b, a)
+        verdicts.append(by_poles)
+    # At least a quarter of each kind among the compared verdicts.
+    n_stable, n = sum(verdicts), len(verdicts)
+    assert n >= 30 and n / 4 <= n_stable <= 3 * n / 4, f"{n_stable} stable of {n}"
 
 
 @pytest.mark.parametrize("latency", [0.0, 0.83, 2.0])

@@ -15,7 +15,7 @@ import numpy as np
 
 from aocontrol._validation import check_finite_array, check_frequency_grid, check_positive
 from aocontrol.controllers import ControllerBank, IIRBank
-from aocontrol.plant import frequency_response, plant_fs
+from aocontrol.plant import check_system, frequency_response, plant_fs
 
 __all__ = [
     "LoopResponse",
@@ -33,10 +33,14 @@ def _as_siso_controller(controller: object, fs: float) -> object:
     """Validate a controller for analysis: TF/FRD (discrete, same rate) or a bank."""
     if isinstance(controller, ControllerBank):
         if abs(controller.fs - fs) > 1e-9 * fs:
-            raise ValueError(f"controller runs at fs={controller.fs} Hz, plant at {fs} Hz")
+            raise ValueError(
+                f"controller runs at fs={controller.fs!r} Hz, expected the rate of the plant "
+                f"({fs!r} Hz)"
+            )
         return controller
     if isinstance(controller, (control.TransferFunction, control.FRD)):
-        plant_fs(controller, fs)  # checks SISO, discrete and the same rate
+        # SISO, finite, causal, discrete and at the plant's rate; errors name the controller.
+        check_system("controller", controller, fs, rate_of="the plant")
         return controller
     raise TypeError(
         "controller must be a control.TransferFunction, control.FRD or a ControllerBank, "

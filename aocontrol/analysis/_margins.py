@@ -22,9 +22,15 @@ import control
 import numpy as np
 from scipy import optimize
 
+from aocontrol._validation import check_frequency_grid
 from aocontrol.analysis._loop import _as_siso_controller
 from aocontrol.controllers import ControllerBank
-from aocontrol.plant import frequency_response, plant_fs, z_inverse_coefficients
+from aocontrol.plant import (
+    check_frd_coverage,
+    frequency_response,
+    plant_fs,
+    z_inverse_coefficients,
+)
 
 __all__ = ["Margins", "margins", "is_stable", "closed_loop_poles", "winding_stability"]
 
@@ -158,6 +164,11 @@ def margins(
     """
     fs_ = plant_fs(plant, fs)
     K = _controller_tf(controller, fs_, mode)
+    # Margins read on a measured response are those of the measured band only: require the
+    # whole of [0, fs/2], as for the stability verdict.
+    for name, sys in (("plant", plant), ("controller", K)):
+        if isinstance(sys, control.FRD):
+            check_frd_coverage(name, sys, fs_)
     ev = _LoopEval(plant, K, fs_)
     theta, L = ev.theta, ev.values
     finite = np.isfinite(L)
@@ -260,8 +271,8 @@ def closed_loop_poles(
     K = _controller_tf(controller, fs_, mode)
     if not isinstance(K, control.TransferFunction):
         raise TypeError("closed_loop_poles needs a transfer-function controller")
-    bg, ag = z_inverse_coefficients(plant)
-    bk, ak = z_inverse_coefficients(K)
+    bg, ag = z_inverse_coefficients(plant, "plant")
+    bk, ak = z_inverse_coefficients(K, "controller")
     # In powers of z^-1: char(z^-1) = Ag Ak + Bg Bk; multiply by z^N to get z-plane roots.
     p = np.polynomial.polynomial.polyadd(
         np.polynomial.polynomial.polymul(ag, ak), np.polynomial.polynomial.polymul(bg, bk)
@@ -312,11 +323,14 @@ def winding_stability(
         raise TypeError("winding_stability needs a transfer-function controller")
     if freqs is None:
         if isinstance(plant, control.FRD):
-            freqs = np.asarray(plant.omega, dtype=float) / (2 * np.pi)
+            freqs, grid_name = np.asarray(plant.omega, dtype=float) / (2 * np.pi), "plant"
         else:
-            freqs = np.linspace(0.0, fs_ / 2, _N_GRID + 1)
-    freqs = np.asarray(freqs, dtype=float)
-    bk, ak = z_inverse_coefficients(K)
+            freqs, grid_name = np.linspace(0.0, fs_ / 2, _N_GRID + 1), "freqs"
+    else:
+        freqs, grid_name = check_frequency_grid("freqs", freqs, fs_), "freqs"
+    # The contour must be the whole unit circle: refuse a grid that leaves a band unseen.
+    check_frd_coverage(grid_name, freqs, fs_)
+    bk, ak = z_inverse_coefficients(K, "controller")
 
     def char(f: np.ndarray) -> np.ndarray:
         zi = np.exp(-2j * np.pi * f / fs_)
@@ -334,23 +348,53 @@ def winding_stability(
         mid = 0.5 * (freqs[:-1][big] + freqs[1:][big])
         freqs = np.sort(np.concatenate([freqs, mid]))
         P = char(freqs)
+    return _winding_zeros(P) == 0
+
+
+def _winding_zeros(P: np.ndarray) -> int:
+    """Zeros inside the unit disc of ``P(w)``, ``w = z^-1``, from its values on [0, fs/2].
+
+    ``P`` is a real-coefficient polynomial (or analytic function) sampled on a grid covering
+    the upper half of the unit circle from ``w = 1`` (0 Hz) to ``w = -1`` (Nyquist), first to
+    last (:func:`aocontrol.plant.check_frd_coverage`). The contour is closed from the end
+    points to the real axis, where ``P`` is real; the lower half mirrors the upper one. The
+    one winding count of the project (analysis and the data-driven synthesis share it).
+
+    Parameters
+    ----------
+    P : numpy.ndarray of complex, shape (n_freqs,)
+        ``Y + G X`` on the grid.
+
+    Returns
+    -------
+    int
+        Number of zeros of ``P`` inside the unit disc (``0``: closed loop stable); a zero on
+        the circle (``|P|`` at most ``1e-12`` of its maximum) counts as one.
+
+    Raises
+    ------
+    ValueError
+        If the grid is too coarse to follow the phase of ``P`` (a step, or the closure at
+        an end, above pi/3).
+    """
+    P = np.asarray(P, dtype=complex)
+    if not np.all(np.isfinite(P)):
+        raise ValueError("P = Y + G X is not finite on the grid")
     scale = np.max(np.abs(P))
-    if np.min(np.abs(P)) <= 1e-12 * scale:
-        return False
+    if scale == 0 or np.min(np.abs(P)) <= 1e-12 * scale:
+        return 1
     dphi = np.angle(P[1:] / P[:-1])
-    if np.max(np.abs(dphi)) > _MAX_WINDING_STEP:
-        raise ValueError(
-            "frequency grid too coarse to follow the phase of Y + G X "
-            f"(max step {np.max(np.abs(dphi)):.2f} rad); give a denser FRD or freqs"
-        )
-    # P is real at w = 1 and w = -1 (real coefficients). If the grid stops short of 0 or of
-    # Nyquist, close the contour from/to the nearest real value; the lower half circle
-    # mirrors the upper one, hence the factor 2.
+    # Closure to the nearest real value at each end (P is real at w = 1 and w = -1).
     start = np.angle(P[0] * np.sign(P[0].real or 1.0))
     end = -np.angle(P[-1] * np.sign(P[-1].real or 1.0))
+    steps = np.concatenate([[start, end], dphi])
+    if np.max(np.abs(steps)) > _MAX_WINDING_STEP:
+        raise ValueError(
+            "frequency grid too coarse to follow the phase of Y + G X "
+            f"(max step {np.max(np.abs(steps)):.2f} rad); give a denser FRD or freqs"
+        )
     total = 2.0 * (start + np.sum(dphi) + end)
-    zeros_inside = -total / (2 * np.pi)
-    return bool(abs(zeros_inside) < 0.5)
+    return int(round(-total / (2 * np.pi)))
 
 
 def is_stable(

@@ -13,7 +13,11 @@ from aocontrol.synthesis._datadriven import (
     datadriven,
 )
 from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
-from aocontrol.synthesis._modal_gain import integrator_gain_limit, optimal_modal_gain
+from aocontrol.synthesis._modal_gain import (
+    ModalGainError,
+    integrator_gain_limit,
+    optimal_modal_gain,
+)
 from aocontrol.synthesis._telemetry import (
     TelemetryPSD,
     disturbance_from_telemetry,
@@ -24,6 +28,7 @@ __all__ = [
     "DataDrivenError",
     "DataDrivenResult",
     "DisturbanceModel",
+    "ModalGainError",
     "ModeReport",
     "TelemetryPSD",
     "ar2_variance",

@@ -28,11 +28,20 @@ from aocontrol._validation import (
     check_int,
     check_nonnegative,
     check_psd,
+    is_programming_error,
     mode_psds,
 )
 from aocontrol.analysis import is_stable, residual_psd, winding_stability
+from aocontrol.analysis._margins import _winding_zeros
 from aocontrol.controllers import IIRBank
-from aocontrol.plant import frequency_response, plant_fs, tf_from_z_inverse, z_inverse_coefficients
+from aocontrol.plant import (
+    check_frd_coverage,
+    check_system,
+    frequency_response,
+    plant_fs,
+    tf_from_z_inverse,
+    z_inverse_coefficients,
+)
 from aocontrol.synthesis._dd_grids import (
     _dense_grid,
     _design_indices,
@@ -54,6 +63,13 @@ _CHUNK = 8
 _SPARE_SLOTS = 16
 # The design enforces the margin with this relative safety; the dense check enforces it exactly.
 _MARGIN_SAFETY = 0.05
+#: Largest controller order accepted (an AO controller has a few to a few tens of
+#: coefficients; the SOCP grows as order x n_grid and polynomial roots lose accuracy beyond).
+MAX_ORDER = 64
+#: Largest design grid accepted [points] (the SOCP has one cone per point and per constraint).
+MAX_N_GRID = 4096
+#: Largest number of convex solves per mode accepted.
+MAX_ITER = 10000
 
 
 # ---------------------------------------------------------------------------------------------
@@ -154,14 +170,13 @@ def _stable_fast(ctx: _Context, dense: GridData, v: np.ndarray) -> bool:
         pp = np.polynomial.polynomial
         char = np.trim_zeros(pp.polyadd(pp.polymul(ag, a), pp.polymul(bg, b)), "b")
         return bool(char.size <= 1 or np.max(np.abs(np.roots(char))) < 1.0 - 1e-9)
-    # FRD: P = Y + G X has no zero in |z^-1| <= 1 iff its phase does not wind (G stable).
-    P = dense.A @ v + dense.F
-    if np.min(np.abs(P)) <= 1e-12 * np.max(np.abs(P)):
+    # FRD: P = Y + G X has no zero in |z^-1| <= 1 iff its phase does not wind (G stable);
+    # the dense grid covers [0, fs/2] (checked in _prepare). A grid too coarse to follow the
+    # phase certifies nothing: the iterate is refused.
+    try:
+        return _winding_zeros(dense.A @ v + dense.F) == 0
+    except ValueError:
         return False
-    dphi = np.angle(P[1:] / P[:-1])
-    start = np.angle(P[0] * np.sign(P[0].real or 1.0))
-    end = -np.angle(P[-1] * np.sign(P[-1].real or 1.0))
-    return bool(abs(2.0 * (start + np.sum(dphi) + end)) < np.pi)
 
 
 def _design_mode(
@@ -264,6 +279,13 @@ def _design_mode(
     }
 
 
+def _check_bounded_int(name: str, value: object, low: int, high: int) -> int:
+    value = check_int(name, value, minimum=low)
+    if value > high:
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value}")
+    return value
+
+
 def _design_chunk(ctx: _Context, items: list) -> list:
     """Design a chunk of modes in one worker; failures are returned, not raised."""
     out = []
@@ -273,13 +295,20 @@ def _design_chunk(ctx: _Context, items: list) -> list:
             res = _design_mode(ctx, q1, qn, b0, a0, warm)
             res["mode"], res["error"] = mode, ""
             warm = (res["b"], res["a"])
-        except (SolveFailure, RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
-            msg = str(exc)
+        except Exception as exc:
+            # A numerical failure of this mode (solver, linear algebra, floating point, a
+            # ValueError from numerics...) is reported for it and the others are kept; a
+            # programming error (TypeError, AttributeError, ...) is a bug and propagates.
+            if is_programming_error(exc):
+                raise
+            msg = str(exc) if isinstance(exc, (SolveFailure, RuntimeError)) else ""
+            msg = msg or f"{type(exc).__name__}: {exc}"
             if isinstance(exc, SolveFailure) and "infeasible" in exc.status.lower():
                 msg += (
                     " (no controller of this structure meets the modulus margin around "
                     "the initial controller; lower modulus_margin or give another initial)"
                 )
+            logger.debug("mode %d failed", mode, exc_info=True)
             res = {"mode": mode, "error": msg}
         out.append(res)
     return out
@@ -292,16 +321,20 @@ def _initial_coefficients(initial: object, n_modes: int, fs: float) -> list:
     """Per-mode (b, a) of the user's initial controller."""
     if isinstance(initial, IIRBank):
         if abs(initial.fs - fs) > 1e-9 * fs:
-            raise ValueError(f"initial runs at fs={initial.fs} Hz, the plant at {fs} Hz")
+            raise ValueError(
+                f"initial runs at fs={initial.fs!r} Hz, expected the rate of the plant ({fs!r} Hz)"
+            )
         if initial.n_modes not in (1, n_modes):
             raise ValueError(
                 f"initial must have 1 or {n_modes} modes (one per PSD row), got {initial.n_modes}"
             )
         rows = [min(i, initial.n_modes - 1) for i in range(n_modes)]
         return [(initial.b[r], initial.a[r]) for r in rows]
-    if isinstance(initial, control.TransferFunction):
-        plant_fs(initial, fs)
-        b, a = z_inverse_coefficients(initial)
+    if isinstance(initial, (control.TransferFunction, control.FRD)):
+        check_system("initial", initial, fs, rate_of="the plant")
+        if isinstance(initial, control.FRD):
+            raise TypeError("initial must be a transfer function or an IIRBank, got a control.FRD")
+        b, a = z_inverse_coefficients(initial, "initial")
         return [(b, a)] * n_modes
     raise TypeError(
         "initial must be an IIRBank (e.g. Integrator), a control.TransferFunction "
@@ -376,15 +409,16 @@ def datadriven(
     ----------
     plant : control.TransferFunction or control.FRD
         Discrete SISO plant (command to measurement), e.g. :func:`aocontrol.loop_plant`,
-        shared by every mode. An FRD must cover ``freqs``.
+        shared by every mode. An FRD must cover ``[0, fs/2]`` (results are verified there).
     freqs : array_like, shape (n_freqs,)
         Strictly increasing frequencies [Hz] in ``[0, fs/2]`` on which the PSDs are given.
     psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
         Disturbance PSD per mode, one-sided [units^2/Hz]; not zero everywhere.
     order : int, default 5
-        Controller order ``n``: the degree of ``Y`` (``F`` included) and of ``X``. With a fixed
-        factor ``F`` of degree ``d``, ``K = X / (F Y')`` with ``X``, ``Y'`` free of degree
-        ``n - d`` (``order = 1`` with ``F = 1 - z^-1`` is the integrator ``g / (1 - z^-1)``).
+        Controller order ``n`` (at most ``MAX_ORDER`` = 64): the degree of ``Y`` (``F``
+        included) and of ``X``. With a fixed factor ``F`` of degree ``d``,
+        ``K = X / (F Y')`` with ``X``, ``Y'`` free of degree ``n - d`` (``order = 1`` with
+        ``F = 1 - z^-1`` is the integrator ``g / (1 - z^-1)``).
     noise_psd : float or array_like, default 0.0
         Measurement-noise PSD, one-sided [units^2/Hz]: a scalar (white), ``(n_freqs,)``,
         ``(n_modes, n_freqs)`` or ``(n_modes,)`` (one white level per mode, as returned by
@@ -400,15 +434,16 @@ def datadriven(
         Starting controller(s) (1 or ``n_modes`` modes); must stabilise the plant. Default:
         the optimal modal-gain integrator (leaky if ``F = [1, -(1 - leak)]``).
     max_iter : int, default 60
-        Maximum convex solves per mode.
+        Maximum convex solves per mode (at most ``MAX_ITER`` = 10000).
     tol : float, default 1e-3
         Stop when three iterations lower the objective by less than ``tol`` (relative).
     n_grid : int, default 64
-        Design-grid size: an input grid with more points is subsampled (log- and
-        linearly-spaced points and the PSD peaks), with quadrature weights that keep the
-        integral exact for a ``|S|^2`` linear between design points. Measured on 108 modes
-        of turbulence: 64 points give the same residuals as 80 (median 1.020 vs 1.024 of the
-        Wiener bound) in 26 % less time; the dense verification certifies either.
+        Design-grid size (8 to ``MAX_N_GRID`` = 4096): an input grid with more points is
+        subsampled (log- and linearly-spaced points and the PSD peaks), with quadrature
+        weights that keep the integral exact for a ``|S|^2`` linear between design points.
+        Measured on 108 modes of turbulence: 64 points give the same residuals as 80
+        (median 1.020 vs 1.024 of the Wiener bound) in 26 % less time; the dense
+        verification certifies either.
     n_jobs : int, optional
         Worker processes (joblib); ``None`` uses every core, 1 runs in this process.
     progress : bool, default True
@@ -428,7 +463,8 @@ def datadriven(
         Invalid inputs (named in the message), or an initial controller that does not
         stabilise the plant.
     DataDrivenError
-        Some modes failed (infeasible convexified problem, no verified controller); the
+        Some modes failed (infeasible convexified problem, no verified controller, or any
+        numerical failure of that mode's design: solver, linear algebra, floating point); the
         message lists them and ``error.result`` holds every mode (failed ones keep the
         initial controller).
 
@@ -497,18 +533,21 @@ def _prepare(
 ) -> _Setup:
     """Validate the inputs, build the grids and the initial controllers (see datadriven)."""
     fs_ = plant_fs(plant, fs)
+    if isinstance(plant, control.FRD):
+        # Every result is verified on [0, fs/2]: a measured plant must cover it.
+        check_frd_coverage("plant", plant, fs_)
     freqs = check_frequency_grid("freqs", freqs, fs_)
     if freqs.size < 3:
         raise ValueError(f"freqs must have at least 3 points, got {freqs.size}")
     check_psd("psd", psd, freqs.size, allow_all_zero=False)
     psd2, noise2, _ = mode_psds(psd, noise_psd, freqs.size)
     n_modes = psd2.shape[0]
-    order = check_int("order", order, minimum=1)
+    order = _check_bounded_int("order", order, 1, MAX_ORDER)
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
     stroke_weight = check_nonnegative("stroke_weight", stroke_weight)
-    max_iter = check_int("max_iter", max_iter, minimum=1)
+    max_iter = _check_bounded_int("max_iter", max_iter, 1, MAX_ITER)
     tol = check_nonnegative("tol", tol)
-    n_grid = check_int("n_grid", n_grid, minimum=8)
+    n_grid = _check_bounded_int("n_grid", n_grid, 8, MAX_N_GRID)
     if fixed_denominator is None:
         fixed = np.array([1.0])
     else:
@@ -528,7 +567,7 @@ def _prepare(
 
     # Initial controllers.
     if initial is None:
-        from aocontrol.synthesis._modal_gain import optimal_modal_gain
+        from aocontrol.synthesis._modal_gain import ModalGainError, optimal_modal_gain
 
         leak = 0.0
         if fixed.size == 2 and -1.0 <= fixed[1] < 0.0:
@@ -541,9 +580,14 @@ def _prepare(
             )
         # With the design grid's margin (slightly above mu) it is feasible at every step.
         mu_start = min(mu * (1 + _MARGIN_SAFETY), 0.999)
-        init_bank = optimal_modal_gain(
-            plant, freqs, psd2, noise2, modulus_margin=mu_start, leak=leak, fs=fs_
-        )
+        try:
+            init_bank = optimal_modal_gain(
+                plant, freqs, psd2, noise2, modulus_margin=mu_start, leak=leak, fs=fs_
+            )
+        except ModalGainError as exc:
+            # Failed modes start from the fallback gain (small, stabilising) and are designed.
+            logger.warning("initial integrator: %s", exc)
+            init_bank = exc.result
         init = _initial_coefficients(init_bank, n_modes, fs_)
     else:
         init = _initial_coefficients(initial, n_modes, fs_)
@@ -561,29 +605,22 @@ def _prepare(
             f"{unstable[:10]}{' ...' if len(unstable) > 10 else ''}"
         )
 
-    # Design grid: the input grid (subsampled) plus, for a TF plant, margin-only points
-    # covering [0, fs/2] beyond it.
+    # Design grid: the input grid (subsampled) plus margin-only points covering [0, fs/2]
+    # beyond it (a TF plant, or an FRD that covers [0, fs/2]: checked above).
     idx = _design_indices(freqs, psd2, n_grid)
     f_h2 = freqs[idx]
-    lo, hi = freqs[0], freqs[-1]
-    if isinstance(plant, control.TransferFunction):
-        lo, hi = 0.0, fs_ / 2
-        step = (f_h2[-1] - f_h2[0]) / max(f_h2.size - 1, 1)
-        first = f_h2[f_h2 > 0][0]
-        extra = np.concatenate(
-            [
-                np.arange(0.0, f_h2[0], step),
-                np.geomspace(hi * 1e-5, first, 8)[:-1] if first > hi * 1e-5 else [],
-                np.arange(f_h2[-1] + step, hi, step),
-                [hi],
-            ]
-        )
-        extra = extra[~np.isin(extra, f_h2) & (extra <= hi)]
-    else:
-        # Constraint-only points between the measured range's start and the first point.
-        first = f_h2[f_h2 > 0][0]
-        extra = np.geomspace(max(lo, first * 1e-3), first, 6)[:-1] if lo < first else []
-        extra = np.asarray(extra, dtype=float)
+    lo, hi = 0.0, fs_ / 2
+    step = (f_h2[-1] - f_h2[0]) / max(f_h2.size - 1, 1)
+    first = f_h2[f_h2 > 0][0]
+    extra = np.concatenate(
+        [
+            np.arange(0.0, f_h2[0], step),
+            np.geomspace(hi * 1e-5, first, 8)[:-1] if first > hi * 1e-5 else [],
+            np.arange(f_h2[-1] + step, hi, step),
+            [hi],
+        ]
+    )
+    extra = extra[~np.isin(extra, f_h2) & (extra <= hi)]
     f_design = np.unique(np.concatenate([f_h2, extra]))
     H = _interp_matrix(f_h2, freqs)
     tw = _trapezoid_weights(freqs)
@@ -614,7 +651,9 @@ def _prepare(
         wind_index=wind_index,
         g_scale=float(np.median(np.abs(g_design))),
         plant_poly=(
-            z_inverse_coefficients(plant) if isinstance(plant, control.TransferFunction) else None
+            z_inverse_coefficients(plant, "plant")
+            if isinstance(plant, control.TransferFunction)
+            else None
         ),
         max_iter=max_iter,
         tol=tol,

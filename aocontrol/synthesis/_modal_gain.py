@@ -15,16 +15,25 @@ Modal control optimization".
 
 from __future__ import annotations
 
+import logging
+
 import control
 import numpy as np
 from scipy import optimize
 
-from aocontrol._validation import check_frequency_grid, check_in_range, mode_psds
+from aocontrol._validation import (
+    check_frequency_grid,
+    check_in_range,
+    is_programming_error,
+    mode_psds,
+)
 from aocontrol.analysis import is_stable
 from aocontrol.controllers import Integrator
-from aocontrol.plant import frequency_response, plant_fs
+from aocontrol.plant import check_frd_coverage, frequency_response, plant_fs
 
-__all__ = ["optimal_modal_gain", "integrator_gain_limit"]
+__all__ = ["optimal_modal_gain", "integrator_gain_limit", "ModalGainError"]
+
+logger = logging.getLogger(__name__)
 
 # Points of the dense half-circle grid used for the stability limit and the modulus margin.
 _N_DENSE = 16384
@@ -41,6 +50,34 @@ _N_COARSE = 129
 _GOLDEN_XTOL = 1e-7
 # Modes evaluated together in the golden-section search (memory ~ block * n_freqs * 16 B).
 _BLOCK = 256
+
+
+class ModalGainError(RuntimeError):
+    """The gain optimisation failed numerically for some modes; the others are kept.
+
+    Parameters
+    ----------
+    failed : dict of int to str
+        Mode index -> reason (exception type and message).
+    result : Integrator
+        Every mode: optimised gains, and for the failed modes the fallback gain ``g_min``
+        (the smallest gain of the search: stabilising, barely correcting).
+
+    Attributes
+    ----------
+    failed : dict of int to str
+    result : Integrator
+    """
+
+    def __init__(self, failed: dict[int, str], result: Integrator) -> None:
+        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
+        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
+        super().__init__(
+            f"optimal modal gain failed for {len(failed)} of {result.n_modes} modes: "
+            f"{lines}{more}; error.result holds every mode (failed ones at the fallback gain)"
+        )
+        self.failed = failed
+        self.result = result
 
 
 def _dense_freqs(plant: object, fs: float) -> np.ndarray:
@@ -152,6 +189,10 @@ def integrator_gain_limit(
     2.0
     """
     fs_ = plant_fs(plant, fs)
+    if isinstance(plant, control.FRD):
+        # The limit is the first crossing of -1 on the whole circle: a band never measured
+        # could hold it.
+        check_frd_coverage("plant", plant, fs_)
     leak = check_in_range("leak", leak, 0.0, 1.0)
     g_stab = _stability_limit(plant, fs_, leak)
     g_max = g_stab * (1.0 - _STABILITY_BACKOFF) if np.isfinite(g_stab) else _FALLBACK_MAX_GAIN
@@ -240,6 +281,34 @@ def _golden(fun, a: np.ndarray, b: np.ndarray, xtol: float) -> np.ndarray:
     return np.where(fc <= fd, c, d)
 
 
+def _block_gains(
+    L1: np.ndarray,
+    w: np.ndarray,
+    coarse: np.ndarray,
+    psd: np.ndarray,
+    noise: np.ndarray,
+    g_max: float,
+) -> np.ndarray:
+    """Optimal gains of a block of modes (coarse grid, then golden section)."""
+    p, n = np.ascontiguousarray(psd), np.ascontiguousarray(noise)
+    with np.errstate(invalid="ignore", over="ignore"):
+        J = _residual_matrix(L1, w, coarse, p, n)
+    # A NaN would win argmin silently: treat it as +inf, and fail a mode with no finite value.
+    J = np.where(np.isnan(J), np.inf, J)
+    if not np.all(np.isfinite(J).any(axis=1)):
+        bad = np.flatnonzero(~np.isfinite(J).any(axis=1))
+        raise FloatingPointError(
+            f"residual variance not finite at any gain for block rows {bad[:10].tolist()}"
+        )
+    k = np.argmin(J, axis=1)
+    a = coarse[np.maximum(k - 1, 0)]
+    b = coarse[np.minimum(k + 1, coarse.size - 1)]
+    best = _golden(lambda g: _residual_per_mode(L1, w, g, p, n), a, b, _GOLDEN_XTOL * g_max)
+    # Keep the coarse minimum if the refinement did not improve on it (flat objective).
+    j_best = _residual_per_mode(L1, w, best, p, n)
+    return np.where(j_best <= J[np.arange(k.size), k], best, coarse[k])
+
+
 def optimal_modal_gain(
     plant: control.TransferFunction | control.FRD,
     freqs: object,
@@ -290,7 +359,11 @@ def optimal_modal_gain(
     ------
     ValueError
         Bad grid (not increasing, beyond Nyquist), PSDs with NaN/inf or negative values or of
-        mismatched shapes, ``modulus_margin`` outside (0, 1), ``leak`` outside [0, 1).
+        mismatched shapes, ``modulus_margin`` outside (0, 1), ``leak`` outside [0, 1), an FRD
+        plant that does not cover [0, fs/2].
+    ModalGainError
+        A numerical failure (overflow, linear algebra, ...) for some modes; ``error.result``
+        holds every mode, the failed ones at the fallback gain.
 
     Examples
     --------
@@ -323,21 +396,29 @@ def optimal_modal_gain(
     coarse = np.linspace(g_min, g_max, _N_COARSE)
     n_modes = psd2.shape[0]
     gains = np.empty(n_modes)
+    failed: dict[int, str] = {}
     for start in range(0, n_modes, _BLOCK):
         sl = slice(start, min(start + _BLOCK, n_modes))
-        p, n = np.ascontiguousarray(psd2[sl]), np.ascontiguousarray(noise2[sl])
-        J = _residual_matrix(L1, w, coarse, p, n)
-        k = np.argmin(J, axis=1)
-        a = coarse[np.maximum(k - 1, 0)]
-        b = coarse[np.minimum(k + 1, coarse.size - 1)]
-        best = _golden(
-            lambda g, p=p, n=n: _residual_per_mode(L1, w, g, p, n), a, b, _GOLDEN_XTOL * g_max
-        )
-        # Keep the coarse minimum if the refinement did not improve on it (flat objective).
-        j_best = _residual_per_mode(L1, w, best, p, n)
-        gains[sl] = np.where(j_best <= J[np.arange(k.size), k], best, coarse[k])
+        try:
+            gains[sl] = _block_gains(L1, w, coarse, psd2[sl], noise2[sl], g_max)
+        except Exception as exc:
+            if is_programming_error(exc):
+                raise
+            # Isolate the failing modes: each mode of the block on its own.
+            for i in range(sl.start, sl.stop):
+                try:
+                    gains[i] = _block_gains(
+                        L1, w, coarse, psd2[i : i + 1], noise2[i : i + 1], g_max
+                    )[0]
+                except Exception as exc_i:
+                    if is_programming_error(exc_i):
+                        raise
+                    failed[i] = f"{type(exc_i).__name__}: {exc_i}"
+                    gains[i] = g_min
     gains = np.clip(gains, g_min, g_max)
     K = Integrator(gains, fs=fs_, leak=leak)
+    if failed:
+        raise ModalGainError(failed, K)
     if isinstance(plant, control.TransferFunction) and not is_stable(
         plant, K, fs=fs_, mode=int(np.argmax(gains))
     ):
