@@ -1,24 +1,61 @@
 """Plots (the only module of the project that imports matplotlib).
 
-Each function draws on a given ``matplotlib.axes.Axes`` (or creates a figure) and returns the
-figure; nothing is shown or saved here.
+Each function takes data (arrays, result objects), draws on a given ``matplotlib.axes.Axes``
+or a new figure, and returns the :class:`matplotlib.figure.Figure`; with ``path=`` it also
+writes a PNG (and closes the figure in pyplot, so that long sweeps do not keep figures alive).
+Nothing is shown, and no backend is chosen here: the command line selects ``Agg``, notebooks
+keep theirs.
+
+Conventions: frequencies in Hz on log axes (0 Hz dropped), PSDs one-sided [nm^2/Hz],
+separations in lambda/D, contrast relative to the star's peak.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
 
-__all__ = ["plot_rejection", "plot_residual_psd", "plot_contrast", "save_figure"]
+__all__ = [
+    "plot_rejection",
+    "plot_sensitivity",
+    "plot_residual_psd",
+    "plot_contrast",
+    "plot_images",
+    "plot_margins",
+    "plot_vibration",
+    "save_figure",
+]
+
+# Floor of |S|, |T| before taking dB (a perfect zero would be -inf on the axis).
+_DB_FLOOR = 1e-12
 
 
-def _axes(ax):
+def _axes(ax: Any, figsize: tuple[float, float] = (7.0, 4.5)) -> tuple[Any, Any]:
     if ax is None:
-        fig, ax = plt.subplots(figsize=(7.0, 4.5), constrained_layout=True)
+        fig, ax = plt.subplots(figsize=figsize, constrained_layout=True)
         return fig, ax
     return ax.figure, ax
+
+
+def _finish(fig: Any, path: str | os.PathLike | None, dpi: int = 120) -> Any:
+    if path is not None:
+        save_figure(fig, os.fspath(path), dpi=dpi)
+    return fig
+
+
+def _db(x: np.ndarray) -> np.ndarray:
+    return 20.0 * np.log10(np.maximum(np.abs(x), _DB_FLOOR))
+
+
+def _positive(freqs: object) -> tuple[np.ndarray, np.ndarray]:
+    f = np.asarray(freqs, dtype=float)
+    if f.ndim != 1:
+        raise ValueError(f"freqs must be 1-D [Hz], got shape {f.shape}")
+    return f, f > 0
 
 
 def plot_rejection(
@@ -26,9 +63,10 @@ def plot_rejection(
     sensitivities: Mapping[str, np.ndarray],
     *,
     psd: np.ndarray | None = None,
-    ax=None,
+    ax: Any = None,
     title: str | None = None,
-):
+    path: str | os.PathLike | None = None,
+) -> Any:
     """Plot ``|S|^2`` [dB] of several controllers, with the disturbance PSD on a twin axis.
 
     Parameters
@@ -39,43 +77,155 @@ def plot_rejection(
         Sensitivity functions ``S`` on ``freqs``.
     psd : ndarray (n,), optional
         Disturbance PSD, one-sided [nm^2/Hz].
+    ax : matplotlib Axes, optional
+        Axes to draw on (default: a new figure).
+    title : str, optional
+        Axes title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     fig, ax = _axes(ax)
-    keep = freqs > 0
+    freqs, keep = _positive(freqs)
     for label, S in sensitivities.items():
-        ax.semilogx(freqs[keep], 20 * np.log10(np.maximum(np.abs(S[keep]), 1e-12)), label=label)
+        ax.semilogx(freqs[keep], _db(np.asarray(S)[keep]), label=label)
     ax.axhline(0.0, color="0.6", lw=0.8)
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel(r"$|S|^2$ [dB]")
     ax.grid(True, which="both", alpha=0.3)
     if psd is not None:
         ax2 = ax.twinx()
-        ax2.loglog(freqs[keep], psd[keep], color="0.5", ls="--", lw=1.0, label="disturbance PSD")
+        ax2.loglog(
+            freqs[keep],
+            np.asarray(psd)[keep],
+            color="0.5",
+            ls="--",
+            lw=1.0,
+            label="disturbance PSD",
+        )
         ax2.set_ylabel(r"disturbance PSD [nm$^2$/Hz]")
         ax2.legend(loc="lower right", fontsize="small")
     ax.legend(loc="upper left", fontsize="small")
     if title:
         ax.set_title(title)
-    return fig
+    return _finish(fig, path)
 
 
-def plot_residual_psd(
-    freqs: np.ndarray, psds: Mapping[str, np.ndarray], *, ax=None, title: str | None = None
-):
-    """Plot one-sided PSDs [nm^2/Hz] (e.g. open loop and residuals) on log-log axes.
+def plot_sensitivity(
+    freqs: np.ndarray,
+    sensitivities: Mapping[str, np.ndarray],
+    *,
+    complementary: Mapping[str, np.ndarray] | None = None,
+    disturbance_psd: np.ndarray | None = None,
+    noise_psd: float | np.ndarray | None = None,
+    modulus_margin: float | None = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Sensitivity ``|S|`` and complementary sensitivity ``|T|`` [dB] over the disturbance PSD.
+
+    Two panels sharing the frequency axis: top ``|S|`` (disturbance rejection) with the
+    disturbance PSD on a twin log axis; bottom ``|T|`` (noise propagation) with the noise PSD.
 
     Parameters
     ----------
     freqs : ndarray, shape (n,)
         Frequencies [Hz] (0 Hz dropped on the log axis).
-    psds : mapping label -> ndarray (n,)
-        One-sided PSDs [nm^2/Hz].
-    ax : matplotlib Axes, optional
+    sensitivities : mapping label -> complex ndarray (n,)
+        ``S = 1 / (1 + G K)`` of each controller on ``freqs``.
+    complementary : mapping label -> complex ndarray (n,), optional
+        ``T = G K / (1 + G K)``; default ``1 - S`` (exact for the loop ``S + T = 1``).
+    disturbance_psd : ndarray (n,), optional
+        One-sided disturbance PSD [nm^2/Hz].
+    noise_psd : float or ndarray (n,), optional
+        One-sided measurement-noise PSD [nm^2/Hz].
+    modulus_margin : float, optional
+        Draw the bound ``|S| < 1 / modulus_margin`` (dimensionless, in (0, 1]).
     title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    freqs, keep = _positive(freqs)
+    fig, (ax_s, ax_t) = plt.subplots(2, 1, sharex=True, figsize=(7.0, 6.5), constrained_layout=True)
+    comp = complementary or {k: 1.0 - np.asarray(S) for k, S in sensitivities.items()}
+    for label, S in sensitivities.items():
+        ax_s.semilogx(freqs[keep], _db(np.asarray(S)[keep]), label=label)
+    for label, T in comp.items():
+        ax_t.semilogx(freqs[keep], _db(np.asarray(T)[keep]), label=label)
+    if modulus_margin is not None:
+        ax_s.axhline(
+            _db(np.array(1.0 / modulus_margin)),
+            color="r",
+            ls=":",
+            lw=1.0,
+            label=f"1/modulus margin ({modulus_margin:g})",
+        )
+    for ax, name in ((ax_s, r"$|S|$ [dB]"), (ax_t, r"$|T|$ [dB]")):
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        ax.set_ylabel(name)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(loc="upper left", fontsize="small")
+    ax_t.set_xlabel("frequency [Hz]")
+    for ax, spec, name in ((ax_s, disturbance_psd, "disturbance"), (ax_t, noise_psd, "noise")):
+        if spec is None:
+            continue
+        twin = ax.twinx()
+        twin.loglog(
+            freqs[keep],
+            np.broadcast_to(np.asarray(spec, dtype=float), freqs.shape)[keep],
+            color="0.5",
+            ls="--",
+            lw=1.0,
+            label=f"{name} PSD",
+        )
+        twin.set_ylabel(rf"{name} PSD [nm$^2$/Hz]")
+        twin.legend(loc="lower right", fontsize="small")
+    if title:
+        fig.suptitle(title)
+    return _finish(fig, path)
+
+
+def plot_residual_psd(
+    freqs: np.ndarray,
+    psds: Mapping[str, np.ndarray],
+    *,
+    ax: Any = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Plot one-sided PSDs [nm^2/Hz] (e.g. open loop and each controller's residual), log-log.
+
+    Parameters
+    ----------
+    freqs : ndarray, shape (n,)
+        Frequencies [Hz] (0 Hz dropped on the log axis).
+    psds : mapping label -> ndarray (n,) or (n_modes, n)
+        One-sided PSDs [nm^2/Hz]; a 2-D array is summed over modes (the PSD of the total
+        residual of those modes).
+    ax : matplotlib Axes, optional
+        Axes to draw on (default: a new figure).
+    title : str, optional
+        Axes title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     fig, ax = _axes(ax)
-    keep = freqs > 0
+    freqs, keep = _positive(freqs)
     for label, p in psds.items():
+        p = np.asarray(p, dtype=float)
+        p = p.sum(axis=0) if p.ndim == 2 else p
         ax.loglog(freqs[keep], p[keep], label=label)
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel(r"PSD [nm$^2$/Hz]")
@@ -83,45 +233,271 @@ def plot_residual_psd(
     ax.legend(fontsize="small")
     if title:
         ax.set_title(title)
-    return fig
+    return _finish(fig, path)
+
+
+def _profile(item: Any) -> tuple[np.ndarray | None, np.ndarray]:
+    sci = getattr(item, "science", item)
+    if hasattr(sci, "contrast_profile"):
+        return np.asarray(sci.radii_ld), np.asarray(sci.contrast_profile)
+    return None, np.asarray(item, dtype=float)
 
 
 def plot_contrast(
-    radii_ld: np.ndarray, profiles: Mapping[str, np.ndarray], *, ax=None, title: str | None = None
-):
-    """Plot raw-contrast radial profiles against separation [lambda/D].
+    radii_ld: np.ndarray | None,
+    profiles: Mapping[str, Any],
+    *,
+    ax: Any = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Plot raw-contrast radial profiles against separation [lambda/D] (log contrast axis).
 
     Parameters
     ----------
-    radii_ld : ndarray, shape (n,)
-        Separations [lambda/D].
-    profiles : mapping label -> ndarray (n,)
-        Raw contrast (relative to the star's peak).
+    radii_ld : ndarray, shape (n,), or None
+        Separations [lambda/D]; ``None`` when every profile is a result with its own radii.
+    profiles : mapping label -> ndarray (n,), ScienceResult or run result
+        Raw contrast (relative to the star's peak), or objects with a ``science`` /
+        ``contrast_profile`` (``ScienceResult``, ``LoopResult``, ``CascadeResult``).
     ax : matplotlib Axes, optional
+        Axes to draw on (default: a new figure).
     title : str, optional
+        Axes title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     fig, ax = _axes(ax)
-    for label, prof in profiles.items():
-        ax.semilogy(radii_ld, prof, label=label)
+    for label, item in profiles.items():
+        r, prof = _profile(item)
+        if r is None and radii_ld is not None:
+            r = np.asarray(radii_ld, dtype=float)
+        if r is None or r.shape != prof.shape:
+            raise ValueError(
+                f"profiles[{label!r}] has shape {prof.shape}; radii_ld must give one "
+                f"separation per bin"
+            )
+        ax.semilogy(r, prof, label=label)
     ax.axvspan(4.0, 6.0, color="0.9", zorder=0)
     ax.set_xlabel(r"separation [$\lambda/D$]")
-    ax.set_ylabel("raw contrast")
+    ax.set_ylabel("raw contrast [star peak = 1]")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     if title:
         ax.set_title(title)
-    return fig
+    return _finish(fig, path)
 
 
-def save_figure(fig, path: str, *, dpi: int = 120) -> str:
+def plot_images(
+    images: Mapping[str, np.ndarray],
+    *,
+    pixel_scale: float,
+    floor: float = 1e-8,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Show PSF and coronagraphic images side by side on a log colour scale.
+
+    Parameters
+    ----------
+    images : mapping label -> ndarray (n, n)
+        Images normalised to the star's (diffraction-limited) peak, e.g. ``{"PSF":
+        exposure.psf, "coronagraph": exposure.coronagraphic}``, centred on the star.
+    pixel_scale : float
+        Pixel size [lambda/D] (``ScienceCamera.pixel_scale``).
+    floor : float
+        Lowest value shown (log scale; smaller values are clipped to it).
+    title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.colors import LogNorm
+
+    if not images:
+        raise ValueError("images must hold at least one image")
+    if not pixel_scale > 0:
+        raise ValueError(f"pixel_scale must be > 0 [lambda/D], got {pixel_scale!r}")
+    fig, axes = plt.subplots(
+        1, len(images), figsize=(4.2 * len(images), 4.0), constrained_layout=True, squeeze=False
+    )
+    for ax, (label, img) in zip(axes[0], images.items(), strict=True):
+        img = np.asarray(img, dtype=float)
+        if img.ndim != 2:
+            raise ValueError(f"images[{label!r}] must be 2-D, got shape {img.shape}")
+        half_x = img.shape[1] * pixel_scale / 2
+        half_y = img.shape[0] * pixel_scale / 2
+        vmax = max(float(img.max()), floor * 10)
+        im = ax.imshow(
+            np.maximum(img, floor),
+            origin="lower",
+            norm=LogNorm(floor, vmax),
+            extent=(-half_x, half_x, -half_y, half_y),
+            cmap="inferno",
+        )
+        ax.set_xlabel(r"x [$\lambda/D$]")
+        ax.set_ylabel(r"y [$\lambda/D$]")
+        ax.set_title(label)
+        fig.colorbar(im, ax=ax, label="intensity [star peak = 1]", shrink=0.85)
+    if title:
+        fig.suptitle(title)
+    return _finish(fig, path)
+
+
+def plot_margins(
+    margins: Mapping[str, Any],
+    *,
+    required_modulus_margin: float | None = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Margins summary: one bar chart per margin, one bar per controller.
+
+    Panels: gain margin [dB], phase margin [deg], modulus margin (dimensionless), delay
+    margin [frames]. Unstable loops are hatched red; infinite margins are drawn at the top
+    of the axis and marked "inf".
+
+    Parameters
+    ----------
+    margins : mapping label -> Margins
+        :class:`aocontrol.analysis.Margins` of each controller.
+    required_modulus_margin : float, optional
+        Draw the design requirement on the modulus-margin panel.
+    title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    if not margins:
+        raise ValueError("margins must hold at least one controller")
+    labels = list(margins)
+    panels = (
+        (
+            "gain margin [dB]",
+            lambda m: 20 * np.log10(m.gain_margin) if m.gain_margin > 0 else -np.inf,
+        ),
+        ("phase margin [deg]", lambda m: m.phase_margin),
+        ("modulus margin [1]", lambda m: m.modulus_margin),
+        ("delay margin [frames]", lambda m: m.delay_margin),
+    )
+    fig, axes = plt.subplots(1, 4, figsize=(13.0, 4.0), constrained_layout=True)
+    pos = np.arange(len(labels))
+    for ax, (name, get) in zip(axes, panels, strict=True):
+        vals = np.array([float(get(margins[k])) for k in labels])
+        finite = np.isfinite(vals)
+        top = float(np.max(np.abs(vals[finite]))) * 1.2 if finite.any() else 1.0
+        shown = np.where(finite, vals, top)
+        colors = ["tab:blue" if margins[k].stable else "tab:red" for k in labels]
+        bars = ax.bar(pos, shown, color=colors)
+        for bar, k, fin in zip(bars, labels, finite, strict=True):
+            if not margins[k].stable:
+                bar.set_hatch("//")
+            if not fin:
+                ax.annotate(
+                    "inf",
+                    (bar.get_x() + bar.get_width() / 2, top),
+                    ha="center",
+                    va="bottom",
+                    fontsize="small",
+                )
+        if name.startswith("modulus") and required_modulus_margin is not None:
+            ax.axhline(required_modulus_margin, color="r", ls=":", label="required")
+            ax.legend(fontsize="small")
+        ax.set_xticks(pos, labels, rotation=30, ha="right", fontsize="small")
+        ax.set_ylabel(name)
+        ax.grid(True, axis="y", alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    return _finish(fig, path)
+
+
+def plot_vibration(
+    freqs: np.ndarray,
+    tilt_psds: Mapping[str, np.ndarray],
+    *,
+    open_loop_psd: np.ndarray | None = None,
+    vibration_hz: float | None = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Vibration case: tilt residual PSDs per controller and their reverse cumulative RMS.
+
+    Left: one-sided PSDs [nm^2/Hz] (log-log), with the open-loop tilt PSD and the vibration
+    frequency marked. Right: ``sqrt(integral_f^{fs/2} PSD)`` [nm RMS] against ``f``, which
+    shows how much of each controller's residual sits at the vibration.
+
+    Parameters
+    ----------
+    freqs : ndarray, shape (n,)
+        Frequencies [Hz].
+    tilt_psds : mapping label -> ndarray (n,)
+        Residual tilt PSD of each controller, one-sided [nm^2/Hz].
+    open_loop_psd : ndarray (n,), optional
+        Open-loop (disturbance) tilt PSD [nm^2/Hz].
+    vibration_hz : float, optional
+        Vibration frequency [Hz] (a vertical line on both panels).
+    title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    freqs, keep = _positive(freqs)
+    fig, (ax_p, ax_c) = plt.subplots(1, 2, figsize=(12.0, 4.5), constrained_layout=True)
+    series = dict(tilt_psds)
+    if open_loop_psd is not None:
+        series = {"open loop": open_loop_psd, **series}
+    for label, p in series.items():
+        p = np.asarray(p, dtype=float)
+        if p.shape != freqs.shape:
+            raise ValueError(f"tilt_psds[{label!r}] must have shape {freqs.shape}, got {p.shape}")
+        style = {"color": "0.5", "ls": "--"} if label == "open loop" else {}
+        ax_p.loglog(freqs[keep], p[keep], label=label, **style)
+        # Reverse cumulative variance: trapezoid from f to fs/2.
+        seg = 0.5 * (p[1:] + p[:-1]) * np.diff(freqs)
+        rev = np.concatenate([np.cumsum(seg[::-1])[::-1], [0.0]])
+        ax_c.semilogx(freqs[keep], np.sqrt(rev[keep]), label=label, **style)
+    for ax in (ax_p, ax_c):
+        if vibration_hz is not None:
+            ax.axvline(
+                vibration_hz, color="r", ls=":", lw=1.0, label=f"vibration {vibration_hz:g} Hz"
+            )
+        ax.set_xlabel("frequency [Hz]")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize="small")
+    ax_p.set_ylabel(r"tilt PSD [nm$^2$/Hz]")
+    ax_c.set_ylabel(r"tilt RMS above $f$ [nm]")
+    if title:
+        fig.suptitle(title)
+    return _finish(fig, path)
+
+
+def save_figure(fig: Any, path: str, *, dpi: int = 120) -> str:
     """Save ``fig`` to ``path`` and close it (frees memory in long sweeps); returns ``path``.
 
     Parameters
     ----------
     fig : matplotlib Figure
+        Figure to write.
     path : str
         Output file (format from the extension).
     dpi : int
+        Resolution [dots per inch].
     """
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
