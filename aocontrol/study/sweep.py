@@ -364,16 +364,23 @@ def _run_configuration_and_save(settings: dict, path: pathlib.Path) -> None:
     save_result(outcome.result, path, settings=full)
 
 
-def _read_result_row(path: pathlib.Path) -> dict:
-    """Default read: the run's request and figures of merit from a results file."""
-    from aocontrol.study.results import summary_row
+#: Columns of a results file's summary row kept in the sweep's table (E1's results module).
+_RESULT_FIGURES = ("strehl", "mean_contrast_4_6", "residual_rms_nm", "fs", "n_frames")
 
-    row = dict(summary_row(path))
-    settings = row.get("settings", {})
-    if isinstance(settings, str):
-        settings = json.loads(settings)
-    row["settings"] = settings.get("sweep", {}).get("request", settings)
-    return row
+
+def _read_result_row(path: pathlib.Path) -> dict:
+    """Default read: the run's request (stored by the sweep) and its figures of merit."""
+    from aocontrol.study.results import read_settings
+    from aocontrol.study.results import summary_table as file_rows
+
+    settings = read_settings(path)
+    request = settings.get("sweep", {}).get("request")
+    if request is None:  # a results file written outside a sweep
+        request = {
+            k: settings[k] for k in ("case", "controller", "scheme", "seed") if k in settings
+        }
+    row = file_rows([path])[0]
+    return {"settings": request, **{k: row[k] for k in _RESULT_FIGURES if k in row}}
 
 
 def default_runner() -> SweepRunner:

@@ -67,6 +67,19 @@ logger = logging.getLogger(__name__)
 _BATCH_SAMPLES = 4_000_000
 
 
+def _fft_inplace(a: np.ndarray, axis: int, workers: int, *, forward: bool) -> None:
+    """Complex FFT of ``a`` along ``axis``, written into ``a`` (no allocation).
+
+    ``scipy.fft`` writes into its complex input with ``overwrite_x=True`` (pocketfft's ``out``
+    argument; it returns a view of ``a``); the check keeps the result right should a version
+    return a new array instead.
+    """
+    fn = scipy.fft.fft if forward else scipy.fft.ifft
+    res = fn(a, axis=axis, workers=workers, overwrite_x=True)
+    if not np.may_share_memory(res, a):  # pragma: no cover - a scipy that copied instead
+        a[...] = res
+
+
 def default_modulation_points(modulation: float) -> int:
     """Default number of modulation points: ``4 ceil(pi r)``, i.e. ~2 points per lambda/D of
     the modulation circle's perimeter ``2 pi r`` rounded up to a multiple of 4 (1 when ``r=0``).
@@ -266,6 +279,34 @@ class PyramidWFS:
         return (2 * self.n_subapertures, 2 * self.n_subapertures)
 
     # ------------------------------------------------------------------ propagation
+    @cached_property
+    def _work(self) -> dict[str, np.ndarray]:
+        """Work buffers kept across frames (about 13 MB at SAXO+ sampling, allocated once).
+
+        ``hx`` ``(n_x, n_pix, n_fft)``: step x, in place; ``hc`` ``(n_x, n_pix, n_cols)``: its
+        detector columns; ``y`` ``(step, n_fft, n_cols)``: step y per chunk of points, in place;
+        ``acc`` ``(n_fft, 2 n_cols)``: the intensity accumulator. They make an instance not
+        thread-safe (use one instance per thread) and are not pickled.
+        """
+        plan = self._plan
+        n, n_pix = self.n_fft, self.pupil.n_pix
+        nc, n_x = plan["cols"].size, plan["tx"].shape[0]
+        step = max(1, min(self.n_points, _BATCH_SAMPLES // (n * nc)))
+        return {
+            "hx": np.zeros((n_x, n_pix, n), dtype=self._complex),
+            "hc": np.zeros((n_x, n_pix, nc), dtype=self._complex),
+            "y": np.zeros((step, n, nc), dtype=self._complex),
+            "acc": np.zeros((n, 2 * nc), dtype=self._real),
+        }
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("_work", None)  # buffers, rebuilt on first use
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+
     def _fields(self, field: np.ndarray):
         """Pupil-plane fields after the pyramid, per chunk of modulation points.
 
@@ -278,25 +319,34 @@ class PyramidWFS:
         done per point, for the detector columns only. The result is the discrete beam-tilt
         propagation (tilt, 2-D FFT, mask, inverse 2-D FFT per point) to rounding, at the cost
         of about one 2-D FFT per point instead of two.
+
+        The FFTs run in place in the work buffers (:attr:`_work`): each yielded array is a
+        view of the same buffer, valid until the generator advances (copy it to keep it).
         """
-        plan = self._plan
-        n, w, n_pix = self.n_fft, self.workers, self.pupil.n_pix
+        plan, work = self._plan, self._work
+        w, n_pix = self.workers, self.pupil.n_pix
         mask, cols = plan["mask"], plan["cols"]
-        n_pts, nc = self.n_points, cols.size
-        step = max(1, min(n_pts, _BATCH_SAMPLES // (n * nc)))
+        n_pts = self.n_points
         x_index, ty = plan["x_index"], plan["ty"]
-        # step x, per distinct x tilt: (n_x, n_pix, n), then keep the detector columns
-        h = scipy.fft.fft(field[None] * plan["tx"][:, None, :], n=n, axis=-1, workers=w)
-        h *= mask
-        h = scipy.fft.ifft(h, axis=-1, workers=w, overwrite_x=True)[..., cols]
-        buf = np.zeros((step, n, nc), dtype=self._complex)  # rows >= n_pix stay zero
+        hx, hc, buf = work["hx"], work["hc"], work["y"]
+        step = buf.shape[0]
+        # step x, per distinct x tilt: (n_x, n_pix, n) zero-padded along x, in place
+        np.multiply(field[None], plan["tx"][:, None, :], out=hx[..., :n_pix])
+        hx[..., n_pix:] = 0
+        _fft_inplace(hx, -1, w, forward=True)
+        hx *= mask
+        _fft_inplace(hx, -1, w, forward=False)
+        np.take(hx, cols, axis=-1, out=hc, mode="clip")  # detector columns; "clip": unbuffered
         for k0 in range(0, n_pts, step):
             k1 = min(k0 + step, n_pts)
             b = buf[: k1 - k0]
-            np.multiply(h[x_index[k0:k1]], ty[k0:k1, :, None], out=b[:, :n_pix])
-            g = scipy.fft.fft(b, axis=-2, workers=w)
-            g *= mask[:, None]
-            yield scipy.fft.ifft(g, axis=-2, workers=w, overwrite_x=True)
+            for j, k in enumerate(range(k0, k1)):  # per point (not a fancy-index temporary)
+                np.multiply(hc[x_index[k]], ty[k, :, None], out=b[j, :n_pix])
+            b[:, n_pix:] = 0  # zero padding along y (overwritten by the previous chunk)
+            _fft_inplace(b, -2, w, forward=True)
+            b *= mask[:, None]
+            _fft_inplace(b, -2, w, forward=False)
+            yield b
 
     def _bin(self, acc: np.ndarray) -> np.ndarray:
         """``(n_fft, 2 n_cols)`` interleaved accumulator -> detector frame ``(2n_sub, 2n_sub)``."""
@@ -311,9 +361,9 @@ class PyramidWFS:
     def _frames(self, phase: np.ndarray) -> np.ndarray:
         """Detector frames ``(m, 2 n_sub, 2 n_sub)`` of phase maps ``(m, n_pix, n_pix)`` [rad]."""
         out = np.empty((phase.shape[0], *self.frame_shape))
-        nc = self._plan["cols"].size
+        acc = self._work["acc"]
         for i in range(phase.shape[0]):
-            acc = np.zeros((self.n_fft, 2 * nc), dtype=self._real)
+            acc.fill(0.0)
             for g in self._fields(self._field(phase[i])):
                 gv = g.view(self._real)  # (k, n, 2 nc): interleaved real and imaginary parts
                 acc += np.einsum("kij,kij->ij", gv, gv)
@@ -347,7 +397,7 @@ class PyramidWFS:
                 f"{opd.shape} and {delta.shape}"
             )
         field = self._field(opd_to_phase(opd, self.wavelength))
-        base = list(self._fields(field))
+        base = [g.copy() for g in self._fields(field)]  # the generator reuses its buffer
         dphase = opd_to_phase(delta, self.wavelength)
         nc = self._plan["cols"].size
         out = np.empty((delta.shape[0], *self.frame_shape))
