@@ -493,7 +493,9 @@ def frequency_response(sys: object, freqs: object, fs: float | None = None) -> n
     Transfer functions are evaluated exactly at ``z = exp(2j pi f / fs)`` (vectorised
     polynomial evaluation). FRDs are read at their own grid points; between grid points the
     log-magnitude and the unwrapped phase are interpolated linearly. Requesting a frequency
-    outside the FRD's measured range raises.
+    outside the FRD's measured range raises, except in a gap to 0 Hz or to fs/2 shorter than
+    ``FRD_END_GAP_FRACTION`` of the end grid step (an FRD that covers the band, see
+    :func:`check_frd_coverage`), where the end value is held.
 
     Parameters
     ----------
@@ -529,7 +531,15 @@ def frequency_response(sys: object, freqs: object, fs: float | None = None) -> n
         f_grid = omega / (2 * np.pi)
         lo, hi = f_grid[0], f_grid[-1]
         tol = 1e-9 * fs
-        if np.any(freqs < lo - tol) or np.any(freqs > hi + tol):
+        # An FRD that covers an end of [0, fs/2] (check_frd_coverage) is held constant over
+        # the gap of less than half a grid step to it; elsewhere its range is strict.
+        lo_ok, hi_ok = lo - tol, hi + tol
+        if f_grid.size > 1:
+            if lo <= FRD_END_GAP_FRACTION * (f_grid[1] - f_grid[0]) + 1e-12 * fs:
+                lo_ok = 0.0
+            if fs / 2 - hi <= FRD_END_GAP_FRACTION * (f_grid[-1] - f_grid[-2]) + 1e-12 * fs:
+                hi_ok = fs / 2
+        if np.any(freqs < lo_ok) or np.any(freqs > hi_ok):
             raise ValueError(
                 f"freqs must lie within the FRD's measured range [{lo}, {hi}] Hz, got "
                 f"[{freqs.min()}, {freqs.max()}] Hz"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from aocontrol.analysis import residual_variance, white_noise_psd
+from aocontrol.analysis import residual_variance, welch_psd, white_noise_psd
 from aocontrol.controllers import Integrator
 from aocontrol.plant import frequency_response, loop_plant, measured_plant
 from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry, pseudo_open_loop
@@ -134,7 +134,7 @@ def test_one_dimensional_telemetry_and_pure_delay():
         ({"commands": np.zeros((63, 2))}, ValueError, "same shape"),
         ({"commands": np.zeros((64, 3))}, ValueError, "same shape"),
         ({"measurements": np.zeros((64, 2, 1))}, ValueError, "dimension"),
-        ({"nperseg": 128}, ValueError, "at least nperseg=128 frames"),
+        ({"nperseg": 128}, ValueError, r"n_frames >= 128 for nperseg=128, got \(64, 2\)"),
         ({"nperseg": 4}, ValueError, "nperseg"),
         ({"noise_band": (0.9, 0.5)}, ValueError, "noise_band"),
         ({"noise_band": (0.0, 1.5)}, ValueError, "noise_band"),
@@ -162,3 +162,12 @@ def test_bad_input(kwargs, err, match):
         disturbance_from_telemetry(
             args.pop("measurements"), args.pop("commands"), args.pop("plant"), **args
         )
+
+
+@pytest.mark.parametrize("shape", [(5, 300), (1, 40)])
+def test_short_or_transposed_telemetry_blames_the_telemetry(shape):
+    # Before: "nperseg must be an integer >= 8, got 5", an argument the user never passed.
+    with pytest.raises(ValueError, match=r"must have shape \(n_frames, n_modes\).*transposed"):
+        disturbance_from_telemetry(np.zeros(shape), np.zeros(shape), loop_plant(FS, 0.5))
+    with pytest.raises(ValueError, match=r"x must have shape.*transposed"):
+        welch_psd(np.zeros((1, 40)), fs=FS)

@@ -150,7 +150,9 @@ def test_zero_psd_gives_zero_and_shapes():
         ({"freqs": np.linspace(0.0, 700.0, 11)}, ValueError, "Nyquist"),
         ({"freqs": np.r_[0.0, 0.0, np.linspace(1, 500, 9)]}, ValueError, "strictly increasing"),
         ({"noise_psd": np.ones((2, 11))}, ValueError, "modes"),
-        ({"n_fft": 1001}, ValueError, "n_fft must be even"),
+        ({"n_fft": 1001}, ValueError, "n_fft must be an even integer"),
+        # Unbounded requests are refused before allocating (2**30 points: 16 GiB per mode).
+        ({"n_fft": 2**30}, ValueError, r"n_fft must be an even integer in \[64, 4194304\]"),
         ({"plant": control.tf([1.0], [1.0, -1.5], 1e-3)}, ValueError, "plant must be stable"),
         ({"plant": measured_plant([0.0, 100.0], [1.0, 1.0], FS)}, ValueError, "cover"),
     ],

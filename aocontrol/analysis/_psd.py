@@ -45,7 +45,14 @@ def welch_psd(x: object, fs: float, nperseg: int = 1024) -> tuple[np.ndarray, np
     """
     fs = check_positive("fs", fs)
     arr = check_finite_array("x", x, ndim=(1, 2))
-    nper = min(check_int("nperseg", nperseg, minimum=2), arr.shape[0])
+    nperseg = check_int("nperseg", nperseg, minimum=2)
+    if arr.shape[0] < 2:
+        hint = " (transposed? frames go along the first axis)" if arr.ndim == 2 else ""
+        raise ValueError(
+            f"x must have shape (n_frames,) or (n_frames, n_modes) with n_frames >= 2, "
+            f"got {arr.shape}{hint}"
+        )
+    nper = min(nperseg, arr.shape[0])
     freqs, pxx = signal.welch(
         arr - arr.mean(axis=0),
         fs=fs,

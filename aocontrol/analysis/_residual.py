@@ -6,7 +6,7 @@ import logging
 
 import numpy as np
 
-from aocontrol._validation import check_frequency_grid, mode_psds
+from aocontrol._validation import check_broadcast, check_frequency_grid, mode_psds
 from aocontrol.analysis._loop import loop_response
 from aocontrol.analysis._margins import is_stable
 from aocontrol.controllers import ControllerBank
@@ -56,6 +56,14 @@ def residual_psd(
     freqs = check_frequency_grid("freqs", freqs, fs_)
     psd_b, noise_b, single = mode_psds(psd, noise_psd, freqs.size)
     r = loop_response(plant, controller, freqs, fs_)
+    if r.sensitivity.ndim == 2 and r.sensitivity.shape[0] > 1:
+        # A bank: one PSD row per controller mode (or one row shared by all).
+        n_ctrl = r.sensitivity.shape[0]
+        expected = f"(n_freqs,) = ({freqs.size},) or (n_modes, n_freqs) = ({n_ctrl}, {freqs.size})"
+        if psd_b.shape[0] not in (1, n_ctrl):
+            check_broadcast("psd", np.asarray(psd), r.sensitivity.shape, expected)
+        if noise_b.shape[0] not in (1, n_ctrl):
+            check_broadcast("noise_psd", np.asarray(noise_psd), r.sensitivity.shape, expected)
     out = np.abs(r.sensitivity) ** 2 * psd_b + np.abs(r.complementary) ** 2 * noise_b
     return out[0] if single and r.sensitivity.ndim == 1 else out
 

@@ -12,13 +12,21 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_frequency_grid, check_int, mode_psds
-from aocontrol.plant import frequency_response, plant_fs, z_inverse_coefficients
+from aocontrol.plant import (
+    check_frd_coverage,
+    frequency_response,
+    plant_fs,
+    z_inverse_coefficients,
+)
 
 __all__ = ["mode_psds", "wiener_bound"]
 
 
 # Default size of the full-circle FFT grid (frequency step fs / n_fft).
 _N_FFT = 2**15
+#: Largest accepted ``n_fft``: the bound is computed on n_fft and 2 n_fft points, with
+#: (modes x points) complex arrays; 2**22 resolves a resonance damping of 1e-6 fs already.
+MAX_N_FFT = 2**22
 # PSDs are floored at this fraction of their maximum before taking logarithms (the cepstral
 # factorisation needs a PSD > 0 everywhere).
 _PSD_FLOOR = 1e-14
@@ -57,7 +65,7 @@ def _inner_factor(plant: object, theta: np.ndarray, fs: float) -> np.ndarray:
     """
     zi = np.exp(-1j * theta)
     if isinstance(plant, control.TransferFunction):
-        b, a = z_inverse_coefficients(plant)
+        b, a = z_inverse_coefficients(plant, "plant")
         poles = np.roots(np.trim_zeros(a, "b")) if np.trim_zeros(a, "b").size > 1 else []
         if np.size(poles) and np.max(np.abs(poles)) >= 1.0:
             raise ValueError(
@@ -150,7 +158,7 @@ def wiener_bound(
     fs : float, optional
         Loop rate [Hz] if the plant lost its ``dt``.
     n_fft : int, default 32768
-        Size of the full-circle FFT grid (even, >= 64).
+        Size of the full-circle FFT grid (even, in [64, 2**22]).
 
     Returns
     -------
@@ -174,11 +182,13 @@ def wiener_bound(
     1.81
     """
     fs_ = plant_fs(plant, fs)
+    if isinstance(plant, control.FRD):
+        check_frd_coverage("plant", plant, fs_)
     freqs = check_frequency_grid("freqs", freqs, fs_)
     psd2, noise2, squeeze = mode_psds(psd, noise_psd, freqs.size)
     n_fft = check_int("n_fft", n_fft, minimum=64)
-    if n_fft % 2:
-        raise ValueError(f"n_fft must be even, got {n_fft}")
+    if n_fft % 2 or n_fft > MAX_N_FFT:
+        raise ValueError(f"n_fft must be an even integer in [64, {MAX_N_FFT}], got {n_fft}")
     coarse = _bound(plant, fs_, freqs, psd2, noise2, n_fft)
     fine = _bound(plant, fs_, freqs, psd2, noise2, 2 * n_fft)
     with np.errstate(divide="ignore", invalid="ignore"):

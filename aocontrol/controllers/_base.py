@@ -31,7 +31,7 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_finite_array, check_int, check_positive
-from aocontrol.plant import tf_from_z_inverse, z_inverse_coefficients
+from aocontrol.plant import check_system, tf_from_z_inverse, z_inverse_coefficients
 
 __all__ = ["ControllerBank", "IIRBank"]
 
@@ -326,10 +326,14 @@ class IIRBank(ControllerBank):
         """Bank from one discrete SISO transfer function per mode (same ``dt``)."""
         if len(tfs) == 0:
             raise ValueError("tfs must contain at least one transfer function")
-        dts = {float(t.dt) for t in tfs}
-        if len(dts) != 1 or not dts.pop() > 0:
-            raise ValueError("tfs must all be discrete-time with the same dt > 0")
-        coeffs = [z_inverse_coefficients(t) for t in tfs]
+        # Each one discrete (dt = True, "unspecified", is refused), causal, finite, and at
+        # the rate of the first.
+        fs = check_system("tfs[0]", tfs[0])
+        for i, t in enumerate(tfs[1:], start=1):
+            check_system(f"tfs[{i}]", t, fs, rate_of="tfs[0]")
+        if not all(isinstance(t, control.TransferFunction) for t in tfs):
+            raise TypeError("tfs must all be control.TransferFunction (not FRD)")
+        coeffs = [z_inverse_coefficients(t, f"tfs[{i}]") for i, t in enumerate(tfs)]
         nb = max(c[0].size for c in coeffs)
         na = max(c[1].size for c in coeffs)
         b = np.zeros((len(tfs), nb))
@@ -337,7 +341,7 @@ class IIRBank(ControllerBank):
         for i, (bi, ai) in enumerate(coeffs):
             b[i, : bi.size] = bi
             a[i, : ai.size] = ai
-        return cls(b, a, 1.0 / float(tfs[0].dt), stroke=stroke)
+        return cls(b, a, fs, stroke=stroke)
 
     def __repr__(self) -> str:
         return (

@@ -36,6 +36,9 @@ _FLATNESS_RATIO = 1.5
 # POL PSD maximum if there is no noise), so that it stays strictly positive.
 _PSD_FLOOR_FRACTION = 1e-6
 
+# Fewest frames for a Welch estimate (the smallest segment accepted).
+_MIN_FRAMES = 8
+
 
 @dataclass(frozen=True)
 class TelemetryPSD:
@@ -139,7 +142,7 @@ def pseudo_open_loop(
             f"measurements and commands must have the same shape (n_frames, "
             f"n_modes), got {m.shape} and {u.shape}"
         )
-    b, a = z_inverse_coefficients(plant)
+    b, a = z_inverse_coefficients(plant, "plant")
     return m + signal.lfilter(b, a, u, axis=0)
 
 
@@ -219,14 +222,21 @@ def disturbance_from_telemetry(
     """
     fs_ = plant_fs(plant, fs)
     pol = pseudo_open_loop(measurements, commands, plant, fs=fs_)
-    n_frames = pol.shape[0]
+    n_frames, n_modes = pol.shape
+    # The telemetry is checked before the segment length it implies: a short or transposed
+    # record is the telemetry's fault, not that of an nperseg the user never passed.
+    if nperseg is not None:
+        nperseg = check_int("nperseg", nperseg, minimum=_MIN_FRAMES)
+    need = _MIN_FRAMES if nperseg is None else nperseg
+    if n_frames < need:
+        hint = " (transposed? frames go along the first axis)" if n_modes > n_frames else ""
+        why = f"nperseg={nperseg}" if nperseg is not None else "a Welch estimate"
+        raise ValueError(
+            f"telemetry (measurements, commands) must have shape (n_frames, n_modes) with "
+            f"n_frames >= {need} for {why}, got {np.shape(measurements)}{hint}"
+        )
     if nperseg is None:
         nperseg = min(n_frames, 1024)
-    nperseg = check_int("nperseg", nperseg, minimum=8)
-    if n_frames < nperseg:
-        raise ValueError(
-            f"measurements must have at least nperseg={nperseg} frames, got {n_frames}"
-        )
     try:
         lo, hi = (float(x) for x in noise_band)
     except (TypeError, ValueError) as exc:
