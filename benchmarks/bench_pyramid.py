@@ -22,9 +22,17 @@ Install it in a separate virtualenv and point ``--oopao-python`` at its interpre
     python3 -m venv /work/oopao-venv && /work/oopao-venv/bin/pip install oopao
     .venv/bin/python benchmarks/bench_pyramid.py --oopao-python /work/oopao-venv/bin/python
 
+Like for like: ``--precision single|double`` (default single) sets the FFT precision of both
+codes (ours: ``PyramidWFS(precision=...)``; OOPAO: ``OOPAO_PRECISION=32|64``, which
+``--oopao-precision`` overrides). OOPAO's focal-plane image, unused in a closed loop, is switched
+off (``wfs.compute_focal_plane = False``, as OOPAO recommends for closed loops; it costs OOPAO
+7-14 % per frame); ``--oopao-focal-plane`` turns it back on. ``--repeats N`` runs each code N
+times in fresh processes, alternating (ours, OOPAO, ours, ...), so slow phases of a shared
+machine hit both; the table gives each code's median with its spread (min-max, in % of the
+median) and the ratio of the medians, then the median and range of the per-repeat ratios.
+
 Without ``--oopao-python`` the OOPAO half is skipped with a message. ``--quick`` runs a small
-configuration (smoke test). OOPAO runs in double precision by default (its default);
-``--oopao-precision 32`` selects its single-precision mode.
+configuration (smoke test).
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ import argparse
 import json
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import time
@@ -88,6 +97,7 @@ def run_ours(args: argparse.Namespace) -> dict:
         wavelength,
         n_subapertures=c["n_subap"],
         modulation=c["modulation"],
+        precision=args.precision,
         workers=args.threads,
     )
     _ = wfs.reference_signals
@@ -148,12 +158,14 @@ def run_ours(args: argparse.Namespace) -> dict:
         n_fft=wfs.n_fft,
         n_points=wfs.n_points,
         push_pull=True,
+        precision=args.precision,
     )
 
 
 # --------------------------------------------------------------------------------- OOPAO
 def run_oopao(args: argparse.Namespace) -> dict:
-    os.environ.setdefault("OOPAO_PRECISION", str(args.oopao_precision))
+    precision = args.oopao_precision or (32 if args.precision == "single" else 64)
+    os.environ["OOPAO_PRECISION"] = str(precision)
     os.environ.setdefault("OOPAO_BACKEND", "cpu")
     import numpy as np
     from OOPAO.Atmosphere import Atmosphere
@@ -199,6 +211,8 @@ def run_oopao(args: argparse.Namespace) -> dict:
         nTheta_user_defined=n_points,
     )
     wfs.nJobs = args.threads
+    # the focal-plane image is not used by a closed loop (OOPAO's advice: switch it off)
+    wfs.compute_focal_plane = bool(args.oopao_focal_plane)
     t_wfs = time.perf_counter() - t0
     t0 = time.perf_counter()
     dm = DeformableMirror(
@@ -267,6 +281,7 @@ def run_oopao(args: argparse.Namespace) -> dict:
         n_points=int(wfs.nTheta),
         push_pull=True,
         precision=int(os.environ["OOPAO_PRECISION"]),
+        compute_focal_plane=bool(wfs.compute_focal_plane),
     )
 
 
@@ -285,41 +300,64 @@ def _run_part(python: str, part: str, argv: list[str]) -> dict | str:
     return f"{part} part failed (exit {proc.returncode}):\n" + "\n".join(tail)
 
 
-def _table(ours: dict, ref: dict | None) -> str:
-    rows = [
-        ("closed loop [frames/s, wall]", "loop_fps", True),
-        ("closed loop [frames/s, CPU time]", "loop_fps_cpu", True),
-        ("pyramid alone [frames/s, wall]", "wfs_fps", True),
-        ("pyramid alone [frames/s, CPU time]", "wfs_fps_cpu", True),
-        ("modal basis [s]", "t_modes", False),
-        ("interaction matrix [s]", "t_imat", False),
-        ("calibration total [s]", "t_calibration", False),
-        ("peak memory, calibration [MB]", "peak_mb_calibration", False),
-        ("peak memory, whole run [MB]", "peak_mb", False),
-        ("closed-loop residual [nm RMS]", "residual_nm", None),
+ROWS = [
+    ("closed loop [frames/s, wall]", "loop_fps", True),
+    ("closed loop [frames/s, CPU time]", "loop_fps_cpu", True),
+    ("pyramid alone [frames/s, wall]", "wfs_fps", True),
+    ("pyramid alone [frames/s, CPU time]", "wfs_fps_cpu", True),
+    ("modal basis [s]", "t_modes", False),
+    ("interaction matrix [s]", "t_imat", False),
+    ("calibration total [s]", "t_calibration", False),
+    ("peak memory, calibration [MB]", "peak_mb_calibration", False),
+    ("peak memory, whole run [MB]", "peak_mb", False),
+    ("closed-loop residual [nm RMS]", "residual_nm", None),
+]
+
+
+def _median_spread(values: list[float]) -> tuple[float, float]:
+    """Median and spread (max - min) in % of the median."""
+    med = statistics.median(values)
+    return med, (100.0 * (max(values) - min(values)) / med if med else 0.0)
+
+
+def _cell(values: list[float]) -> str:
+    med, spread = _median_spread(values)
+    return f"{med:10.3g} ±{spread:3.0f}%" if len(values) > 1 else f"{med:10.3g}     "
+
+
+def _table(ours: list[dict], ref: list[dict] | None) -> str:
+    """Median (spread) per code, ratio of medians, and median [range] of per-repeat ratios."""
+    out = [
+        f"{'':34s}{'aocontrol':>16s}{'OOPAO':>16s}{'ratio':>9s}   per-repeat ratio",
     ]
-    out = [f"{'':34s}{'aocontrol':>12s}{'OOPAO':>12s}{'ratio':>10s}"]
-    for label, key, higher_better in rows:
-        a = ours[key]
+    for label, key, higher_better in ROWS:
+        a = [r[key] for r in ours]
         if ref is None:
-            out.append(f"{label:34s}{a:12.3g}{'-':>12s}{'-':>10s}")
+            out.append(f"{label:34s}{_cell(a):>16s}{'-':>16s}{'-':>9s}")
             continue
-        b = ref[key]
+        b = [r[key] for r in ref]
         if higher_better is None:
-            ratio = "-"
-        elif higher_better:
-            ratio = f"{a / b:9.2f}x"
-        else:
-            ratio = f"{b / a:9.2f}x"
-        out.append(f"{label:34s}{a:12.3g}{b:12.3g}{ratio:>10s}")
+            out.append(f"{label:34s}{_cell(a):>16s}{_cell(b):>16s}{'-':>9s}")
+            continue
+        ma, mb = statistics.median(a), statistics.median(b)
+        ratio = ma / mb if higher_better else mb / ma
+        pairs = [x / y if higher_better else y / x for x, y in zip(a, b, strict=False)]
+        per = (
+            f"{statistics.median(pairs):.2f} [{min(pairs):.2f}, {max(pairs):.2f}]"
+            if len(pairs) > 1
+            else ""
+        )
+        out.append(f"{label:34s}{_cell(a):>16s}{_cell(b):>16s}{ratio:8.2f}x   {per}")
+    last = ours[-1]
     out.append(
         f"aocontrol interaction matrix by exact derivative (one propagation per mode): "
-        f"{ours['t_imat_derivative']:.3g} s, relative difference from push-pull "
-        f"{ours['imat_derivative_rel_diff']:.1e}"
+        f"{last['t_imat_derivative']:.3g} s, relative difference from push-pull "
+        f"{last['imat_derivative_rel_diff']:.1e}"
     )
     out.append(
-        "ratio: how many times faster / smaller aocontrol is (OOPAO / aocontrol for "
-        "times and memory, aocontrol / OOPAO for rates)"
+        "ratio: how many times faster / smaller aocontrol is (OOPAO / aocontrol for times and "
+        "memory, aocontrol / OOPAO for rates), from the medians over the repeats; ± is the "
+        "spread (max - min) over the repeats in % of the median"
     )
     return "\n".join(out)
 
@@ -330,7 +368,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--oopao-python", default=None, help="interpreter of a virtualenv with OOPAO installed"
     )
-    parser.add_argument("--oopao-precision", type=int, choices=[32, 64], default=64)
+    parser.add_argument(
+        "--precision",
+        choices=["single", "double"],
+        default="single",
+        help="FFT precision of both codes (like for like)",
+    )
+    parser.add_argument(
+        "--oopao-precision",
+        type=int,
+        choices=[32, 64],
+        default=None,
+        help="override OOPAO's precision (default: follows --precision)",
+    )
+    parser.add_argument(
+        "--oopao-focal-plane",
+        action="store_true",
+        help="keep OOPAO's focal-plane image (off by default: unused in a closed loop)",
+    )
+    parser.add_argument("--repeats", type=int, default=None, help="alternating repeats (3)")
     parser.add_argument("--n-pix", type=int, default=80)
     parser.add_argument("--n-subap", type=int, default=40)
     parser.add_argument("--n-actuators", type=int, default=28)
@@ -342,6 +398,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     raw = sys.argv[1:] if argv is None else list(argv)
+    repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
+    if repeats < 1:
+        parser.error(f"--repeats must be >= 1, got {repeats}")
 
     if args.part in ("ours", "oopao"):
         result = run_ours(args) if args.part == "ours" else run_oopao(args)
@@ -349,27 +408,45 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     passthrough = [a for a in raw if a not in ("--part", "all")]
-    if "--oopao-python" in passthrough:
-        i = passthrough.index("--oopao-python")
-        del passthrough[i : i + 2]
-    print(f"configuration: {_config(args)}, threads={args.threads}", flush=True)
-    ours = _run_part(sys.executable, "ours", passthrough)
-    if isinstance(ours, str):
-        print(ours)
-        return 1
-    ref = None
+    for opt in ("--oopao-python", "--repeats"):
+        if opt in passthrough:
+            i = passthrough.index(opt)
+            del passthrough[i : i + 2]
+    print(
+        f"configuration: {_config(args)}, threads={args.threads}, precision={args.precision}, "
+        f"OOPAO focal plane {'on' if args.oopao_focal_plane else 'off'}, repeats={repeats}",
+        flush=True,
+    )
+    with_oopao = args.oopao_python is not None and os.path.exists(args.oopao_python)
     if args.oopao_python is None:
         print(
             "OOPAO part skipped: pass --oopao-python /path/to/venv/bin/python (a virtualenv "
             "with `pip install oopao`) to measure it side by side."
         )
-    elif not os.path.exists(args.oopao_python):
+    elif not with_oopao:
         print(f"OOPAO part skipped: {args.oopao_python} does not exist.")
-    else:
-        ref = _run_part(args.oopao_python, "oopao", passthrough)
-        if isinstance(ref, str):
-            print("OOPAO part skipped:", ref)
-            ref = None
+    ours: list[dict] = []
+    ref: list[dict] | None = [] if with_oopao else None
+    for k in range(repeats):  # alternate, each in a fresh process
+        mine = _run_part(sys.executable, "ours", passthrough)
+        if isinstance(mine, str):
+            print(mine)
+            return 1
+        ours.append(mine)
+        print(
+            f"repeat {k + 1}/{repeats}: aocontrol loop {mine['loop_fps']:.3g} frames/s", flush=True
+        )
+        if ref is not None:
+            theirs = _run_part(args.oopao_python, "oopao", passthrough)
+            if isinstance(theirs, str):
+                print("OOPAO part skipped:", theirs)
+                ref = None
+                continue
+            ref.append(theirs)
+            print(
+                f"repeat {k + 1}/{repeats}: OOPAO loop {theirs['loop_fps']:.3g} frames/s",
+                flush=True,
+            )
     print(json.dumps({"aocontrol": ours, "OOPAO": ref}, indent=1))
     print(_table(ours, ref))
     return 0
