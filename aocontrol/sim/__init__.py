@@ -10,13 +10,16 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
 from aocontrol.sim.loop import (
+    CascadeResult,
     DiffractiveSensor,
     LinearModalSensor,
     LoopDivergedError,
     LoopResult,
     ModalTimeSeries,
+    PhaseSource,
     Stage,
     TurbulenceSource,
+    run_cascade,
     run_loop,
 )
 from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
@@ -65,6 +68,9 @@ __all__ = [
     "Stage",
     "TurbulenceSource",
     "run_loop",
+    "run_cascade",
+    "CascadeResult",
+    "PhaseSource",
     "Pupil",
     "vlt_pupil",
     "DeformableMirror",

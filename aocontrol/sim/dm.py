@@ -1,5 +1,9 @@
 """Deformable mirror: square actuator grid with Gaussian influence functions, stroke clipping.
 
+:class:`DeformableMirror` is the physical mirror (geometry, influence functions, fit);
+:class:`ModalDM` is a simulator stage's mirror in modal space, the one owner of the stroke
+(modal and actuator limits, saturation counts); both clip through :func:`clip_to_stroke`.
+
 Conventions: commands are in nm -- a unit command on one actuator raises the optical path by
 1 nm at that actuator's centre (the influence function is normalised to a peak of 1), so
 commands, stroke and phase maps share one unit (OPD in nm, wavelength independent). Command
@@ -30,6 +34,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -44,6 +49,9 @@ from aocontrol.sim.pupil import Pupil
 
 __all__ = [
     "DeformableMirror",
+    "ModalDM",
+    "ModalDMState",
+    "clip_to_stroke",
     "MIN_PIXELS_PER_PITCH",
     "SAXO_N_ACTUATORS",
     "SAXO_PLUS_N_ACTUATORS",
@@ -280,9 +288,169 @@ class DeformableMirror:
             )
         if self.stroke is None:
             return c, np.zeros(c.shape[:-1], dtype=int)
-        over = np.abs(c) > self.stroke
-        np.clip(c, -self.stroke, self.stroke, out=c)
-        return c, over.sum(axis=-1)
+        clipped, over = clip_to_stroke(c, self.stroke)
+        return clipped, over.sum(axis=-1)
+
+
+def clip_to_stroke(values: np.ndarray, stroke: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """Clip values to ``[-stroke, stroke]``: the one stroke-clipping implementation.
+
+    Parameters
+    ----------
+    values : ndarray, shape (..., n)
+        Commands [nm] (modal coefficients or actuator commands).
+    stroke : float or ndarray, shape (n,)
+        Limit per entry [nm], > 0.
+
+    Returns
+    -------
+    clipped : ndarray, shape (..., n)
+        The clipped values (a new array).
+    over : ndarray of bool, shape (..., n)
+        Where ``|values| > stroke``.
+    """
+    over = np.abs(values) > stroke
+    return np.clip(values, -stroke, stroke), over
+
+
+@dataclass(frozen=True, eq=False)
+class ModalDM:
+    """The DM of a simulator stage in modal space: owns the stroke and clips the commands.
+
+    A modal command ``u`` (n_modes,) [nm RMS per mode] is clipped first per mode to
+    ``stroke`` (modal limit), then, with ``actuator_stroke``, in actuator space: the actuator
+    commands ``m2c @ u`` are clipped to ``+-actuator_stroke`` and projected back on the modes
+    (least squares, ``pinv(m2c)``); the part of the clipped shape outside the modes is
+    dropped (approximation of the modal simulator). Saturations are counted in a
+    :class:`ModalDMState` (per mode: frames with a clipped mode or a clipped actuator the
+    mode drives; per actuator: clipped frames).
+
+    Parameters
+    ----------
+    n_modes : int
+        Number of modes commanded.
+    stroke : float or array_like (n_modes,), optional
+        Modal command limit [nm RMS], finite and > 0; ``None`` for no modal limit.
+    actuator_stroke : float, optional
+        Actuator stroke [nm of command], finite and > 0 (3200 for the SAXO+ stage-2 DM,
+        +-3.2 um); needs ``m2c``. ``None`` for no actuator limit.
+    m2c : array_like (n_act, n_modes), optional
+        Modes-to-commands matrix (``ModalBasis.m2c``).
+
+    Raises
+    ------
+    ValueError
+        Non-finite or non-positive strokes, or ``m2c`` missing or of the wrong shape.
+    """
+
+    n_modes: int
+    stroke: Any = None
+    actuator_stroke: float | None = None
+    m2c: Any = None
+
+    def __post_init__(self) -> None:
+        n = check_int("n_modes", self.n_modes, minimum=1)
+        if self.stroke is not None:
+            s = check_finite_array("stroke", self.stroke, ndim=(0, 1))
+            if s.ndim == 1 and s.shape != (n,):
+                raise ValueError(f"stroke must be a float or have shape ({n},), got {s.shape}")
+            if np.any(s <= 0):
+                raise ValueError(f"stroke must be > 0 [nm] for every mode, got min {s.min()!r}")
+            s = np.broadcast_to(s, (n,)).copy()
+            s.setflags(write=False)
+            object.__setattr__(self, "stroke", s)
+        if self.actuator_stroke is not None:
+            object.__setattr__(
+                self, "actuator_stroke", check_positive("actuator_stroke", self.actuator_stroke)
+            )
+            m2c = None if self.m2c is None else check_finite_array("m2c", self.m2c, ndim=2)
+            if m2c is None or m2c.shape[1] != n:
+                raise ValueError(
+                    f"actuator_stroke needs m2c of shape (n_act, n_modes) with n_modes={n}, "
+                    f"got {None if m2c is None else m2c.shape}"
+                )
+            m2c = m2c.copy()
+            m2c.setflags(write=False)
+            object.__setattr__(self, "m2c", m2c)
+        elif self.m2c is not None:
+            m2c = check_finite_array("m2c", self.m2c, ndim=2).copy()
+            m2c.setflags(write=False)
+            object.__setattr__(self, "m2c", m2c)
+
+    @property
+    def limited(self) -> bool:
+        """Whether any stroke limit applies."""
+        return self.stroke is not None or self.actuator_stroke is not None
+
+    @property
+    def n_act(self) -> int | None:
+        """Actuators (rows of ``m2c``), or ``None`` without ``m2c``."""
+        return None if self.m2c is None else int(self.m2c.shape[0])
+
+    @cached_property
+    def c2m(self) -> np.ndarray:
+        """Commands-to-modes matrix ``pinv(m2c)``, shape ``(n_modes, n_act)``."""
+        if self.m2c is None:
+            raise ValueError("c2m needs m2c")
+        out = np.linalg.pinv(self.m2c)
+        out.setflags(write=False)
+        return out
+
+    def new_state(self) -> ModalDMState:
+        """Zeroed saturation counters for one run."""
+        return ModalDMState(
+            saturation=np.zeros(self.n_modes, dtype=np.int64),
+            actuator_saturation=(
+                None
+                if self.actuator_stroke is None
+                else np.zeros(self.m2c.shape[0], dtype=np.int64)
+            ),
+        )
+
+    def clip(self, u: np.ndarray, state: ModalDMState) -> np.ndarray:
+        """Clip one modal command to the stroke(s), counting saturations in ``state``.
+
+        Parameters
+        ----------
+        u : ndarray, shape (n_modes,)
+            Modal command [nm].
+        state : ModalDMState
+            Counters updated in place.
+
+        Returns
+        -------
+        ndarray, shape (n_modes,)
+            The command the DM applies (``u`` itself when nothing is clipped).
+        """
+        if self.stroke is not None:
+            clipped, over = clip_to_stroke(u, self.stroke)
+            if over.any():
+                state.saturation += over
+                u = clipped
+        if self.actuator_stroke is not None:
+            clipped, over = clip_to_stroke(self.m2c @ u, self.actuator_stroke)
+            if over.any():
+                state.actuator_saturation += over
+                c2m = self.c2m
+                state.saturation += np.abs(c2m[:, over]).sum(axis=1) > 0
+                u = c2m @ clipped
+        return u
+
+
+@dataclass
+class ModalDMState:
+    """Saturation counters of a :class:`ModalDM` during one run (mutable).
+
+    Parameters
+    ----------
+    saturation : ndarray (n_modes,) of int
+        Frames in which each mode was clipped (or drives a clipped actuator).
+    actuator_saturation : ndarray (n_act,) of int or None
+        Frames in which each actuator was clipped (with an actuator stroke).
+    """
+
+    saturation: np.ndarray
+    actuator_saturation: np.ndarray | None = None
 
 
 def _as_vectors(pupil: Pupil, data: np.ndarray, name: str) -> np.ndarray:

@@ -3,10 +3,12 @@
 The diffractive models (:class:`PyramidWFS`, :class:`ShackHartmannWFS`) take OPD maps in nm on
 a :class:`~aocontrol.sim.pupil.Pupil` grid and return signal vectors; they serve to calibrate
 (interaction matrix, reconstructor, optical gains, noise propagation per mode) the
-:class:`LinearModalWFS` that the fast modal loop uses: ``measurement = gain * residual + noise``.
+:class:`LinearModalSensor` (alias ``LinearModalWFS``) that the fast modal loop uses:
+``measurement = gain * residual + noise``.
 """
 
 from aocontrol.sim.wfs.calibration import (
+    LinearModalSensor,
     LinearModalWFS,
     WFSCalibration,
     calibrate,
@@ -32,5 +34,6 @@ __all__ = [
     "fitting_residual_screens",
     "calibrate",
     "WFSCalibration",
+    "LinearModalSensor",
     "LinearModalWFS",
 ]

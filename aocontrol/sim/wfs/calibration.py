@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -42,6 +42,7 @@ __all__ = [
     "white_noise_propagation",
     "WFSCalibration",
     "calibrate",
+    "LinearModalSensor",
     "LinearModalWFS",
 ]
 
@@ -422,44 +423,64 @@ def calibrate(
 
 
 @dataclass(frozen=True, eq=False)
-class LinearModalWFS:
-    """Linear modal WFS of the fast loop: ``measurement = optical_gain * residual + noise``.
+class LinearModalSensor:
+    """The linear modal WFS of the fast loop: ``measurement = optical_gain * residual + noise``.
+
+    The one linear modal sensor class of the project (``LinearModalWFS`` is the same class):
+    the simulator's stages take it directly, and :meth:`from_diffractive` /
+    :meth:`from_calibration` derive it from a diffractive WFS model. It implements the sensor
+    protocol of :mod:`aocontrol.sim.loop` (``measure(residual, rng)``, ``senses_phase``
+    False: it senses modal coefficients, not phase maps).
 
     Parameters
     ----------
-    optical_gain : array_like, shape (n_modes,)
-        Per-mode optical gain (dimensionless; 1 = diffraction-limited calibration).
-    noise_std : array_like, shape (n_modes,)
-        Per-mode measurement noise standard deviation [nm RMS], white, independent between
-        modes and frames.
+    optical_gain : float or array_like, shape (n_modes,)
+        Per-mode optical gain (dimensionless, finite and > 0; 1 = diffraction-limited
+        calibration). A scalar applies to every mode.
+    noise_std : float or array_like, shape (n_modes,)
+        Per-mode measurement noise standard deviation [nm RMS] (finite, >= 0), white,
+        independent between modes and frames. A scalar applies to every mode.
     calibration : WFSCalibration, optional
         The calibration it was derived from (kept for reference, not compared).
 
+    Raises
+    ------
+    ValueError
+        If a value is not finite, an optical gain is <= 0, a noise level < 0, or both
+        arguments are arrays of different lengths.
+
     Notes
     -----
-    The loop (:mod:`aocontrol.sim.loop`) accepts any sensor with ``optical_gain`` and
-    ``noise_std`` attributes, so an instance can be passed as a stage's sensor directly.
     The modal noise of a real WFS is slightly correlated between modes; this model keeps its
     per-mode variance only.
 
     Examples
     --------
-    >>> wfs = LinearModalWFS(optical_gain=[1.0, 0.5], noise_std=[0.0, 0.0])
+    >>> wfs = LinearModalSensor(optical_gain=[1.0, 0.5], noise_std=[0.0, 0.0])
     >>> wfs.measure(np.array([2.0, 2.0]), np.random.default_rng(0))
     array([2., 1.])
     """
 
-    optical_gain: np.ndarray
-    noise_std: np.ndarray
+    optical_gain: Any = 1.0
+    noise_std: Any = 0.0
     calibration: WFSCalibration | None = field(default=None, repr=False, compare=False)
 
+    #: Sensor protocol: this sensor measures modal residuals, not phase maps.
+    senses_phase: ClassVar[bool] = False
+
     def __post_init__(self) -> None:
-        g = check_finite_array("optical_gain", self.optical_gain, ndim=1)
-        s = check_finite_array("noise_std", self.noise_std, ndim=1)
-        if g.shape != s.shape:
+        g = check_finite_array("optical_gain", self.optical_gain, ndim=(0, 1)).copy()
+        s = check_finite_array("noise_std", self.noise_std, ndim=(0, 1)).copy()
+        if g.ndim == 1 and s.ndim == 1 and g.shape != s.shape:
             raise ValueError(
                 f"optical_gain and noise_std must have the same shape (n_modes,), "
                 f"got {g.shape} and {s.shape}"
+            )
+        if g.size == 0 or s.size == 0:
+            raise ValueError("optical_gain and noise_std must not be empty")
+        if np.any(g <= 0):
+            raise ValueError(
+                f"optical_gain must be finite and > 0 for every mode, found min {g.min()!r}"
             )
         if np.any(s < 0):
             raise ValueError(f"noise_std must be >= 0 [nm], found min {s.min()!r}")
@@ -469,8 +490,35 @@ class LinearModalWFS:
         object.__setattr__(self, "noise_std", s)
 
     @property
-    def n_modes(self) -> int:
-        return int(self.optical_gain.size)
+    def n_modes(self) -> int | None:
+        """Number of modes, or ``None`` when both parameters are scalars (any count)."""
+        sizes = {a.size for a in (self.optical_gain, self.noise_std) if a.ndim == 1}
+        return sizes.pop() if sizes else None
+
+    def arrays(self, n_modes: int) -> tuple[np.ndarray, np.ndarray]:
+        """Optical gains and noise levels broadcast to ``n_modes``.
+
+        Parameters
+        ----------
+        n_modes : int
+            Modes of the stage using the sensor.
+
+        Returns
+        -------
+        optical_gain, noise_std : ndarray, shape (n_modes,)
+            Dimensionless gains and noise standard deviations [nm].
+
+        Raises
+        ------
+        ValueError
+            If the sensor has a different number of modes.
+        """
+        n_modes = check_int("n_modes", n_modes, minimum=1)
+        if self.n_modes is not None and self.n_modes != n_modes:
+            raise ValueError(f"the sensor has {self.n_modes} modes, the controller has {n_modes}")
+        og = np.broadcast_to(self.optical_gain, (n_modes,))
+        ns = np.broadcast_to(self.noise_std, (n_modes,))
+        return og, ns
 
     def measure(self, residual: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Modal measurements [nm] of residual coefficients.
@@ -480,16 +528,19 @@ class LinearModalWFS:
         residual : array_like, shape (n_modes,) or (n_frames, n_modes)
             Residual modal coefficients [nm RMS].
         rng : numpy.random.Generator
+            Source of the measurement noise.
 
         Returns
         -------
         ndarray, same shape as ``residual``
+            ``optical_gain * residual + noise_std * N(0, 1)`` [nm].
         """
         x = np.asarray(residual, dtype=float)
-        if x.shape[-1:] != (self.n_modes,) or x.ndim > 2:
+        n = self.n_modes
+        if x.ndim not in (1, 2) or (n is not None and x.shape[-1] != n):
             raise ValueError(
                 f"residual must have shape (n_modes,) or (n_frames, n_modes) with "
-                f"n_modes={self.n_modes}, got {x.shape}"
+                f"n_modes={n}, got {x.shape}"
             )
         if not isinstance(rng, np.random.Generator):
             raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
@@ -502,7 +553,7 @@ class LinearModalWFS:
         photons_per_frame: float,
         read_noise: float,
         optical_gain: np.ndarray | None = None,
-    ) -> LinearModalWFS:
+    ) -> LinearModalSensor:
         """Linear model from a :class:`WFSCalibration` at a given flux and read noise.
 
         ``photons_per_frame`` [e-] and ``read_noise`` [e- RMS per pixel] as for
@@ -524,7 +575,7 @@ class LinearModalWFS:
         residual_opd: np.ndarray | None = None,
         n_modes: int | None = None,
         max_condition: float | None = None,
-    ) -> LinearModalWFS:
+    ) -> LinearModalSensor:
         """Calibrate a diffractive WFS and return the equivalent linear modal model.
 
         Parameters
@@ -551,3 +602,7 @@ class LinearModalWFS:
                 wfs, basis_or_modes, residual_opd, amplitude=amplitude, recon=cal.recon
             )
         return cls.from_calibration(cal, photons_per_frame, read_noise, optical_gain=gains)
+
+
+#: The same class under the name used by the WFS calibration code.
+LinearModalWFS = LinearModalSensor

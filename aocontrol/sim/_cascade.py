@@ -1,0 +1,354 @@
+"""Two AO stages cascaded on one fast clock: ``standalone`` and ``dcao`` (standalone+).
+
+Clock: the fast clock is stage 2's rate ``fs2``; stage 1 runs at ``fs1 = fs2 / R`` with an
+integer ratio ``R``. Stage-1 frame ``j`` covers the fast frames ``jR ... jR + R - 1``.
+
+Per chunk of fast frames the phase ``phi`` (valid pupil pixels, nm) of the disturbance source
+is projected once on both bases (one matrix product, float32 -- relative rounding ~1e-7 of
+the largest coefficient, far below any AO residual; float32 halves the dominant cost), giving
+``d1`` (stage-1 modes) and ``d2`` (stage-2 modes). Then:
+
+* **stage 1** (its own rate, independent of stage 2): its WFS integrates the residual over
+  its frame, i.e. sees the mean of ``d1 - y1`` over the frame's ``R`` fast frames; its plant
+  timing (``split_latency`` of its latency, in its own frames) applies at its own rate; its DM
+  shape ``y1`` is held over the ``R`` fast frames of its frame. With ``R = 1`` this is
+  exactly the single-stage loop.
+* **projection** ``P = basis2.modes @ basis1.modes.T / n_valid`` (stage-1 modes to stage-2
+  modes over the pupil, computed once): the residual left by stage 1 in stage-2 modes is
+  ``r2 = d2 - P y1``.
+* **stage 2** (fast rate) measures its residual ``e2 = r2 - y2_dm``.
+  *standalone*: ``y2_dm = delay(u2)`` (the single-stage DM, stroke clipped on the command).
+  *dcao*: stage 2's DM adds ``-P y1`` (stage 1's DM shape projected on stage-2 modes),
+  synchronous with stage 1's DM: ``y2_dm = delay(u2) - P y1``, so ``e2 = d2 - delay(u2)``:
+  stage 2 sees the full disturbance ``d2`` in its modes. With a stroke the DM clips the total
+  shape ``y2_dm`` (what the mirror must produce), not ``u2``.
+* **science**: residual phase ``phi - B1 y1 - B2 y2_dm`` (everything outside both bases,
+  fitting error included, stays), formed only for the science frames (every
+  ``science_every`` fast frames after settling).
+
+Telemetry of stage 2: ``commands`` is the controller output ``u2`` (before the dCAO term),
+``measurements`` ``m2``, ``dm`` ``y2_dm``, ``residuals`` ``e2``, ``disturbance`` its input:
+``r2`` in standalone, ``d2`` in dCAO. So
+``aocontrol.synthesis.disturbance_from_telemetry(m2, u2, G2)`` gives the pseudo-open loop
+``d2 - P y1`` (standalone) or ``d2`` (dCAO). Stage 1's telemetry is per stage-1 frame: the
+frame means of ``d1`` and ``e1``, its measurements, commands and (held) DM shape.
+
+Only linear modal sensors (:class:`~aocontrol.sim.wfs.LinearModalSensor`) are supported in a
+cascade: a :class:`~aocontrol.sim._stage.DiffractiveSensor` would need the residual phase map
+of every frame (two syntheses and a WFS model per fast frame); calibrate it into a linear
+model with ``LinearModalSensor.from_diffractive``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from aocontrol._validation import check_int
+from aocontrol.sim._result import TELEMETRY, CascadeResult
+from aocontrol.sim._runner import (
+    _check_common,
+    _check_finite_disturbance,
+    _settle,
+    _StageRun,
+)
+from aocontrol.sim._sources import PhaseDisturbance, check_rate
+from aocontrol.sim._stage import Stage
+
+__all__ = ["run_cascade", "projection_matrix", "SCHEMES"]
+
+#: Cascade schemes.
+SCHEMES = ("standalone", "dcao")
+# Relative tolerance for an integer rate ratio (floating-point noise of the rates).
+_RATIO_RTOL = 1e-9
+# Precision of the per-chunk projection and science synthesis (see the module docstring).
+_PROJECTION_DTYPE = np.float32
+
+
+def projection_matrix(basis_from: Any, basis_to: Any) -> np.ndarray:
+    """Projection of one modal basis on another over the pupil.
+
+    Parameters
+    ----------
+    basis_from : ModalBasis-like
+        Source basis, ``modes`` (n_from, n_valid), orthonormal (``modes @ modes.T / n_valid =
+        I``).
+    basis_to : ModalBasis-like
+        Target basis on the same pupil pixels, ``modes`` (n_to, n_valid).
+
+    Returns
+    -------
+    ndarray, shape (n_to, n_from)
+        ``P = basis_to.modes @ basis_from.modes.T / n_valid``: coefficients in ``basis_to``
+        of the shape of unit coefficients in ``basis_from`` (least squares, exact for
+        orthonormal target modes).
+
+    Raises
+    ------
+    ValueError
+        If the bases are sampled on different numbers of pupil pixels.
+    """
+    a = np.asarray(basis_from.modes, dtype=float)
+    b = np.asarray(basis_to.modes, dtype=float)
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1]:
+        raise ValueError(
+            "both bases must have modes of shape (n_modes, n_valid) on the same pupil, got "
+            f"{a.shape} and {b.shape}"
+        )
+    return b @ a.T / a.shape[1]
+
+
+def _rate_ratio(stage1: Stage, stage2: Stage) -> int:
+    ratio = stage2.fs / stage1.fs
+    r = int(round(ratio))
+    if r < 1 or abs(ratio - r) > _RATIO_RTOL * ratio:
+        raise ValueError(
+            f"stage 2's rate must be an integer multiple of stage 1's: fs2={stage2.fs:g} Hz, "
+            f"fs1={stage1.fs:g} Hz, ratio {ratio:.6g}"
+        )
+    return r
+
+
+def _linear_arrays(stage: Stage, which: str) -> tuple[np.ndarray, np.ndarray]:
+    if stage.senses_phase:
+        raise ValueError(
+            f"{which} ({stage.name!r}) has a DiffractiveSensor: run_cascade supports linear "
+            "modal sensors only (use LinearModalSensor.from_diffractive to calibrate one)"
+        )
+    return stage.sensor.arrays(stage.n_modes)
+
+
+def run_cascade(
+    stage1: Stage,
+    stage2: Stage,
+    disturbance: PhaseDisturbance,
+    n_frames: int,
+    *,
+    scheme: str,
+    basis1: Any,
+    basis2: Any,
+    rng: np.random.Generator | int | None = None,
+    science: Any = None,
+    science_every: int = 10,
+    record: tuple[str, ...] = TELEMETRY,
+    settle_frames: int | None = None,
+    chunk: int = 1200,
+    progress: bool = False,
+    metadata: dict | None = None,
+) -> CascadeResult:
+    """Run two cascaded AO stages in closed loop (see the module docstring for the model).
+
+    Parameters
+    ----------
+    stage1 : Stage
+        First (slow) stage, rate ``fs1`` [Hz], modes of ``basis1``, linear modal sensor.
+    stage2 : Stage
+        Second (fast) stage, rate ``fs2 = R fs1`` (integer ``R``) [Hz], modes of ``basis2``.
+    disturbance : PhaseDisturbance
+        Phase on the valid pupil pixels at ``fs2`` (``fs`` and ``phase_vectors(n)``): an
+        :class:`~aocontrol.sim.atmosphere.Atmosphere`, a
+        :class:`~aocontrol.sim.loop.PhaseSource` (e.g. with a tilt vibration) or a
+        :class:`~aocontrol.sim.loop.TurbulenceSource`.
+    n_frames : int
+        Fast (stage-2) frames to run, a multiple of ``R``.
+    scheme : {"standalone", "dcao"}
+        Cascade scheme.
+    basis1, basis2 : ModalBasis-like
+        The stages' modal bases (``modes`` (n_modes, n_valid), ``synthesize``, ``pupil``), on
+        the disturbance's pupil pixels.
+    rng : numpy.random.Generator or int, optional
+        Source of the measurement noise (required when a sensor is noisy); stage 1 and stage
+        2 draw from two independent children (``rng.spawn(2)``).
+    science : object with ``add(maps (n, n_pix, n_pix))`` and ``result()``, optional
+        Long-exposure accumulator, fed every ``science_every`` fast frames after settling
+        with the residual phase after both stages.
+    science_every : int
+        Fast frames between two science frames.
+    record : tuple of str
+        Telemetry kept for both stages (float32), among ``disturbance, measurements,
+        commands, dm, residuals``.
+    settle_frames : int, optional
+        Fast frames excluded from the statistics and the science (default 1 % of the run, at
+        least 20), rounded up to a multiple of ``R``.
+    chunk : int
+        Fast frames generated and projected at once, rounded up to a multiple of ``R``.
+    progress : bool
+        Show a tqdm progress bar.
+    metadata : dict, optional
+        Case/controller settings stored with the result.
+
+    Returns
+    -------
+    CascadeResult
+        ``stages[0]`` at ``fs1`` in ``basis1`` modes, ``stages[1]`` at ``fs2`` in ``basis2``
+        modes, ``science`` after both stages.
+
+    Raises
+    ------
+    ValueError
+        Unknown scheme, non-integer rate ratio, a disturbance at another rate or not finite,
+        mismatched bases, ``n_frames`` not a multiple of ``R``, a diffractive sensor.
+    LoopDivergedError
+        If either stage diverges (named, with the frame of its own rate and the modes).
+    """
+    if scheme not in SCHEMES:
+        raise ValueError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+    for name, st in (("stage1", stage1), ("stage2", stage2)):
+        if not isinstance(st, Stage):
+            raise TypeError(f"{name} must be a Stage, got {type(st).__name__}")
+    n_frames, chunk, science_every = _check_common(n_frames, chunk, science_every, record)
+    ratio = _rate_ratio(stage1, stage2)
+    if n_frames % ratio:
+        raise ValueError(
+            f"n_frames={n_frames} (fast frames) must be a multiple of the rate ratio {ratio}"
+        )
+    if not isinstance(disturbance, PhaseDisturbance):
+        raise TypeError(
+            "disturbance must provide fs and phase_vectors(n_frames) (phase on the valid "
+            f"pupil pixels), got {type(disturbance).__name__}"
+        )
+    check_rate(disturbance, stage2.fs, f"the fast clock (stage 2, {stage2.name!r})", required=True)
+    n1, n2 = stage1.n_modes, stage2.n_modes
+    for name, basis, n, st in (("basis1", basis1, n1, stage1), ("basis2", basis2, n2, stage2)):
+        if int(basis.n_modes) != n:
+            raise ValueError(f"{name} has {basis.n_modes} modes, {st.name!r} controls {n}")
+    p_mat = projection_matrix(basis1, basis2)
+    n_valid = basis1.modes.shape[1]
+    og1, ns1 = _linear_arrays(stage1, "stage1")
+    og2, ns2 = _linear_arrays(stage2, "stage2")
+    noisy1, noisy2 = bool(np.any(ns1 > 0)), bool(np.any(ns2 > 0))
+    if (noisy1 or noisy2) and rng is None:
+        raise ValueError("rng is required with a noisy sensor (reproducibility)")
+    rng1, rng2 = np.random.default_rng(rng).spawn(2)
+    settle = _settle(n_frames, settle_frames)
+    settle = -(-settle // ratio) * ratio
+    if settle >= n_frames:
+        raise ValueError(
+            f"settle_frames={settle} (rounded up to a multiple of {ratio}) must be < "
+            f"n_frames={n_frames}"
+        )
+    chunk = -(-chunk // ratio) * ratio
+    check_int("chunk", chunk, minimum=1)
+    dcao = scheme == "dcao"
+
+    run1 = _StageRun(
+        stage1,
+        n_frames=n_frames // ratio,
+        record=record,
+        settle=settle // ratio,
+        optical_gain=og1,
+        noise_std=ns1,
+        accumulate=False,
+    )
+    run2 = _StageRun(
+        stage2, n_frames=n_frames, record=record, settle=settle, optical_gain=og2, noise_std=ns2
+    )
+    # One product projects on both bases; one synthesises both DM shapes for the science.
+    modes_all = np.concatenate([basis1.modes, basis2.modes], axis=0)
+    proj = (modes_all.T / n_valid).astype(_PROJECTION_DTYPE)
+    synth = modes_all.astype(_PROJECTION_DTYPE) if science is not None else None
+    sum_e1 = np.zeros(n1)
+    sum_d1 = np.zeros(n1)
+    e1_prev = np.zeros(n1)
+    e2_prev = np.zeros(n2)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n_frames, desc=f"{scheme} cascade", unit="frame")
+    k = 0
+    try:
+        while k < n_frames:
+            m = min(chunk, n_frames - k)
+            ns = m // ratio
+            phase = np.asarray(disturbance.phase_vectors(m))
+            if phase.shape != (m, n_valid):
+                raise ValueError(
+                    f"the disturbance gave phase of shape {phase.shape}, expected ({m}, "
+                    f"{n_valid}) (frames, valid pupil pixels of the bases)"
+                )
+            coeffs = (phase.astype(_PROJECTION_DTYPE) @ proj).astype(float)
+            _check_finite_disturbance(coeffs, k, "disturbance (phase)")
+            d1, d2 = coeffs[:, :n1], coeffs[:, n1:]
+
+            # Stage 1 at its own rate on the frame means of its disturbance.
+            d1_avg = d1.reshape(ns, ratio, n1).mean(axis=1)
+            noise1 = rng1.standard_normal((ns, n1)) * ns1 if noisy1 else np.zeros((ns, n1))
+            run1.begin_chunk(d1_avg, ns)
+            y1s = np.empty((ns, n1))
+            for j in range(ns):
+                e1_prev, y1s[j] = run1.frame(og1 * e1_prev + noise1[j], d1_avg[j], j)
+            run1.end_chunk(d1_avg, k // ratio)
+            y1 = np.repeat(y1s, ratio, axis=0) if ratio > 1 else y1s
+            first_stat = max(settle - k, 0)
+            if first_stat < m:
+                e1 = d1[first_stat:] - y1[first_stat:]
+                sum_e1 += np.einsum("ij,ij->j", e1, e1)
+                sum_d1 += np.einsum("ij,ij->j", d1[first_stat:], d1[first_stat:])
+
+            # Stage 2 at the fast rate on the residual of stage 1 in its modes.
+            py1s = y1s @ p_mat.T
+            py1 = np.repeat(py1s, ratio, axis=0) if ratio > 1 else py1s
+            r2 = d2 - py1
+            d2_rec = d2 if dcao else r2
+            noise2 = rng2.standard_normal((m, n2)) * ns2 if noisy2 else np.zeros((m, n2))
+            run2.begin_chunk(d2_rec, m)
+            want_sci = science is not None
+            y2s = np.empty((m, n2)) if want_sci else None
+            if dcao:
+                neg = -py1
+                for j in range(m):
+                    e2_prev, y2 = run2.frame(
+                        og2 * e2_prev + noise2[j], d2[j], j, r_j=r2[j], offset=neg[j]
+                    )
+                    if want_sci:
+                        y2s[j] = y2
+            else:
+                for j in range(m):
+                    e2_prev, y2 = run2.frame(og2 * e2_prev + noise2[j], r2[j], j)
+                    if want_sci:
+                        y2s[j] = y2
+            run2.end_chunk(d2_rec, k)
+
+            if want_sci:
+                frames = k + np.arange(m)
+                idx = np.flatnonzero((frames >= settle) & (frames % science_every == 0))
+                if idx.size:
+                    shape = np.concatenate([y1[idx], y2s[idx]], axis=1).astype(_PROJECTION_DTYPE)
+                    resid = phase[idx] - (shape @ synth)
+                    science.add(basis2.pupil.to_map(resid))
+            k += m
+            if bar is not None:
+                bar.update(m)
+        run1.finish()
+        run2.finish()
+    finally:
+        if bar is not None:
+            bar.close()
+        stage1.controller.reset()
+        stage2.controller.reset()
+
+    n_stat = n_frames - settle
+    res1 = run1.result(stage1.fs, n_frames // ratio, n_stat, None, metadata)
+    res1 = dataclasses.replace(
+        res1, residual_variance=sum_e1 / n_stat, disturbance_variance=sum_d1 / n_stat
+    )
+    res2 = run2.result(stage2.fs, n_frames, n_stat, None, metadata)
+    result_science = science.result() if science is not None else None
+    meta = dict(
+        metadata or {},
+        scheme=scheme,
+        fs1=stage1.fs,
+        fs2=stage2.fs,
+        rate_ratio=ratio,
+        n_frames=n_frames,
+        settle_frames=settle,
+        science_every=science_every,
+        stages=[stage1.name, stage2.name],
+    )
+    return CascadeResult(
+        scheme=scheme, stages=(res1, res2), science=result_science, metadata=meta, fs=stage2.fs
+    )

@@ -1,0 +1,469 @@
+"""The runner of the simulator: per-frame state of a stage, one- and two-stage loops.
+
+:class:`_StageRun` is the mutable per-run state created from a frozen
+:class:`~aocontrol.sim._stage.Stage` (controller state, the plant's delay line, DM
+saturation counters, telemetry buffers, statistics, divergence guards); it advances one frame
+of the stage's own rate. :func:`run_loop` drives one stage, :func:`run_cascade`
+(:mod:`aocontrol.sim._cascade`) two on the fast clock.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from aocontrol._validation import check_int
+from aocontrol.controllers import IIRBank
+from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
+from aocontrol.sim._sources import DisturbanceSource, check_rate
+from aocontrol.sim._stage import Stage
+
+__all__ = ["run_loop"]
+
+logger = logging.getLogger(__name__)
+
+# A residual larger than this factor times the largest disturbance of any mode (or 10 sigma
+# of the measurement noise, plus 1 nm) seen so far is taken as a diverging loop.
+_DIVERGENCE_FACTOR = 1e3
+# Same guard for the modes whose linear closed loop is unstable (pole outside the unit
+# circle, checked before the run): they are known to diverge, so a residual 10 x the
+# disturbance scale already proves it.
+_UNSTABLE_FACTOR = 10.0
+# Closed-loop pole radius above which a mode is linearly unstable (rounding of the
+# eigenvalues of a companion matrix of a few dozen coefficients: ~1e-12).
+_POLE_RADIUS_TOL = 1e-9
+# Sustained growth: the residual energy of a mode over successive chunks (of the stage's own
+# frames) growing by more than this factor each time, _GROWTH_CHUNKS times in a row, is a
+# diverging loop (for a stationary stable loop the chunk energies fluctuate by tens of %).
+_GROWTH_FACTOR = 4.0
+_GROWTH_CHUNKS = 4
+# Flat-wavefront measurements used to estimate a diffractive sensor's noise level.
+_NOISE_PROBES = 8
+
+
+def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarray | None:
+    """Largest closed-loop pole modulus per mode of a linear stage, or ``None``.
+
+    The loop of :func:`aocontrol.loop_plant` with the stage's latency, the sensor's optical
+    gain and an :class:`~aocontrol.controllers.IIRBank` controller (the characteristic
+    polynomial ``A_k + og B_g B_k`` in powers of ``z^-1``, roots from batched companion
+    matrices); ``None`` for other controllers.
+
+    Parameters
+    ----------
+    stage : Stage
+        Stage to check.
+    optical_gain : ndarray (n_modes,)
+        Sensor optical gains.
+
+    Returns
+    -------
+    ndarray (n_modes,) or None
+    """
+    ctrl = stage.controller
+    if not isinstance(ctrl, IIRBank):
+        return None
+    k0, frac = stage.delay
+    bg = np.zeros(k0 + 3)
+    bg[k0 + 1] = 1.0 - frac
+    bg[k0 + 2] = frac
+    b, a = ctrl.b, ctrl.a
+    n = ctrl.n_modes
+    length = max(a.shape[1], bg.size + b.shape[1] - 1)
+    char = np.zeros((n, length))
+    char[:, : a.shape[1]] = a
+    # B_g B_k per mode (one shared B_g): a convolution as a sum of shifted copies.
+    for i, g in enumerate(bg):
+        if g:
+            char[:, i : i + b.shape[1]] += (optical_gain * g)[:, None] * b
+    # Trim trailing zero columns (common to every mode) and normalise.
+    nz = np.flatnonzero(np.any(char != 0, axis=0))
+    char = char[:, : nz[-1] + 1] / char[:, :1]
+    order = char.shape[1] - 1
+    if order == 0:
+        return np.zeros(n)
+    comp = np.zeros((n, order, order))
+    comp[:, 0, :] = -char[:, 1:]
+    if order > 1:
+        idx = np.arange(order - 1)
+        comp[:, idx + 1, idx] = 1.0
+    return np.abs(np.linalg.eigvals(comp)).max(axis=1)
+
+
+class _StageRun:
+    """Mutable state of one stage during one run (created by the runner from a Stage)."""
+
+    def __init__(
+        self,
+        stage: Stage,
+        *,
+        n_frames: int,
+        record: tuple[str, ...],
+        settle: int,
+        optical_gain: np.ndarray,
+        noise_std: np.ndarray,
+        accumulate: bool = True,
+    ) -> None:
+        n = stage.n_modes
+        self.stage = stage
+        self.name = stage.name
+        self.n = n
+        self.ctrl = stage.controller
+        self.k0, self.frac = stage.delay
+        self.depth = self.k0 + 2
+        self.hist = np.zeros((self.depth, n))  # ring buffer of commands, hist[k % depth]
+        self.dm = stage.dm
+        self.dm_state = self.dm.new_state()
+        self.clip = self.dm.limited
+        self.record = record
+        self.tele = {name: np.empty((n_frames, n), dtype=np.float32) for name in record}
+        self.settle = settle
+        self.accumulate = accumulate
+        self.sum_e2 = np.zeros(n)
+        self.sum_d2 = np.zeros(n)
+        self.dmax = np.zeros(n)
+        self.og = optical_gain
+        self.noise_std = noise_std
+        self.noise_scale = 10.0 * float(np.max(noise_std / optical_gain))
+        self.k = 0
+        self.limit = np.inf
+        self.out: dict[str, np.ndarray] = {}
+        self.chunk_e2 = np.zeros(n)
+        self.energy: list[np.ndarray] = []
+        radius = closed_loop_pole_radius(stage, optical_gain)
+        self.radius = radius
+        self.unstable = (
+            np.zeros(n, dtype=bool) if radius is None else radius > 1.0 + _POLE_RADIUS_TOL
+        )
+        if self.unstable.any():
+            logger.warning(
+                "%s: the linear closed loop is unstable for modes %s (pole radius up to %.6g)",
+                self.name,
+                np.flatnonzero(self.unstable)[:10].tolist(),
+                float(radius.max()),
+            )
+        self.ctrl.reset()
+
+    # -- chunk bookkeeping ------------------------------------------------------------------
+    def begin_chunk(self, d: np.ndarray, m_chunk: int) -> None:
+        """Update the divergence scale with the chunk's disturbance ``(m_chunk, n)``."""
+        np.maximum(self.dmax, np.abs(d).max(axis=0), out=self.dmax)
+        # Scale of a healthy residual: the largest disturbance or noise (through T) of any
+        # mode (modes couple through stroke clipping and diffractive sensing).
+        scale = self.dmax.max() + self.noise_scale
+        self.limit = _DIVERGENCE_FACTOR * scale + 1.0
+        self.limit_unstable = _UNSTABLE_FACTOR * scale + 1.0
+        self.out = {
+            name: np.empty((m_chunk, self.n)) for name in self.record if name != "disturbance"
+        }
+        self.chunk_e2 = np.zeros(self.n)
+
+    def end_chunk(self, d_rec: np.ndarray, first: int) -> None:
+        """Store the chunk's telemetry (frames ``first...``) and check for sustained growth."""
+        stop = first + d_rec.shape[0]
+        for name in self.record:
+            self.tele[name][first:stop] = d_rec if name == "disturbance" else self.out[name]
+        self.energy.append(self.chunk_e2)
+        if len(self.energy) > _GROWTH_CHUNKS:
+            e = np.array(self.energy[-_GROWTH_CHUNKS - 1 :]) + 1e-30
+            growing = np.all(e[1:] > _GROWTH_FACTOR * e[:-1], axis=0)
+            if growing.any():
+                raise LoopDivergedError(
+                    self.k - 1,
+                    np.flatnonzero(growing),
+                    self.name,
+                    f"grew by more than {_GROWTH_FACTOR:g}x in each of {_GROWTH_CHUNKS} "
+                    "successive chunks (sustained growth, a slowly diverging loop)",
+                )
+            del self.energy[0]
+
+    # -- one frame of the stage's rate --------------------------------------------------------
+    def frame(
+        self,
+        m: np.ndarray,
+        d_j: np.ndarray,
+        j: int,
+        r_j: np.ndarray | None = None,
+        offset: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Controller step, DM, residual of one frame; returns ``(e, y)``.
+
+        ``d_j`` is the recorded disturbance; the residual is ``(r_j or d_j) - y`` with ``y``
+        the DM shape: the delay line of the commands plus ``offset`` (dCAO), clipped by the
+        DM (before the delay line without offset, on the total shape with one).
+        """
+        u = self.ctrl.step(m)
+        if self.clip and offset is None:
+            u = self.dm.clip(u, self.dm_state)
+        k = self.k
+        hist, depth = self.hist, self.depth
+        hist[k % depth] = u
+        y = (1.0 - self.frac) * hist[(k - self.k0) % depth]
+        if self.frac:
+            y = y + self.frac * hist[(k - self.k0 - 1) % depth]
+        if offset is not None:
+            y = y + offset
+            if self.clip:
+                y = self.dm.clip(y, self.dm_state)
+        e = (d_j if r_j is None else r_j) - y
+        ae = np.abs(e)
+        if not np.all(ae < self.limit):
+            raise LoopDivergedError(k, np.flatnonzero(~(ae < self.limit)), self.name)
+        if self.unstable.any():
+            bad = self.unstable & ~(ae < self.limit_unstable)
+            if bad.any():
+                raise LoopDivergedError(
+                    k,
+                    np.flatnonzero(bad),
+                    self.name,
+                    f"exceeds {_UNSTABLE_FACTOR:g} x the disturbance and the linear closed "
+                    f"loop is unstable (pole radius {float(self.radius[bad].max()):.6g} > 1)",
+                )
+        e2 = e * e
+        self.chunk_e2 += e2
+        if self.accumulate and k >= self.settle:
+            self.sum_e2 += e2
+            self.sum_d2 += d_j * d_j
+        out = self.out
+        for name, val in (("measurements", m), ("commands", u), ("dm", y), ("residuals", e)):
+            if name in out:
+                out[name][j] = val
+        self.k = k + 1
+        return e, y
+
+    def finish(self) -> None:
+        """After the last frame: a linearly unstable mode that never tripped a guard."""
+        if self.unstable.any():
+            raise LoopDivergedError(
+                self.k - 1,
+                np.flatnonzero(self.unstable),
+                self.name,
+                "stayed below the divergence guards, but the linear closed loop is unstable "
+                f"(pole radius {float(self.radius.max()):.6g} > 1): a slowly diverging loop "
+                "(or one held by the stroke); its statistics would be meaningless",
+            )
+
+    def result(
+        self,
+        fs: float,
+        n_frames: int,
+        n_stat: int,
+        science: Any,
+        metadata: dict | None,
+    ) -> LoopResult:
+        st = self.dm_state
+        if st.saturation.any():
+            logger.info("%s: DM saturated in %d mode-frames", self.name, int(st.saturation.sum()))
+        return LoopResult(
+            fs=fs,
+            n_frames=n_frames,
+            telemetry=self.tele,
+            residual_variance=self.sum_e2 / n_stat,
+            disturbance_variance=self.sum_d2 / n_stat,
+            saturation=st.saturation,
+            settle_frames=self.settle,
+            science=science,
+            metadata=dict(
+                metadata or {},
+                stage=self.name,
+                latency_frames=self.stage.latency_frames,
+                controller=repr(self.ctrl),
+            ),
+            actuator_saturation=st.actuator_saturation,
+        )
+
+
+def _check_common(
+    n_frames: int, chunk: int, science_every: int, record: tuple[str, ...]
+) -> tuple[int, int, int]:
+    n_frames = check_int("n_frames", n_frames, minimum=1)
+    chunk = check_int("chunk", chunk, minimum=1)
+    science_every = check_int("science_every", science_every, minimum=1)
+    bad = set(record) - set(TELEMETRY)
+    if bad:
+        raise ValueError(f"record must be a subset of {TELEMETRY}, got unknown {sorted(bad)}")
+    return n_frames, chunk, science_every
+
+
+def _settle(n_frames: int, settle_frames: int | None) -> int:
+    settle = (
+        max(20, n_frames // 100)
+        if settle_frames is None
+        else check_int("settle_frames", settle_frames, minimum=0)
+    )
+    if settle >= n_frames:
+        raise ValueError(f"settle_frames={settle} must be < n_frames={n_frames}")
+    return settle
+
+
+def _check_finite_disturbance(d: np.ndarray, first: int, what: str = "disturbance") -> None:
+    if not np.all(np.isfinite(d)):
+        bad = ~np.isfinite(d)
+        frame = first + int(np.flatnonzero(bad.any(axis=1))[0])
+        modes = np.flatnonzero(bad.any(axis=0))
+        raise ValueError(
+            f"the {what} is not finite (NaN or inf) at frame {frame}, modes "
+            f"{modes[:10].tolist()}{' ...' if modes.size > 10 else ''}: check the disturbance "
+            "source (this is not a diverging loop)"
+        )
+
+
+def run_loop(
+    stage: Stage,
+    disturbance: DisturbanceSource,
+    n_frames: int,
+    *,
+    rng: np.random.Generator | int | None = None,
+    science: Any = None,
+    basis: Any = None,
+    science_every: int = 10,
+    record: tuple[str, ...] = TELEMETRY,
+    settle_frames: int | None = None,
+    chunk: int = 1000,
+    progress: bool = False,
+    metadata: dict | None = None,
+) -> LoopResult:
+    """Run one AO stage in closed loop for ``n_frames`` frames.
+
+    Parameters
+    ----------
+    stage : Stage
+        The stage (controller, sensor, latency, DM stroke).
+    disturbance : DisturbanceSource
+        Modal disturbance (and phase maps when a science camera is used), at the stage's rate
+        ``fs`` (checked when the source has a rate).
+    n_frames : int
+        Frames to run.
+    rng : numpy.random.Generator or int
+        Source of the measurement noise (required when the sensor is noisy).
+    science : object with ``add(maps (n, n_pix, n_pix))`` and ``result()``, optional
+        Long-exposure accumulator; fed every ``science_every`` frames with the residual phase
+        ``phase - DM shape`` (needs ``basis`` and phase maps from the source).
+    basis : object with ``synthesize(coeffs) -> (..., n_valid)`` and ``pupil``, optional
+        Needed for the science camera and for a :class:`DiffractiveSensor` (which measures
+        the residual map ``phase - DM shape`` every frame).
+    science_every : int
+        Frames between two science frames.
+    record : tuple of str
+        Telemetry to keep (float32), among ``disturbance, measurements, commands, dm,
+        residuals``. Statistics are computed regardless.
+    settle_frames : int, optional
+        Frames excluded from the statistics (default: 1% of the run, at least 20).
+    chunk : int
+        Frames generated at once (memory vs. speed).
+    progress : bool
+        Show a tqdm progress bar.
+    metadata : dict, optional
+        Case/controller settings stored with the result.
+
+    Returns
+    -------
+    LoopResult
+
+    Raises
+    ------
+    LoopDivergedError
+        If a residual blows up or grows steadily, or the linear closed loop of a mode is
+        unstable (unstable controller), naming the stage, the frame and the modes.
+    ValueError
+        Bad arguments, a disturbance at another rate than the stage, or a disturbance that
+        is not finite (named as such, with the frame and modes).
+    """
+    n_frames, chunk, science_every = _check_common(n_frames, chunk, science_every, record)
+    if not isinstance(disturbance, DisturbanceSource):
+        raise TypeError("disturbance must provide n_modes and next(n_frames)")
+    n = stage.n_modes
+    if disturbance.n_modes != n:
+        raise ValueError(f"disturbance has {disturbance.n_modes} modes, the controller {n}")
+    check_rate(disturbance, stage.fs, f"stage {stage.name!r}", required=False)
+    if science is not None and basis is None:
+        raise ValueError("a science camera needs basis= to form the DM shape")
+    diffractive = stage.senses_phase
+    if diffractive and basis is None:
+        raise ValueError("a DiffractiveSensor needs basis= to form the residual phase map")
+    sensor = stage.sensor
+    if diffractive:
+        og, noise_std = np.ones(n), np.zeros(n)
+        noisy = sensor.noisy
+    else:
+        og, noise_std = sensor.arrays(n)
+        noisy = bool(np.any(noise_std > 0))
+    if noisy and rng is None:
+        raise ValueError("rng is required with a noisy sensor (reproducibility)")
+    rng = np.random.default_rng(rng)
+    if diffractive and noisy:
+        # Modal noise level of the diffractive sensor (for the divergence guard only), from a
+        # few measurements of a flat wavefront with a child generator: the loop's own noise
+        # stream is unchanged.
+        probe_rng = rng.spawn(1)[0]
+        flat = basis.pupil.to_map(np.zeros(basis.pupil.n_valid))
+        probe = np.array([sensor.measure(flat, probe_rng) for _ in range(_NOISE_PROBES)])
+        noise_std = probe.std(axis=0)
+    settle = _settle(n_frames, settle_frames)
+    run = _StageRun(
+        stage,
+        n_frames=n_frames,
+        record=record,
+        settle=settle,
+        optical_gain=og,
+        noise_std=noise_std,
+    )
+    resid_map = None
+    e_prev = np.zeros(n)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n_frames, desc=f"{stage.name} loop", unit="frame")
+    k = 0
+    try:
+        while k < n_frames:
+            m_chunk = min(chunk, n_frames - k)
+            d, maps = disturbance.next(m_chunk)
+            d = np.asarray(d, dtype=float)
+            _check_finite_disturbance(d, k)
+            if (science is not None or diffractive) and maps is None:
+                raise ValueError(
+                    "the disturbance source gives no phase maps (needed by the "
+                    "science camera and a DiffractiveSensor)"
+                )
+            if diffractive and resid_map is None:
+                resid_map = basis.pupil.to_map(np.zeros(maps.shape[1]))
+            linear_noise = noisy and not diffractive  # a DiffractiveSensor draws its own
+            noise = (
+                rng.standard_normal((m_chunk, n)) * noise_std
+                if linear_noise
+                else np.zeros((m_chunk, n))
+            )
+            run.begin_chunk(d, m_chunk)
+            sci_idx, sci_dm = [], []
+            for j in range(m_chunk):
+                if diffractive:
+                    m = sensor.measure(resid_map, rng)
+                else:
+                    m = og * e_prev + noise[j]
+                e, y = run.frame(m, d[j], j)
+                if science is not None and k >= settle and k % science_every == 0:
+                    sci_idx.append(j)
+                    sci_dm.append(y)
+                e_prev = e
+                if diffractive:
+                    resid_map = basis.pupil.to_map(maps[j] - basis.synthesize(y))
+                k += 1
+            run.end_chunk(d, k - m_chunk)
+            if sci_idx:
+                dm_shape = basis.synthesize(np.asarray(sci_dm))
+                science.add(basis.pupil.to_map(maps[np.asarray(sci_idx)] - dm_shape))
+            if bar is not None:
+                bar.update(m_chunk)
+        run.finish()
+    finally:
+        if bar is not None:
+            bar.close()
+        stage.controller.reset()
+
+    result_science = science.result() if science is not None else None
+    return run.result(stage.fs, n_frames, n_frames - settle, result_science, metadata)
