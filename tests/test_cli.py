@@ -1,12 +1,21 @@
-"""The main job: the demo and the command line."""
+"""The command line: every command's help, exit codes, errors without tracebacks, outputs."""
 
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
-from aocontrol.study.cli import main
+import aocontrol
+from aocontrol.controllers import Integrator
+from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, run_loop
+from aocontrol.study.cli import main, read_telemetry
 from aocontrol.study.demo import run_demo
+from aocontrol.study.results import save_result
+
+FS = 1000.0
+LATENCY = 0.5
+COMMANDS = ("cases", "run", "compare", "design", "sweep", "demo")
 
 
 def test_demo_designs_stable_controllers_and_writes_plot(tmp_path):
@@ -24,10 +33,30 @@ def test_demo_designs_stable_controllers_and_writes_plot(tmp_path):
     assert rms["optimal-gain integrator"] <= rms["integrator g=0.5 (hand-tuned)"] * (1 + 1e-9)
 
 
-def test_cli_demo_prints_margins(tmp_path, capsys):
+def _table_rows(out, names):
+    """Printed table rows of ``names``: the whitespace-separated cells after the name."""
+    rows = {}
+    for line in out.splitlines():
+        for name in names:
+            if line.startswith(name):
+                rows[name] = line[len(name) :].split()
+    return rows
+
+
+def test_cli_demo_prints_a_row_per_controller_with_its_margins(tmp_path, capsys):
     assert main(["demo", "--output", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "stable" in out and "rejection.png" in out
+    names = ["integrator g=0.5 (hand-tuned)", "optimal-gain integrator", "data-driven (order 5)"]
+    rows = _table_rows(out, names + ["physical limit (Wiener bound)"])
+    # Every controller has its row: stable, and a modulus margin (5th cell) above 0.3.
+    for name in names:
+        stable, _, _, mm, _, resid = rows[name]
+        assert stable == "True", name
+        assert float(mm) > 0.3, name
+    # The Wiener bound row is the smallest residual (the physical limit).
+    bound = float(rows["physical limit (Wiener bound)"][0])
+    assert all(bound <= float(rows[n][-1]) for n in names)
+    assert (tmp_path / "rejection.png").exists()
 
 
 def test_cli_bad_input_is_a_clear_error(tmp_path, capsys):
@@ -35,13 +64,190 @@ def test_cli_bad_input_is_a_clear_error(tmp_path, capsys):
     assert "fs must be a finite number > 0, got -3.0" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-def test_python_dash_m_entry_point(tmp_path):
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_command_has_help(command, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([command, "--help"])
+    assert exc.value.code == 0
+    assert f"aocontrol {command}" in capsys.readouterr().out
+
+
+def test_python_dash_m_entry_point_help():
     proc = subprocess.run(
-        [sys.executable, "-m", "aocontrol", "demo", "--output", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=300,
+        [sys.executable, "-m", "aocontrol", "--help"], capture_output=True, text=True, timeout=120
     )
     assert proc.returncode == 0, proc.stderr
-    assert (tmp_path / "rejection.png").exists()
+    for command in COMMANDS:
+        assert command in proc.stdout
+
+
+def test_unknown_command_fails_with_usage(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["frobnicate"])
+    assert exc.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+def test_cases_lists_every_case(capsys):
+    from aocontrol.study.cases import list_cases
+
+    assert main(["cases"]) == 0
+    out = capsys.readouterr().out
+    names = list_cases()
+    assert len(names) >= 6  # the paper's five cases and the vibration case
+    lines = out.splitlines()
+    for name in names:
+        assert any(line.startswith(name + " ") for line in lines), name
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["run", "no-such-case", "--controller", "integrator", "--scheme", "single"], "case"),
+        (["run", "bright1-best", "--controller", "pid", "--scheme", "single"], "controller"),
+        (["run", "bright1-best", "--controller", "integrator", "--scheme", "triple"], "scheme"),
+        (["compare", "no-such-case"], "case"),
+    ],
+)
+def test_unknown_names_list_the_valid_ones(argv, expected, capsys):
+    compare = pytest.importorskip("aocontrol.study.compare")
+    from aocontrol.study.cases import list_cases
+
+    valid = {
+        "case": list_cases(),
+        "controller": list(compare.CONTROLLERS),
+        "scheme": list(compare.SCHEMES),
+    }[expected]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"unknown {expected}" in err and "Traceback" not in err
+    assert all(name in err for name in valid), err
+
+
+# ------------------------------------------------------------------------------- design
+def _telemetry(n_frames=4096, n_modes=3, seed=0):
+    """Closed-loop telemetry of a noisy integrator loop on low-pass disturbances [nm]."""
+    rng = np.random.default_rng(seed)
+    white = rng.standard_normal((n_frames, n_modes)) * np.array([20.0, 10.0, 5.0])[:n_modes]
+    d = np.empty_like(white)
+    acc = np.zeros(n_modes)
+    for k in range(n_frames):  # AR(1) disturbance, pole 0.99: a ~1.6 Hz corner at 1 kHz
+        acc = 0.99 * acc + white[k]
+        d[k] = acc
+    stage = Stage(
+        Integrator(0.3, fs=FS, n_modes=n_modes),
+        sensor=LinearModalSensor(noise_std=2.0),
+        latency_frames=LATENCY,
+    )
+    return run_loop(stage, ModalTimeSeries(d), n_frames, rng=seed + 1, settle_frames=0)
+
+
+@pytest.mark.slow
+def test_design_from_npz_writes_a_reloadable_controller(tmp_path, capsys):
+    res = _telemetry(n_frames=2048, n_modes=2)
+    tel = tmp_path / "tel.npz"
+    np.savez(tel, measurements=res.telemetry["measurements"], commands=res.telemetry["commands"])
+    out = tmp_path / "ctrl" / "dd.h5"
+    argv = [
+        "design",
+        str(tel),
+        "--fs",
+        str(FS),
+        "--latency",
+        str(LATENCY),
+        "--order",
+        "3",
+        "--no-progress",
+        "--out",
+        str(out),
+    ]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    bank = aocontrol.load_controller(out)
+    assert bank.n_modes == 2 and bank.fs == FS
+    # Every mode's row says stable with a modulus margin >= the required 0.5 (to the
+    # design's verification tolerance of 1 %).
+    rows = [line.split() for line in text.splitlines() if line[:1].isdigit()]
+    assert [int(r[0]) for r in rows] == [0, 1]
+    for r in rows:
+        assert r[1] == "yes" and float(r[4]) >= 0.5 * 0.99
+    # Oracle by construction: the data-driven design starts from the optimal-gain
+    # integrator, so its predicted residual is not larger (ratio <= 1 to rounding).
+    ratio = float(text.split("(ratio ")[1].split(")")[0])
+    assert ratio <= 1.0 + 1e-6
+    assert (tmp_path / "ctrl" / "dd_sensitivity.png").stat().st_size > 10_000
+    assert (tmp_path / "ctrl" / "dd_margins.png").stat().st_size > 10_000
+
+
+def test_design_reads_a_results_file_with_telemetry(tmp_path, capsys):
+    res = _telemetry(n_frames=2048, n_modes=2)
+    path = save_result(res, tmp_path / "run.h5", telemetry=True)
+    out = tmp_path / "omgi.h5"
+    # fs and the latency come from the results file.
+    assert main(["design", str(path), "--controller", "omgi", "--out", str(out)]) == 0
+    assert "fs = 1000 Hz, latency = 0.5 frame" in capsys.readouterr().out
+    bank = aocontrol.load_controller(out)
+    assert type(bank) is Integrator and bank.n_modes == 2
+
+
+def test_read_telemetry_agrees_for_npz_and_results_file(tmp_path):
+    res = _telemetry(n_frames=256, n_modes=2)
+    np.savez(
+        tmp_path / "t.npz",
+        measurements=res.telemetry["measurements"],
+        commands=res.telemetry["commands"],
+    )
+    save_result(res, tmp_path / "t.h5", telemetry=True)
+    m1, u1, _ = read_telemetry(str(tmp_path / "t.npz"))
+    m2, u2, info = read_telemetry(str(tmp_path / "t.h5"))
+    np.testing.assert_array_equal(m1, m2)
+    np.testing.assert_array_equal(u1, u2)
+    assert info == {"fs": FS, "latency_frames": LATENCY}
+
+
+@pytest.mark.parametrize(
+    ("arrays", "expected"),
+    [
+        ({"meas": np.zeros((100, 2)), "commands": np.zeros((100, 2))}, "missing ['measurements']"),
+        ({"measurements": np.zeros((100, 2)), "commands": np.zeros((100, 3))}, "same shape"),
+        ({"measurements": np.zeros((2, 500)), "commands": np.zeros((2, 500))}, "transposed"),
+        ({"measurements": np.full((100, 2), np.nan), "commands": np.zeros((100, 2))}, "NaN"),
+    ],
+)
+def test_design_bad_telemetry_says_what_was_expected(tmp_path, capsys, arrays, expected):
+    np.savez(tmp_path / "bad.npz", **arrays)
+    argv = [
+        "design",
+        str(tmp_path / "bad.npz"),
+        "--fs",
+        "1000",
+        "--latency",
+        "0.5",
+        "--out",
+        str(tmp_path / "c.h5"),
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert expected in err and "Traceback" not in err
+    assert not (tmp_path / "c.h5").exists()
+
+
+def test_design_unreadable_file(tmp_path, capsys):
+    (tmp_path / "junk.h5").write_text("not a telemetry file")
+    assert main(["design", str(tmp_path / "junk.h5"), "--fs", "1000", "--latency", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert "neither .npz nor HDF5" in err and "'measurements' and 'commands'" in err
+    assert main(["design", str(tmp_path / "nope.npz"), "--fs", "1", "--latency", "0"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_sweep_with_a_typo_fails_before_any_run(tmp_path, capsys):
+    pytest.importorskip("aocontrol.study.compare")
+    spec = tmp_path / "spec.toml"
+    spec.write_text('cases = ["bright1-best"]\ncontrolers = ["integrator"]\n')
+    assert main(["sweep", str(spec), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "controlers" in err and "Traceback" not in err
+    assert not list((tmp_path / "out").glob("*.h5"))
+    assert main(["sweep", str(tmp_path / "missing.toml")]) == 2
+    assert "does not exist" in capsys.readouterr().err

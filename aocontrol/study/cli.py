@@ -1,14 +1,548 @@
-"""Command line: ``aocontrol demo`` (more jobs come with the study layer)."""
+"""Command line of aocontrol: science cases, simulations, comparisons, designs, sweeps.
+
+Commands (``aocontrol COMMAND --help`` for each)::
+
+    aocontrol cases                         the science cases and their parameters
+    aocontrol run CASE --controller C --scheme S [--seconds S] [--seed N] [--out DIR]
+    aocontrol compare CASE [--quick] [--out DIR]
+    aocontrol design TELEMETRY --fs F --latency L [--controller datadriven] [--order 5]
+                     [--out FILE]
+    aocontrol sweep SPEC.toml [--scheduler ADDRESS] [--out DIR]
+    aocontrol demo [--output DIR]
+
+Exit status 0 on success, 2 for a user error (bad name, unreadable file: one line on stderr,
+no traceback), 1 when a run fails (e.g. a diverging loop).
+"""
 
 from __future__ import annotations
 
 import argparse
+import difflib
 import logging
+import os
 import sys
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
 
-__all__ = ["main"]
+import numpy as np
+
+__all__ = ["main", "UserError", "read_telemetry"]
+
+logger = logging.getLogger(__name__)
+
+#: Controller names of ``run`` (the registry of :mod:`aocontrol.study.compare` is the truth).
+RUN_CONTROLLERS = ("integrator", "omgi", "datadriven", "lqg", "mpc")
+#: Cascade schemes of ``run``.
+RUN_SCHEMES = ("single", "standalone", "dcao")
+#: Controllers ``design`` builds from telemetry.
+DESIGN_CONTROLLERS = ("datadriven", "omgi", "integrator", "lqg")
+# Fewest telemetry frames for a PSD estimate worth designing on (8 Welch segments of 16).
+_MIN_TELEMETRY_FRAMES = 64
+# Per-mode margins are printed up to this many modes, a min/median/max summary beyond.
+_MAX_MODE_ROWS = 12
 
 
+class UserError(Exception):
+    """A mistake in the command line or its inputs: reported on stderr, exit status 2."""
+
+
+class RunFailed(Exception):
+    """A run that started and failed (e.g. a diverging loop): exit status 1."""
+
+
+def _valid_name(kind: str, value: str, valid: Iterable[str]) -> str:
+    valid = list(valid)
+    if value in valid:
+        return value
+    close = difflib.get_close_matches(value, valid, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    raise UserError(f"unknown {kind} {value!r}{hint}; valid: {', '.join(valid)}")
+
+
+def _print_table(rows: Sequence[dict], columns: Sequence[tuple[str, str, str]]) -> str:
+    """Format ``rows`` as a fixed-width table; ``columns`` are (key, header, format)."""
+    cells = [
+        [
+            (
+                format(r[k], fmt)
+                if isinstance(r.get(k), (int, float, np.number))
+                else str(r.get(k, ""))
+            )
+            for k, _, fmt in columns
+        ]
+        for r in rows
+    ]
+    widths = [max([len(h)] + [len(c[i]) for c in cells]) for i, (_, h, _) in enumerate(columns)]
+    lines = [
+        "  ".join(
+            h.rjust(w) if i else h.ljust(w)
+            for i, ((_, h, _), w) in enumerate(zip(columns, widths, strict=True))
+        )
+    ]
+    lines.append("-" * len(lines[0]))
+    for c in cells:
+        lines.append(
+            "  ".join(
+                x.rjust(w) if i else x.ljust(w)
+                for i, (x, w) in enumerate(zip(c, widths, strict=True))
+            )
+        )
+    return "\n".join(lines)
+
+
+def _plot_module() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only: the command line never opens a window
+    from aocontrol.study import plot
+
+    return plot
+
+
+def _out_dir(path: str) -> str:
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {path!r}: cannot create the folder ({exc.strerror})") from exc
+    return path
+
+
+# ----------------------------------------------------------------------------- cases
+def _cases(args: argparse.Namespace) -> int:
+    from aocontrol.study.cases import list_cases, load_case
+
+    rows = []
+    for name in list_cases():
+        c = load_case(name)
+        rows.append(
+            {
+                "name": c.name,
+                "seeing": c.atmosphere.seeing,
+                "tau0_ms": c.atmosphere.tau0 * 1e3,
+                "G": c.star.G,
+                "J": c.star.J,
+                "s1": f"{c.stage1.fs:g} Hz / {c.stage1.n_modes}",
+                "s2": f"{c.stage2.fs:g} Hz / {c.stage2.n_modes}",
+                "vib": "yes" if c.vibration is not None else "",
+                "title": c.title,
+            }
+        )
+    print(
+        _print_table(
+            rows,
+            [
+                ("name", "case", ""),
+                ("seeing", 'seeing["]', ".2f"),
+                ("tau0_ms", "tau0[ms]", ".1f"),
+                ("G", "G[mag]", ".1f"),
+                ("J", "J[mag]", ".1f"),
+                ("s1", "stage 1 [fs/modes]", ""),
+                ("s2", "stage 2 [fs/modes]", ""),
+                ("vib", "vibration", ""),
+                ("title", "title", ""),
+            ],
+        )
+    )
+    return 0
+
+
+# ----------------------------------------------------------------------------- run
+def _compare_module() -> Any:
+    try:
+        from aocontrol.study import compare
+    except ImportError as exc:  # pragma: no cover - the module ships with the package
+        raise RunFailed(f"the case comparison is not available: {exc}") from exc
+    return compare
+
+
+def _check_case(name: str) -> str:
+    from aocontrol.study.cases import list_cases
+
+    if os.path.exists(name) and name.endswith(".toml"):
+        return name  # a case file of the user's
+    return _valid_name("case", name, list_cases())
+
+
+def _summary_line(label: str, summary: Any) -> str:
+    get = summary.get if isinstance(summary, dict) else lambda k: getattr(summary, k, None)
+    parts = []
+    for key, text, fmt in (
+        ("strehl", "Strehl", ".3f"),
+        ("mean_contrast_4_6", "contrast(4-6 l/D)", ".2e"),
+        ("residual_rms_nm", "residual", ".1f"),
+    ):
+        value = get(key)
+        if value is not None:
+            parts.append(
+                f"{text} {format(float(value), fmt)}"
+                + (" nm RMS" if key == "residual_rms_nm" else "")
+            )
+    return f"{label}: " + ", ".join(parts)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from aocontrol.study.results import save_result
+
+    compare = _compare_module()
+    case = _check_case(args.case)
+    controller = _valid_name("controller", args.controller, compare.CONTROLLERS)
+    scheme = _valid_name("scheme", args.scheme, compare.SCHEMES)
+    if args.seconds is not None and not args.seconds > 0:
+        raise UserError(f"--seconds must be > 0, got {args.seconds}")
+    out = _out_dir(args.out)
+    try:
+        outcome = compare.run_configuration(
+            case,
+            controller=controller,
+            scheme=scheme,
+            seconds=args.seconds,
+            seed=args.seed,
+            overrides=None,
+            quick=args.quick,
+            progress=not args.no_progress,
+        )
+    except RuntimeError as exc:
+        raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
+    stem = f"{os.path.splitext(os.path.basename(case))[0]}-{controller}-{scheme}-seed{args.seed}"
+    path = save_result(
+        outcome.result,
+        os.path.join(out, stem + ".h5"),
+        settings=outcome.settings,
+        telemetry=args.telemetry,
+    )
+    plot = _plot_module()
+    pngs = _result_plots(plot, {stem: outcome.result}, out, stem)
+    print(_summary_line(f"{stem}", outcome.summary))
+    print(f"results file: {path}")
+    for p in pngs:
+        print(f"plot: {p}")
+    return 0
+
+
+def _last_stage(result: Any) -> Any:
+    stages = getattr(result, "stages", None)
+    return stages[-1] if stages is not None else result
+
+
+def _result_plots(plot: Any, results: dict[str, Any], out: str, stem: str) -> list[str]:
+    """Contrast curves and residual PSDs of results (what ``run`` and ``compare`` draw)."""
+    pngs = []
+    with_science = {k: r for k, r in results.items() if getattr(r, "science", None) is not None}
+    if with_science:
+        path = os.path.join(out, f"{stem}_contrast.png")
+        plot.plot_contrast(None, with_science, title=stem, path=path)
+        pngs.append(path)
+    psds = {}
+    freqs = None
+    for label, r in results.items():
+        last = _last_stage(r)
+        if "residuals" in last.telemetry:
+            freqs, p = last.psd("residuals")
+            psds[label] = p
+            if "disturbance" in last.telemetry and "open loop" not in psds:
+                psds = {"open loop": last.psd("disturbance")[1], **psds}
+    if psds:
+        path = os.path.join(out, f"{stem}_residual_psd.png")
+        plot.plot_residual_psd(
+            freqs, psds, title=f"{stem}: residual PSD (sum over modes)", path=path
+        )
+        pngs.append(path)
+    return pngs
+
+
+# ----------------------------------------------------------------------------- compare
+def _compare(args: argparse.Namespace) -> int:
+    compare = _compare_module()
+    case = _check_case(args.case)
+    out = _out_dir(args.out)
+    fn = getattr(compare, "compare_case", None)
+    if fn is None:
+        raise RunFailed("aocontrol.study.compare has no compare_case function yet")
+    try:
+        table = fn(case, quick=args.quick, progress=not args.no_progress, out=out)
+    except RuntimeError as exc:
+        raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
+    return _report_comparison(table, out)
+
+
+def _report_comparison(table: Any, out: str) -> int:
+    """Print and save a comparison table and write its plots."""
+    text = table.to_text() if hasattr(table, "to_text") else str(table)
+    print(text)
+    name = getattr(table, "case", "comparison")
+    txt_path = os.path.join(out, f"{name}_table.txt")
+    with open(txt_path, "w", encoding="utf-8") as fh:
+        fh.write(text + "\n")
+    print(f"table: {txt_path}")
+    if hasattr(table, "to_csv"):
+        csv_path = os.path.join(out, f"{name}_table.csv")
+        table.to_csv(csv_path)
+        print(f"table: {csv_path}")
+    for p in _comparison_plots(table, out, name):
+        print(f"plot: {p}")
+    return 0
+
+
+def _comparison_plots(table: Any, out: str, name: str) -> list[str]:
+    plot = _plot_module()
+    pngs = []
+    curves = getattr(table, "contrast_curves", None)
+    if curves:
+        radii = getattr(table, "radii_ld", None)
+        path = os.path.join(out, f"{name}_contrast.png")
+        plot.plot_contrast(radii, curves, title=f"{name}: raw contrast", path=path)
+        pngs.append(path)
+    tilt = getattr(table, "tilt_psds", None)
+    if tilt:
+        path = os.path.join(out, f"{name}_vibration.png")
+        plot.plot_vibration(
+            table.tilt_freqs,
+            tilt,
+            open_loop_psd=getattr(table, "tilt_open_loop_psd", None),
+            vibration_hz=getattr(table, "vibration_hz", None),
+            title=f"{name}: tilt",
+            path=path,
+        )
+        pngs.append(path)
+    sens = getattr(table, "sensitivities", None)
+    if sens:
+        path = os.path.join(out, f"{name}_sensitivity.png")
+        plot.plot_sensitivity(
+            table.sensitivity_freqs,
+            sens,
+            disturbance_psd=getattr(table, "sensitivity_disturbance_psd", None),
+            title=name,
+            path=path,
+        )
+        pngs.append(path)
+    return pngs
+
+
+# ----------------------------------------------------------------------------- design
+def read_telemetry(path: str, stage: str | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Read closed-loop telemetry (measurements and commands) from a file.
+
+    Parameters
+    ----------
+    path : str
+        A ``.npz`` with arrays ``measurements`` and ``commands`` of shape
+        ``(n_frames, n_modes)`` [nm], or an aocontrol results file (HDF5) written with
+        telemetry (``telemetry_measurements``, ``telemetry_commands``).
+    stage : str, optional
+        ``"stage1"`` or ``"stage2"`` for a cascade results file (default ``"stage2"``).
+
+    Returns
+    -------
+    measurements, commands : ndarray, shape (n_frames, n_modes)
+        Float64 [nm].
+    info : dict
+        ``fs`` [Hz] and ``latency_frames`` when the file knows them (results files).
+
+    Raises
+    ------
+    UserError
+        Unreadable file, missing arrays, wrong shapes, non-finite values: the message says
+        what was expected.
+    """
+    expect = (
+        "expected a .npz with arrays 'measurements' and 'commands' of shape (n_frames, "
+        "n_modes), or an aocontrol results file saved with telemetry"
+    )
+    if not os.path.isfile(path):
+        raise UserError(f"telemetry file {path!r} does not exist; {expect}")
+    info: dict = {}
+    if path.endswith(".npz"):
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                missing = [k for k in ("measurements", "commands") if k not in data.files]
+                if missing:
+                    raise UserError(
+                        f"telemetry file {path!r} has arrays {sorted(data.files)}, missing "
+                        f"{missing}; {expect}"
+                    )
+                m, u = data["measurements"], data["commands"]
+        except (OSError, ValueError) as exc:
+            raise UserError(f"telemetry file {path!r} cannot be read ({exc}); {expect}") from exc
+    else:
+        import h5py
+
+        try:
+            fh = h5py.File(path, "r")
+        except OSError as exc:
+            raise UserError(f"telemetry file {path!r} is neither .npz nor HDF5; {expect}") from exc
+        with fh:
+            group = fh
+            if "stage1" in fh or "stage2" in fh:
+                name = stage or "stage2"
+                if name not in fh:
+                    raise UserError(f"--stage must be one of {sorted(fh)}, got {stage!r}")
+                group = fh[name]
+            keys = ("telemetry_measurements", "telemetry_commands")
+            missing = [k for k in keys if k not in group]
+            if missing:
+                raise UserError(f"telemetry file {path!r} has no {missing}; {expect}")
+            m, u = group[keys[0]][()], group[keys[1]][()]
+            if "fs" in group.attrs:
+                info["fs"] = float(np.ravel(group.attrs["fs"])[0])
+            meta = group.attrs.get("metadata_json")
+            if meta is not None:
+                import json
+
+                lat = json.loads(meta if isinstance(meta, str) else meta.decode()).get(
+                    "latency_frames"
+                )
+                if lat is not None:
+                    info["latency_frames"] = float(lat)
+    m = np.asarray(m, dtype=float)
+    u = np.asarray(u, dtype=float)
+    if m.ndim != 2 or m.shape != u.shape:
+        raise UserError(
+            f"telemetry file {path!r}: measurements {m.shape} and commands {u.shape} must both "
+            "be 2-D (n_frames, n_modes) of the same shape"
+        )
+    if m.shape[0] < _MIN_TELEMETRY_FRAMES:
+        raise UserError(
+            f"telemetry file {path!r}: {m.shape[0]} frames, at least {_MIN_TELEMETRY_FRAMES} "
+            "expected (rows are frames: is the array transposed?)"
+        )
+    if not (np.isfinite(m).all() and np.isfinite(u).all()):
+        raise UserError(f"telemetry file {path!r}: measurements or commands contain NaN/inf")
+    return m, u, info
+
+
+def _design(args: argparse.Namespace) -> int:
+    from aocontrol.analysis import margins, residual_variance, sensitivity
+    from aocontrol.controllers import Integrator, save_controller
+    from aocontrol.plant import loop_plant
+    from aocontrol.synthesis import (
+        datadriven,
+        disturbance_from_telemetry,
+        lqg,
+        optimal_modal_gain,
+    )
+
+    controller = _valid_name("controller", args.controller, DESIGN_CONTROLLERS)
+    m, u, info = read_telemetry(args.telemetry, args.stage)
+    fs = args.fs if args.fs is not None else info.get("fs")
+    latency = args.latency if args.latency is not None else info.get("latency_frames")
+    if fs is None or latency is None:
+        raise UserError("--fs [Hz] and --latency [frames] are required for this telemetry file")
+    plant = loop_plant(fs, latency)
+    tel = disturbance_from_telemetry(m, u, plant)
+    freqs, psd, noise = tel.freqs, tel.psd, tel.noise_psd
+    n_modes = tel.n_modes
+    if controller == "integrator":
+        bank = Integrator(args.gain, fs=fs, n_modes=n_modes)
+    elif controller == "omgi":
+        bank = optimal_modal_gain(plant, freqs, psd, noise, modulus_margin=args.modulus_margin)
+    elif controller == "lqg":
+        bank = lqg(plant, freqs, psd, noise_psd=noise)
+    else:
+        bank = datadriven(
+            plant,
+            freqs,
+            psd,
+            noise_psd=noise,
+            order=args.order,
+            modulus_margin=args.modulus_margin,
+            progress=not args.no_progress,
+        ).controller
+    reference = optimal_modal_gain(plant, freqs, psd, noise, modulus_margin=args.modulus_margin)
+    rms = np.sqrt(np.atleast_1d(residual_variance(plant, bank, freqs, psd, noise)))
+    rms_ref = np.sqrt(np.atleast_1d(residual_variance(plant, reference, freqs, psd, noise)))
+    mar = [margins(plant, bank, mode=i) for i in range(n_modes)]
+    print(
+        f"telemetry: {m.shape[0]} frames x {n_modes} modes, fs = {fs:g} Hz, latency = "
+        f"{latency:g} frame; controller: {controller}"
+    )
+    rows = [
+        {
+            "mode": i,
+            "stable": "yes" if mi.stable else "NO",
+            "gm_db": 20 * np.log10(mi.gain_margin) if mi.gain_margin > 0 else -np.inf,
+            "pm": mi.phase_margin,
+            "mm": mi.modulus_margin,
+            "dm": mi.delay_margin,
+            "rms": rms[i],
+            "ref": rms_ref[i],
+        }
+        for i, mi in enumerate(mar)
+    ]
+    columns = [
+        ("mode", "mode", "d"),
+        ("stable", "stable", ""),
+        ("gm_db", "GM[dB]", ".2f"),
+        ("pm", "PM[deg]", ".1f"),
+        ("mm", "MM[1]", ".3f"),
+        ("dm", "DM[frames]", ".2f"),
+        ("rms", "resid[nm]", ".2f"),
+        ("ref", "OMGI resid[nm]", ".2f"),
+    ]
+    if n_modes > _MAX_MODE_ROWS:
+        summary = []
+        for label, fn in (("min", np.min), ("median", np.median), ("max", np.max)):
+            summary.append(
+                {
+                    c[0]: (label if c[0] == "mode" else fn([r[c[0]] for r in rows]))
+                    for c in columns
+                    if c[0] != "stable"
+                }
+            )
+            summary[-1]["stable"] = f"{sum(r['stable'] == 'yes' for r in rows)}/{n_modes}"
+        columns[0] = ("mode", "over modes", "")
+        rows = summary
+    print(_print_table(rows, columns))
+    total, total_ref = float(np.sqrt(np.sum(rms**2))), float(np.sqrt(np.sum(rms_ref**2)))
+    print(
+        f"predicted residual (all modes): {total:.2f} nm RMS; optimal-gain integrator "
+        f"{total_ref:.2f} nm RMS (ratio {total / total_ref:.3f})"
+    )
+    out = args.out
+    folder = os.path.dirname(os.path.abspath(out))
+    _out_dir(folder)
+    path = save_controller(bank, out)
+    plot = _plot_module()
+    stem = os.path.splitext(out)[0]
+    show = sorted({0, n_modes // 2, n_modes - 1})
+    S = sensitivity(plant, bank, freqs)
+    sens = {f"mode {i}": S[i] for i in show}
+    fig_path = stem + "_sensitivity.png"
+    plot.plot_sensitivity(
+        freqs,
+        sens,
+        disturbance_psd=psd[show[0]],
+        noise_psd=float(noise[show[0]]),
+        modulus_margin=args.modulus_margin,
+        title=f"{controller}: disturbance and noise PSD of mode {show[0]}",
+        path=fig_path,
+    )
+    margins_path = stem + "_margins.png"
+    plot.plot_margins(
+        {f"mode {i}": mar[i] for i in show},
+        path=margins_path,
+        required_modulus_margin=args.modulus_margin,
+    )
+    print(f"controller file: {path} (reload with aocontrol.load_controller)")
+    print(f"plot: {fig_path}")
+    print(f"plot: {margins_path}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- sweep
+def _sweep(args: argparse.Namespace) -> int:
+    from aocontrol.study.sweep import run_sweep
+
+    if not os.path.isfile(args.spec):
+        raise UserError(f"sweep spec {args.spec!r} does not exist (expected a TOML file)")
+    report = run_sweep(
+        args.spec, out=args.out, scheduler=args.scheduler, progress=not args.no_progress
+    )
+    print(report.to_text() if hasattr(report, "to_text") else str(report))
+    failed = getattr(report, "failed", ())
+    return 1 if failed else 0
+
+
+# ----------------------------------------------------------------------------- demo
 def _demo(args: argparse.Namespace) -> int:
     from aocontrol.study.demo import run_demo
 
@@ -35,12 +569,95 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``aocontrol`` command."""
-    parser = argparse.ArgumentParser(prog="aocontrol", description=__doc__)
+# ----------------------------------------------------------------------------- parser
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="aocontrol",
+        description="Adaptive-optics control toolbox: design, analyse and score AO controllers.",
+        epilog="Run 'aocontrol COMMAND --help' for the options of a command.",
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="log INFO messages")
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("demo", help="design controllers for one mode and plot the rejection")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name: str, func: Callable, help_: str) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.set_defaults(func=func)
+        return p
+
+    def no_progress(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+
+    add("cases", _cases, "list the science cases and their parameters")
+
+    p = add("run", _run, "simulate one case with one controller; write a results file")
+    p.add_argument("case", help="science case name (see 'aocontrol cases') or a case .toml")
+    p.add_argument(
+        "--controller",
+        required=True,
+        metavar="{" + ",".join(RUN_CONTROLLERS) + "}",
+        help="controller of the (fast) stage",
+    )
+    p.add_argument(
+        "--scheme",
+        required=True,
+        metavar="{" + ",".join(RUN_SCHEMES) + "}",
+        help="single stage, standalone cascade or dCAO cascade",
+    )
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=None,
+        help="simulated time [s] (default: the case's exposure)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--out", default="results", help="folder of the results file and plots")
+    p.add_argument("--quick", action="store_true", help="reduced modes and pupil (smoke runs)")
+    p.add_argument("--telemetry", action="store_true", help="also store the telemetry")
+    no_progress(p)
+
+    p = add("compare", _compare, "the paper's comparison table of one case, with its plots")
+    p.add_argument("case", help="science case name (see 'aocontrol cases')")
+    p.add_argument("--quick", action="store_true", help="short, reduced runs")
+    p.add_argument("--out", default="compare-output", help="folder of the table and plots")
+    no_progress(p)
+
+    p = add("design", _design, "design a controller bank from closed-loop telemetry")
+    p.add_argument(
+        "telemetry",
+        help=".npz with 'measurements' and 'commands' (n_frames, "
+        "n_modes), or a results file saved with --telemetry",
+    )
+    p.add_argument("--fs", type=float, default=None, help="loop rate [Hz]")
+    p.add_argument(
+        "--latency",
+        type=float,
+        default=None,
+        help="RTC latency beyond the WFS integration [frames]",
+    )
+    p.add_argument(
+        "--controller",
+        default="datadriven",
+        metavar="{" + ",".join(DESIGN_CONTROLLERS) + "}",
+        help="controller to design (default datadriven)",
+    )
+    p.add_argument("--order", type=int, default=5, help="data-driven controller order")
+    p.add_argument(
+        "--modulus-margin", type=float, default=0.5, help="required modulus margin (default 0.5)"
+    )
+    p.add_argument("--gain", type=float, default=0.5, help="gain of --controller integrator")
+    p.add_argument("--stage", default=None, help="stage group of a cascade results file")
+    p.add_argument("--out", default="controller.h5", help="controller file (HDF5)")
+    no_progress(p)
+
+    p = add("sweep", _sweep, "run a sweep spec (cases x controllers x schemes x seeds) on Dask")
+    p.add_argument("spec", help="sweep spec (TOML)")
+    p.add_argument(
+        "--scheduler", default=None, help="Dask scheduler address (default: a local cluster)"
+    )
+    p.add_argument("--out", default="sweep-output", help="results folder")
+    no_progress(p)
+
+    p = add("demo", _demo, "design controllers for one mode and plot the rejection")
     p.add_argument("--output", default="demo-output", help="folder for the plot")
     p.add_argument("--fs", type=float, default=3000.0, help="loop rate [Hz]")
     p.add_argument(
@@ -49,17 +666,38 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--noise-rms", type=float, default=2.0, help="modal measurement noise [nm RMS per frame]"
     )
-    p.set_defaults(func=_demo)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``aocontrol`` command (console script and ``python -m aocontrol``).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments without the program name (default ``sys.argv[1:]``).
+
+    Returns
+    -------
+    int
+        Exit status: 0 success, 1 failed run, 2 user error (argparse also exits with 2).
+    """
+    args = _parser().parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
         return args.func(args)
-    except (ValueError, TypeError) as exc:
+    except (UserError, ValueError, TypeError, OSError) as exc:
         print(f"aocontrol {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except RunFailed as exc:
+        print(f"aocontrol {args.command}: failed: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"aocontrol {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover
