@@ -6,15 +6,15 @@ Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.stud
 from aocontrol.controllers._base import ControllerBank, IIRBank
 from aocontrol.controllers._integrator import Integrator
 from aocontrol.controllers._io import load_controller, register_controller_format, save_controller
-from aocontrol.controllers._lqg import LQGBank, LQGStateSpace, lqg_reference_commands
+from aocontrol.controllers._lqg import FilterpyLQG, LQGBank, LQGStateSpace
 
 __all__ = [
     "ControllerBank",
     "IIRBank",
     "Integrator",
+    "FilterpyLQG",
     "LQGBank",
     "LQGStateSpace",
-    "lqg_reference_commands",
     "save_controller",
     "load_controller",
     "register_controller_format",

@@ -29,7 +29,7 @@ import numpy as np
 from aocontrol._validation import check_finite_array, check_positive
 from aocontrol.controllers._base import ControllerBank
 
-__all__ = ["LQGBank", "LQGStateSpace", "lqg_reference_commands"]
+__all__ = ["FilterpyLQG", "LQGBank", "LQGStateSpace"]
 
 
 @dataclass(frozen=True)
@@ -270,46 +270,84 @@ class LQGBank(ControllerBank):
         )
 
 
-def lqg_reference_commands(state_space: LQGStateSpace, measurements: object) -> np.ndarray:
-    """Commands of the LQG computed with filterpy's ``KalmanFilter``, one filter per mode.
+class FilterpyLQG(ControllerBank):
+    """Reference implementation of :class:`LQGBank` with filterpy's ``KalmanFilter``.
 
-    Reference implementation of :class:`LQGBank` (slow: Python loops over modes and frames).
-    Each mode's filter starts at ``x = 0`` with its covariance at the steady-state prior
-    ``state_space.P``; per frame it runs ``update(m)``, the command ``u = L x`` and
-    ``predict(u)``, with filterpy's own covariance recursion (Joseph form).
+    One ``filterpy.kalman.KalmanFilter`` per mode (slow: Python loops over modes, for tests
+    and checks only). Each frame runs ``update(m)``, the command ``u = L x`` and
+    ``predict(u)`` with filterpy's own covariance recursion (Joseph form). Started at
+    ``x = 0`` with the covariance at the steady-state prior ``state_space.P`` (default), the
+    gain is the steady-state one from the first frame and the commands are those of
+    :class:`LQGBank`; started elsewhere, they converge to them.
 
     Parameters
     ----------
     state_space : LQGStateSpace
-        The design.
-    measurements : array_like, shape (n_frames, n_modes)
-        Modal measurements [units].
-
-    Returns
-    -------
-    ndarray, shape (n_frames, n_modes)
-        Commands [units].
+        The design (:func:`aocontrol.synthesis.lqg_state_space`).
+    initial_covariance : array_like, shape (n_modes, ns, ns), optional
+        Prior covariance of the first frame (default ``state_space.P``).
     """
-    from filterpy.kalman import KalmanFilter
 
-    ss = state_space
-    m = check_finite_array("measurements", measurements, ndim=2)
-    if m.shape[1] != ss.n_modes:
-        raise ValueError(f"measurements must have shape (n_frames, {ss.n_modes}), got {m.shape}")
-    out = np.empty_like(m)
-    for mode in range(ss.n_modes):
-        kf = KalmanFilter(dim_x=ss.ns, dim_z=1, dim_u=1)
-        kf.F = ss.A[mode].copy()
-        kf.B = ss.B[mode][:, None].copy()
-        kf.H = ss.C[mode][None, :].copy()
-        kf.Q = ss.Q[mode].copy()
-        kf.R = np.array([[ss.R[mode]]])
-        kf.P = ss.P[mode].copy()
-        kf.x = np.zeros((ss.ns, 1))
-        L = ss.control_gain[mode]
-        for j in range(m.shape[0]):
-            kf.update(np.array([[m[j, mode]]]))
-            u = float(L @ kf.x[:, 0])
-            out[j, mode] = u
-            kf.predict(u=np.array([[u]]))
-    return out
+    def __init__(self, state_space: LQGStateSpace, *, initial_covariance: object = None) -> None:
+        if not isinstance(state_space, LQGStateSpace):
+            raise TypeError(
+                f"state_space must be an LQGStateSpace, got {type(state_space).__name__}"
+            )
+        self._ss = state_space
+        if initial_covariance is None:
+            p0 = state_space.P
+        else:
+            p0 = check_finite_array("initial_covariance", initial_covariance)
+            if p0.shape != state_space.P.shape:
+                raise ValueError(
+                    f"initial_covariance must have shape {state_space.P.shape}, got {p0.shape}"
+                )
+        self._p0 = np.array(p0, dtype=float)
+        self.reset()
+
+    @property
+    def n_modes(self) -> int:
+        return self._ss.n_modes
+
+    @property
+    def fs(self) -> float:
+        return self._ss.fs
+
+    def reset(self) -> None:
+        from filterpy.kalman import KalmanFilter
+
+        ss = self._ss
+        self._filters = []
+        for mode in range(ss.n_modes):
+            kf = KalmanFilter(dim_x=ss.ns, dim_z=1, dim_u=1)
+            kf.F = ss.A[mode].copy()
+            kf.B = ss.B[mode][:, None].copy()
+            kf.H = ss.C[mode][None, :].copy()
+            kf.Q = ss.Q[mode].copy()
+            kf.R = np.array([[ss.R[mode]]])
+            kf.P = self._p0[mode].copy()
+            kf.x = np.zeros((ss.ns, 1))
+            self._filters.append(kf)
+
+    def _step(self, m: np.ndarray) -> np.ndarray:
+        u = np.empty(self.n_modes)
+        for mode, kf in enumerate(self._filters):
+            kf.update(np.array([[m[mode]]]))
+            u[mode] = float(self._ss.control_gain[mode] @ kf.x[:, 0])
+            kf.predict(u=np.array([[u[mode]]]))
+        return u
+
+    @property
+    def gains(self) -> np.ndarray:
+        """Current Kalman gains of the filters, shape ``(n_modes, ns)``."""
+        return np.array([kf.K[:, 0] for kf in self._filters])
+
+    def transfer_function(self, mode: int = 0) -> control.TransferFunction:
+        """The steady-state linear equivalent (that of :class:`LQGBank`), ``dt = 1/fs``.
+
+        Parameters
+        ----------
+        mode : int, default 0
+            Mode index.
+        """
+        return LQGBank(self._ss).transfer_function(self._check_mode(mode))

@@ -413,6 +413,56 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
 
 
+def _log_weights(freqs: np.ndarray) -> np.ndarray:
+    """Quadrature weights of the log-frequency measure ``df / f`` (0 Hz as half the first bin)."""
+    pos = freqs[freqs > 0]
+    lf = np.log(np.maximum(freqs, pos[0] / 2 if pos.size else 1.0))
+    w = np.gradient(lf)
+    return w / w.sum()
+
+
+def _fit_turbulence(
+    freqs: np.ndarray,
+    p: np.ndarray,
+    noise: float,
+    zi: np.ndarray,
+    fs: float,
+    start: tuple[float, float, float],
+    ratio: float,
+) -> tuple[float, float, float]:
+    """AR(2) ``(a1, a2, s_w^2)`` fitting the smooth part of ``p`` in log scale.
+
+    Least squares on ``log(model + noise) - log(p + noise)`` with the log-frequency measure
+    and a robust (soft L1) loss; points flagged as peaks (``p + noise > ratio (model +
+    noise)``) are dropped and the fit repeated until the flags settle.
+    """
+    w = np.sqrt(_log_weights(freqs))
+    floor = 1e-12 * max(float(np.max(p + noise)), 1e-300)
+    logp = np.log(np.maximum(p + noise, floor))
+    keep = np.ones(freqs.size, dtype=bool)
+    x = _turb_params(*start)
+    lim = (-_ATANH_BOUND, _ATANH_BOUND)
+    bounds = ([lim[0], lim[0], -np.inf], [lim[1], lim[1], np.inf])
+    x = np.clip(x, np.array(bounds[0]) + 1e-9, np.array(bounds[1]) - 1e-9)
+    for _ in range(_MASK_ITER):
+
+        def resid(x: np.ndarray, keep: np.ndarray = keep) -> np.ndarray:
+            a1, a2, s2 = _turb_from_params(x)
+            m = _ar2_psd(np.asarray(a1), np.asarray(a2), np.asarray(s2), zi[keep], fs)
+            return w[keep] * (np.log(np.maximum(m + noise, floor)) - logp[keep])
+
+        x = optimize.least_squares(
+            resid, x, bounds=bounds, loss="soft_l1", f_scale=0.1 * float(w.mean())
+        ).x
+        a1, a2, s2 = _turb_from_params(x)
+        model = _ar2_psd(np.asarray(a1), np.asarray(a2), np.asarray(s2), zi, fs)
+        new_keep = ~((p + noise) > ratio * (model + noise))
+        if np.array_equal(new_keep, keep) or new_keep.sum() < 8:
+            break
+        keep = new_keep
+    return _turb_from_params(x)
+
+
 @dataclass(frozen=True)
 class _FitSettings:
     fs: float
@@ -432,23 +482,13 @@ def _fit_mode(
     total_var = float(np.trapezoid(p, freqs)) if freqs.size > 1 else float(p[0] * fs / 2)
     if not total_var > 0:
         raise ValueError(f"psd of mode {mode} has no variance: no AR model can be fitted")
-    # 1. Smooth turbulence: Yule-Walker AR(2) on the PSD with its peaks replaced by the fit.
-    mask = np.zeros(freqs.size, dtype=bool)
-    turb = None
-    for _ in range(_MASK_ITER):
-        if turb is None:
-            filled = p
-        else:
-            filled = np.where(mask, _ar2_psd(*(np.asarray(v) for v in turb), zi, fs), p)
-        r = _autocov(freqs, filled, fs, 2)
-        if not r[0] > 0:
-            raise ValueError(f"psd of mode {mode} has no variance: no AR model can be fitted")
-        turb = _yule_walker_ar2(r)
-        model = _ar2_psd(*(np.asarray(v) for v in turb), zi, fs)
-        new_mask = (p + noise) > s.peak_ratio * (model + noise)
-        if np.array_equal(new_mask, mask):
-            break
-        mask = new_mask
+    # 1. Smooth turbulence: robust log-spectral fit of an AR(2) (peaks are positive
+    # outliers), started from Yule-Walker, then refitted without the flagged peaks.
+    r = _autocov(freqs, p, fs, 2)
+    if not r[0] > 0:
+        raise ValueError(f"psd of mode {mode} has no variance: no AR model can be fitted")
+    turb = _fit_turbulence(freqs, p, noise, zi, fs, _yule_walker_ar2(r), s.peak_ratio)
+    mask = (p + noise) > s.peak_ratio * (_ar2_psd(*(np.asarray(v) for v in turb), zi, fs) + noise)
     model = _ar2_psd(*(np.asarray(v) for v in turb), zi, fs)
     excess = np.maximum(p - model, 0.0)
     # 2. Resonance candidates: the flagged runs, strongest excess variance first.

@@ -112,6 +112,42 @@ def _dare(a, b, q, r, s=None, what="") -> np.ndarray:
     return x
 
 
+def _regulator_riccati(
+    A: np.ndarray, C: np.ndarray, f: float, rho: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stabilising solution and gain of the regulator DARE, solved block-wise.
+
+    System ``z = (x, u_prev)``, ``z+ = (A x, u)``, stage cost
+    ``(C x - f u_prev - (1 - f) u)^2 + rho u^2`` (a cross term). The disturbance block is
+    uncontrollable, so a general solver (scipy's symplectic pencil) fails when its poles
+    approach the unit circle; the blocks of the same Riccati equation solve in turn:
+
+    * ``P_uu``: the scalar DARE of the command delay,
+      ``P_uu^2 + (R - f^2) P_uu - f^2 rho = 0`` with ``R = (1 - f)^2 + rho``; its larger root
+      is the stabilising one (closed-loop pole ``-g``, ``g = f (1 - f) / (R + P_uu)``:
+      ``-f / (1 - f)`` for ``f < 0.5``, ``-(1 - f) / f`` for ``f > 0.5`` when ``rho = 0``);
+    * ``P_xu = (g (1 - f) - f) (I + g A^T)^-1 C^T`` (linear);
+    * ``P_xx``: the Stein equation ``P_xx = A^T P_xx A + C^T C - k k^T (R + P_uu)``,
+      ``k = (A^T P_xu - (1 - f) C^T) / (R + P_uu)`` (``A`` stable).
+
+    Returns ``P`` of shape ``(nx + 1, nx + 1)`` and the gain ``(k^T, g)`` of ``u = -gain z``.
+    """
+    R = (1 - f) ** 2 + rho
+    b = R - f * f
+    puu = (-b + np.sqrt(b * b + 4 * f * f * rho)) / 2
+    den = R + puu
+    g = f * (1 - f) / den
+    nx = A.shape[0]
+    pxu = (g * (1 - f) - f) * np.linalg.solve(np.eye(nx) + g * A.T, C)
+    k = (A.T @ pxu - (1 - f) * C) / den
+    pxx = scipy.linalg.solve_discrete_lyapunov(A.T, np.outer(C, C) - den * np.outer(k, k))
+    P = np.zeros((nx + 1, nx + 1))
+    P[:nx, :nx] = (pxx + pxx.T) / 2
+    P[:nx, nx] = P[nx, :nx] = pxu
+    P[nx, nx] = puu
+    return P, np.concatenate([k, [g]])
+
+
 def lqg_state_space(
     model: DisturbanceModel,
     latency_frames: float,
@@ -205,22 +241,10 @@ def lqg_state_space(
             Pd = (Pd + Pd.T) / 2
             P[mode, :nx, :nx] = Pd
             K[mode, :nx] = Pd @ Cd / (Cd @ Pd @ Cd + R[mode])
-            h = Hz[mode][:, None]
-            pz = _dare(
-                Az[mode],
-                Bz[mode][:, None],
-                h @ h.T,
-                np.array([[Dz[mode] ** 2 + rho]]),
-                s=h * Dz[mode],
-                what="regulator",
-            )
         except ValueError as exc:
             raise ValueError(f"LQG design failed for mode {mode}: {exc}") from exc
-        Pz[mode] = (pz + pz.T) / 2
+        Pz[mode], gain = _regulator_riccati(Ad, Cd, f, rho)
         b = Bz[mode]
-        gain = (b @ Pz[mode] @ Az[mode] + Hz[mode] * Dz[mode]) / (
-            Dz[mode] ** 2 + rho + b @ Pz[mode] @ b
-        )
         Tz[mode, :nx, :nx] = np.linalg.matrix_power(Ad, k0 + 1)
         Tz[mode, nx, nx] = 1.0
         L[mode] = -gain @ Tz[mode]
