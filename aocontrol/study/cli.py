@@ -91,11 +91,9 @@ def _print_table(rows: Sequence[dict], columns: Sequence[tuple[str, str, str]]) 
 
 
 def _plot_module() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only: the command line never opens a window
     from aocontrol.study import plot
 
+    plot.use_file_backend()  # files only: the command line never opens a window
     return plot
 
 

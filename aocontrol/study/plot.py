@@ -16,6 +16,7 @@ import os
 from collections.abc import Mapping
 from typing import Any
 
+import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -28,6 +29,7 @@ __all__ = [
     "plot_margins",
     "plot_vibration",
     "save_figure",
+    "use_file_backend",
 ]
 
 # Floor of |S|, |T| before taking dB (a perfect zero would be -inf on the axis).
@@ -485,6 +487,15 @@ def plot_vibration(
     if title:
         fig.suptitle(title)
     return _finish(fig, path)
+
+
+def use_file_backend() -> None:
+    """Select matplotlib's non-interactive ``Agg`` backend (the command line calls this).
+
+    Library code never chooses a backend at import; a program that only writes files (the
+    CLI, a batch job) calls this before drawing.
+    """
+    matplotlib.use("Agg")
 
 
 def save_figure(fig: Any, path: str, *, dpi: int = 120) -> str:
