@@ -137,29 +137,12 @@ def test_plain_h5py_reads_it(tmp_path):
         assert fh.attrs["residual_rms_nm"] == pytest.approx(res.residual_rms, rel=1e-15)
 
 
-@dataclasses.dataclass(frozen=True)
-class _Cascade:
-    """Stand-in with the CascadeResult contract (scheme, stages, science, metadata, fs)."""
-
-    scheme: str
-    stages: tuple
-    science: object
-    metadata: dict
-    fs: float
-
-
-def _cascade_cls():
-    return getattr(aocontrol.sim, "CascadeResult", None) or _Cascade
-
-
-def test_cascade_has_one_group_per_stage(tmp_path, monkeypatch):
-    cls = _cascade_cls()
-    if cls is _Cascade:
-        monkeypatch.setattr(results, "_cascade_type", lambda: _Cascade)
+def test_cascade_has_one_group_per_stage(tmp_path):
+    cls = aocontrol.sim.CascadeResult
     s1 = dataclasses.replace(_loop(n_modes=5, seed=1), science=None)
     s2 = dataclasses.replace(_loop(n_modes=3, seed=2, gain=0.3), science=None)
     fields = dict(scheme="dcao", stages=(s1, s2), science=_science(strehl=0.9), metadata={}, fs=FS)
-    casc = cls(**{f.name: fields[f.name] for f in dataclasses.fields(cls) if f.name in fields})
+    casc = cls(**fields)
     path = save_result(casc, tmp_path / "casc.h5", settings=SETTINGS, telemetry=True)
     with xr.open_dataset(path, engine="h5netcdf", group="stage1") as ds:
         assert ds.sizes["mode"] == 5
@@ -244,3 +227,10 @@ def test_top_level_load_result_is_lazy():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_the_layout_stores_every_field_of_the_result_types():
+    # A field added to LoopResult / CascadeResult must be added to the file layout too.
+    assert {f.name for f in dataclasses.fields(LoopResult)} == results._LOOP_FIELDS
+    cascade = aocontrol.sim.CascadeResult
+    assert {f.name for f in dataclasses.fields(cascade)} == results._CASCADE_FIELDS

@@ -188,16 +188,17 @@ def _run(args: argparse.Namespace) -> int:
     if args.seconds is not None and not args.seconds > 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
     out = _out_dir(args.out)
+    options = {} if args.seconds is None else {"seconds": args.seconds}
     try:
         outcome = compare.run_configuration(
             case,
             controller=controller,
             scheme=scheme,
-            seconds=args.seconds,
             seed=args.seed,
             overrides=None,
             quick=args.quick,
             progress=not args.no_progress,
+            **options,
         )
     except RuntimeError as exc:
         raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
@@ -605,7 +606,7 @@ def _parser() -> argparse.ArgumentParser:
         "--seconds",
         type=float,
         default=None,
-        help="simulated time [s] (default: the case's exposure)",
+        help="simulated time [s] (default: the comparison protocol's)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--out", default="results", help="folder of the results file and plots")
