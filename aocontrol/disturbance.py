@@ -89,6 +89,17 @@ def radial_orders(n_modes: int) -> np.ndarray:
 
     ``n + 1`` modes per radial order, starting at ``n = 1`` (tip, tilt; piston excluded).
 
+    Parameters
+    ----------
+    n_modes : int
+        Number of modes (>= 1).
+
+    Returns
+    -------
+    numpy.ndarray of int, shape (n_modes,)
+
+    Examples
+    --------
     >>> radial_orders(10).tolist()
     [1, 1, 2, 2, 2, 3, 3, 3, 3, 4]
     """

@@ -264,7 +264,20 @@ def plant_delay_frames(
     plant: control.TransferFunction | control.FRD,
     fs: float | None = None,
 ) -> float:
-    """Low-frequency group delay of a plant [frames] (``1 + latency_frames`` for loop_plant)."""
+    """Low-frequency group delay of a plant [frames] (``1 + latency_frames`` for loop_plant).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+
+    Returns
+    -------
+    float
+        Group delay [frames] at ``1e-4 fs``.
+    """
     fs_ = plant_fs(plant, fs)
     f0 = fs_ * 1e-4
     resp = frequency_response(plant, np.array([f0, 2 * f0]), fs_)

@@ -6,8 +6,6 @@ Small pupils (32-96 pixels, 9-25 actuators across) keep the suite fast; the SAXO
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -313,14 +311,14 @@ def test_fitting_error_five_thirds_law_and_coefficient():
 
 
 @pytest.mark.slow
-def test_saxo_size_kl_basis_builds_fast():
+def test_saxo_size_kl_basis_is_orthonormal_and_ordered():
     # Stage 1 (SAXO): 41x41 actuators, 1200 modes on an 80-pixel pupil (2 pixels per pitch).
-    # Invariants at full size: orthonormality and decreasing variances; build time bounded.
+    # Invariants at full size: orthonormality over the pupil and decreasing turbulent
+    # variances (the build time is a benchmark's business, not a test's).
     dm = DeformableMirror(vlt_pupil(80), n_actuators=SAXO_N_ACTUATORS)
-    t0 = time.perf_counter()
     basis = kl_basis(dm, 1200)
-    elapsed = time.perf_counter() - t0
+    assert basis.modes.shape == (1200, dm.pupil.n_valid)
     gram = basis.modes @ basis.modes.T / dm.pupil.n_valid
     assert np.max(np.abs(gram - np.eye(1200))) < EXACT_TOL
     assert np.all(np.diff(basis.variances[2:]) <= 0)
-    assert elapsed < 120.0
+    assert np.all(basis.variances > 0)

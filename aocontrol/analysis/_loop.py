@@ -116,8 +116,21 @@ def loop_response(
 ) -> LoopResponse:
     """Evaluate ``G, K, L, S, T, KS`` on ``freqs`` [Hz] (grid in [0, fs/2]).
 
-    ``plant`` is a discrete SISO TF or FRD; ``controller`` a TF, FRD or ControllerBank (then
-    every mode at once, arrays of shape ``(n_modes, n_freqs)``).
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction, control.FRD or ControllerBank
+        Causal controller at the plant's rate (a bank gives every mode at once, arrays of
+        shape ``(n_modes, n_freqs)``).
+    freqs : array_like, shape (n_freqs,)
+        Frequencies [Hz] in [0, fs/2].
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+
+    Returns
+    -------
+    LoopResponse
 
     Examples
     --------
@@ -224,6 +237,20 @@ def white_noise_psd(variance: object, fs: float) -> np.ndarray:
 
     ``2 * variance / fs``, flat on [0, fs/2], so that its integral is ``variance``.
 
+    Parameters
+    ----------
+    variance : float or array_like
+        Per-frame noise variance [units^2], >= 0.
+    fs : float
+        Frame rate [Hz].
+
+    Returns
+    -------
+    numpy.ndarray
+        PSD [units^2/Hz], the shape of ``variance``.
+
+    Examples
+    --------
     >>> float(white_noise_psd(1.0, fs=1000.0))
     0.002
     """

@@ -38,7 +38,10 @@ def residual_psd(
     Parameters
     ----------
     plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
     controller : control.TransferFunction, control.FRD or ControllerBank
+        Controller at the plant's rate; a bank needs ``psd`` with one row per mode (or one
+        row for all).
     freqs : array_like, shape (n_freqs,)
         Increasing grid in [0, fs/2] [Hz].
     psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
@@ -47,10 +50,18 @@ def residual_psd(
         Measurement-noise PSD, one-sided [units^2/Hz]: a scalar (white), ``(n_freqs,)``,
         ``(n_modes, n_freqs)`` or ``(n_modes,)`` (one white level per mode, 2-D ``psd``).
         White noise of per-frame variance ``s2`` has ``noise_psd = 2 s2 / fs``.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
 
     Returns
     -------
     ndarray, shape (n_freqs,) or (n_modes, n_freqs)
+
+    Raises
+    ------
+    ValueError
+        A grid, PSD or control object that is invalid (named), or PSD rows that do not match
+        the controller bank's modes.
     """
     fs_ = plant_fs(plant, fs)
     freqs = check_frequency_grid("freqs", freqs, fs_)
@@ -83,6 +94,14 @@ def residual_variance(
     The integral is a trapezoid on ``freqs``: the grid must resolve both the PSD and ``S``.
     An unstable loop has unbounded residual: ``inf`` is returned (for that mode of a bank)
     unless ``check_stability`` is False.
+
+    Parameters
+    ----------
+    plant, controller, freqs, psd, noise_psd, fs
+        As in :func:`residual_psd`.
+    check_stability : bool, default True
+        Return ``inf`` for an unstable closed loop (closed-loop poles, or the winding number
+        for an FRD plant, which must then cover [0, fs/2]).
 
     Returns
     -------

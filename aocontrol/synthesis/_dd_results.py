@@ -12,15 +12,20 @@ __all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport"]
 
 
 class DataDrivenError(RuntimeError):
-    """Synthesis failed for some modes.
+    """Synthesis failed for some modes; the others are kept.
+
+    Parameters
+    ----------
+    failed : dict[int, str]
+        Mode index -> reason (the exception type and message of a numerical failure).
+    result : DataDrivenResult
+        Every mode: designed controllers for the modes that succeeded, the initial controller
+        for the failed ones (``result.ok`` tells which).
 
     Attributes
     ----------
     failed : dict[int, str]
-        Mode index -> reason.
     result : DataDrivenResult
-        Every mode: designed controllers for the modes that succeeded, the initial controller
-        for the failed ones (``result.ok`` tells which).
     """
 
     def __init__(self, failed: dict[int, str], result: DataDrivenResult) -> None:
