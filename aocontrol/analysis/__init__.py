@@ -4,6 +4,11 @@ Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.stud
 PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the variance.
 """
 
+from aocontrol.analysis._cascade import (
+    cascade_rejection,
+    cascade_sensitivity,
+    slow_stage_sensitivity,
+)
 from aocontrol.analysis._loop import (
     LoopResponse,
     command_transfer,
@@ -26,6 +31,9 @@ from aocontrol.analysis._residual import residual_psd, residual_variance
 from aocontrol.analysis._wiener import wiener_bound
 
 __all__ = [
+    "cascade_rejection",
+    "cascade_sensitivity",
+    "slow_stage_sensitivity",
     "LoopResponse",
     "Margins",
     "closed_loop_poles",

@@ -128,8 +128,9 @@ class _StageRun:
         self.noise_std = noise_std
         self.noise_scale = 10.0 * float(np.max(noise_std / optical_gain))
         self.k = 0
-        self.limit = np.inf
+        self.limit = self.limit_unstable = self.limit_check = np.inf
         self.out: dict[str, np.ndarray] = {}
+        self.out_m = self.out_u = self.out_y = self.out_e = None
         self.chunk_e2 = np.zeros(n)
         self.energy: list[np.ndarray] = []
         radius = closed_loop_pole_radius(stage, optical_gain)
@@ -158,6 +159,12 @@ class _StageRun:
         self.out = {
             name: np.empty((m_chunk, self.n)) for name in self.record if name != "disturbance"
         }
+        self.out_m = self.out.get("measurements")
+        self.out_u = self.out.get("commands")
+        self.out_y = self.out.get("dm")
+        self.out_e = self.out.get("residuals")
+        # The per-frame check compares the largest residual with the smallest guard.
+        self.limit_check = self.limit_unstable if self.unstable.any() else self.limit
         self.chunk_e2 = np.zeros(self.n)
 
     def end_chunk(self, d_rec: np.ndarray, first: int) -> None:
@@ -209,29 +216,39 @@ class _StageRun:
                 y = self.dm.clip(y, self.dm_state)
         e = (d_j if r_j is None else r_j) - y
         ae = np.abs(e)
-        if not np.all(ae < self.limit):
-            raise LoopDivergedError(k, np.flatnonzero(~(ae < self.limit)), self.name)
-        if self.unstable.any():
-            bad = self.unstable & ~(ae < self.limit_unstable)
-            if bad.any():
-                raise LoopDivergedError(
-                    k,
-                    np.flatnonzero(bad),
-                    self.name,
-                    f"exceeds {_UNSTABLE_FACTOR:g} x the disturbance and the linear closed "
-                    f"loop is unstable (pole radius {float(self.radius[bad].max()):.6g} > 1)",
-                )
+        # One reduction per frame (NaN fails the comparison and is caught here too).
+        amax = ae.max()
+        if not amax < self.limit_check:
+            self._diverged(k, ae)
         e2 = e * e
         self.chunk_e2 += e2
         if self.accumulate and k >= self.settle:
             self.sum_e2 += e2
             self.sum_d2 += d_j * d_j
-        out = self.out
-        for name, val in (("measurements", m), ("commands", u), ("dm", y), ("residuals", e)):
-            if name in out:
-                out[name][j] = val
+        if self.out_m is not None:
+            self.out_m[j] = m
+        if self.out_u is not None:
+            self.out_u[j] = u
+        if self.out_y is not None:
+            self.out_y[j] = y
+        if self.out_e is not None:
+            self.out_e[j] = e
         self.k = k + 1
         return e, y
+
+    def _diverged(self, k: int, ae: np.ndarray) -> None:
+        """Raise if a guard is exceeded (``ae`` the residual magnitudes of frame ``k``)."""
+        if not np.all(ae < self.limit):
+            raise LoopDivergedError(k, np.flatnonzero(~(ae < self.limit)), self.name)
+        bad = self.unstable & ~(ae < self.limit_unstable)
+        if bad.any():
+            raise LoopDivergedError(
+                k,
+                np.flatnonzero(bad),
+                self.name,
+                f"exceeds {_UNSTABLE_FACTOR:g} x the disturbance and the linear closed "
+                f"loop is unstable (pole radius {float(self.radius[bad].max()):.6g} > 1)",
+            )
 
     def finish(self) -> None:
         """After the last frame: a linearly unstable mode that never tripped a guard."""
