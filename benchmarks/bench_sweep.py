@@ -1,0 +1,197 @@
+"""Benchmark: a sweep of the five science cases on a local Dask cluster vs one process.
+
+Measured in one run, on the same machine:
+
+1. The five cases (``bright1-best``, ``bright1-worst``, ``red1-fast``, ``red3-medium``,
+   ``red5-best``) x ``--controllers`` x ``--schemes`` x ``--seeds`` with short, quick runs
+   (``--seconds``), first one after the other in this process (the runner called directly,
+   writing the same results files), then through :func:`aocontrol.study.sweep.run_sweep` on a
+   ``LocalCluster`` (``--workers`` processes, 1 thread each). Printed: both wall times, the
+   cluster's start-up, and the ratio serial / cluster with and without the start-up (on a
+   2-core machine at most about 2x).
+2. Scheduler overhead per run: ``--trivial`` runs that only write a tiny file, through the
+   same cluster (``run_sweep``: validation, submission, worker-side atomic write, summary
+   table) vs called directly, after a warm-up sweep (the workers' first task imports
+   aocontrol, timed apart); the difference per run is the price of the machinery.
+
+``--quick`` runs two cases, one seed, and fewer trivial runs (smoke test).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import sys
+import tempfile
+import time
+
+CASES = ("bright1-best", "bright1-worst", "red1-fast", "red3-medium", "red5-best")
+
+
+def trivial_run(settings: dict, path: pathlib.Path) -> None:
+    """A run that costs nothing: one small HDF5 file with the settings."""
+    import json
+
+    import h5py
+
+    with h5py.File(path, "w") as f:
+        f.attrs["settings"] = json.dumps(settings)
+
+
+def trivial_read(path: pathlib.Path) -> dict:
+    """Summary row of a trivial run."""
+    import json
+
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return {"settings": json.loads(f.attrs["settings"])}
+
+
+def _spec(cases, controllers, schemes, seeds, seconds, quick):
+    from aocontrol.study.sweep import SweepSpec
+
+    return SweepSpec(
+        cases=tuple(cases),
+        controllers=tuple(controllers),
+        schemes=tuple(schemes),
+        seeds=tuple(seeds),
+        seconds=seconds,
+        quick=quick,
+        source="bench_sweep",
+    )
+
+
+def _serial(runner, runs, out: pathlib.Path) -> float:
+    """Every run one after the other in this process [s]."""
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    for r in runs:
+        runner.run(dict(r.settings), out / f"{r.hash}.h5")
+    return time.perf_counter() - t0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--controllers", nargs="+", default=["integrator"])
+    parser.add_argument("--schemes", nargs="+", default=["standalone"])
+    parser.add_argument("--seeds", type=int, default=2, help="seeds per configuration")
+    parser.add_argument("--seconds", type=float, default=0.2, help="simulated time per run [s]")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--trivial", type=int, default=40, help="trivial runs (overhead)")
+    parser.add_argument("--skip-cases", action="store_true", help="only the overhead part")
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    if args.quick:
+        cases, seeds, n_trivial = CASES[:2], 1, min(args.trivial, 12)
+    else:
+        cases, seeds, n_trivial = CASES, args.seeds, args.trivial
+
+    import logging
+
+    from distributed import LocalCluster
+
+    from aocontrol.study.sweep import SweepRunner, run_sweep
+
+    logging.basicConfig(level=logging.WARNING)
+    print(
+        f"configuration: cases={list(cases)}, controllers={args.controllers}, "
+        f"schemes={args.schemes}, seeds={seeds}, seconds={args.seconds}, quick=True, "
+        f"workers={args.workers} (1 thread each)",
+        flush=True,
+    )
+    with tempfile.TemporaryDirectory(prefix="bench-sweep-") as tmp:
+        tmp = pathlib.Path(tmp)
+        t0 = time.perf_counter()
+        cluster = LocalCluster(
+            n_workers=args.workers,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        )
+        t_start = time.perf_counter() - t0
+        try:
+            # ---- scheduler overhead: trivial runs through the cluster vs direct calls
+            trivial = SweepRunner(run=trivial_run, read=trivial_read)
+            # warm-up: the workers import aocontrol on their first task (counted apart)
+            spec_w = _spec(["w"], ["c"], ["s"], range(2 * args.workers), 1.0, False)
+            t_warm = run_sweep(
+                spec_w, out=tmp / "warm-up", scheduler=cluster.scheduler_address, runner=trivial
+            ).wall_s
+            print(
+                f"cluster start-up {t_start:.1f} s; first {2 * args.workers} trivial runs "
+                f"(workers importing aocontrol) {t_warm:.1f} s",
+                flush=True,
+            )
+            spec_t = _spec(["t"], ["c"], ["s"], range(n_trivial), 1.0, False)
+            runs_t = spec_t.runs()
+            t_direct = _serial(trivial, runs_t, tmp / "trivial-direct")
+            report = run_sweep(
+                spec_t,
+                out=tmp / "trivial-cluster",
+                scheduler=cluster.scheduler_address,
+                runner=trivial,
+            )
+            assert len(report.ran) == n_trivial, report
+            t_cluster_trivial = report.wall_s
+            per_direct = t_direct / n_trivial
+            per_cluster = t_cluster_trivial / n_trivial
+            print(
+                f"trivial runs: {n_trivial}; direct {1e3 * per_direct:.2f} ms/run, through the "
+                f"cluster {1e3 * per_cluster:.1f} ms/run (wall / runs, {args.workers} workers); "
+                f"scheduler overhead {1e3 * (per_cluster - per_direct):.1f} ms/run",
+                flush=True,
+            )
+            if args.skip_cases:
+                print(f"cluster start-up: {t_start:.1f} s")
+                return 0
+            # ---- the five cases
+            from aocontrol.study.sweep import default_runner
+
+            runner = default_runner()
+            spec = _spec(cases, args.controllers, args.schemes, range(seeds), args.seconds, True)
+            runs = spec.runs()
+            t_par = run_sweep(
+                spec,
+                out=tmp / "cases-cluster",
+                scheduler=cluster.scheduler_address,
+                runner=runner,
+            )
+            if t_par.failed:
+                print("failed runs:", t_par.failed)
+                return 1
+            t_cluster = t_par.wall_s
+            print(f"cluster: {len(runs)} runs in {t_cluster:.1f} s", flush=True)
+        finally:
+            cluster.close()
+        t_serial = _serial(runner, runs, tmp / "cases-serial")
+        print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
+        rows = {r["hash"]: r for r in t_par.table}
+        print(
+            f"{'case':16s}{'controller':12s}{'scheme':12s}{'seed':>5s}{'strehl':>9s}{'C(4-6)':>11s}"
+        )
+        for r in runs:
+            row = rows[r.hash]
+            s = r.settings
+            strehl = row.get("strehl", float("nan"))
+            contrast = row.get("mean_contrast_4_6", float("nan"))
+            print(
+                f"{s['case']:16s}{s['controller']:12s}{s['scheme']:12s}{s['seed']:5d}"
+                f"{strehl:9.3f}{contrast:11.3g}"
+            )
+        print(
+            f"\nwall time: one process {t_serial:.1f} s, local cluster {t_cluster:.1f} s "
+            f"(+ {t_start:.1f} s start-up)\n"
+            f"ratio one process / cluster: {t_serial / t_cluster:.2f}x without start-up, "
+            f"{t_serial / (t_cluster + t_start):.2f}x with it ({args.workers} workers, "
+            f"{os.cpu_count()} cores)\n"
+            f"scheduler overhead per run: {1e3 * (per_cluster - per_direct):.1f} ms "
+            f"(trivial runs, {n_trivial} of them)"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
