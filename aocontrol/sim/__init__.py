@@ -42,6 +42,7 @@ from aocontrol.sim.science import (
     radial_profile,
     strehl,
 )
+from aocontrol.sim.vibration import TiltVibration, VibrationPeak, VibrationPSD
 from aocontrol.sim.wfs import (
     LinearModalWFS,
     PyramidWFS,
@@ -71,6 +72,9 @@ __all__ = [
     "run_cascade",
     "CascadeResult",
     "PhaseSource",
+    "TiltVibration",
+    "VibrationPSD",
+    "VibrationPeak",
     "Pupil",
     "vlt_pupil",
     "DeformableMirror",
