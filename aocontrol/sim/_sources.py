@@ -38,7 +38,14 @@ _RATE_RTOL = 1e-9
 
 @runtime_checkable
 class DisturbanceSource(Protocol):
-    """Anything that yields the next frames of a modal disturbance at rate ``fs`` [Hz]."""
+    """Anything that yields the next frames of a modal disturbance at rate ``fs`` [Hz].
+
+    Parameters
+    ----------
+    *args, **kwargs
+        Not used: a protocol is not instantiated; any object with the members below
+        satisfies it (``isinstance`` checks them at run time).
+    """
 
     n_modes: int
 
@@ -49,7 +56,14 @@ class DisturbanceSource(Protocol):
 
 @runtime_checkable
 class PhaseDisturbance(Protocol):
-    """Anything that yields the next phase frames on the valid pupil pixels at ``fs`` [Hz]."""
+    """Anything that yields the next phase frames on the valid pupil pixels at ``fs`` [Hz].
+
+    Parameters
+    ----------
+    *args, **kwargs
+        Not used: a protocol is not instantiated; any object with the members below
+        satisfies it (``isinstance`` checks them at run time).
+    """
 
     fs: float
 

@@ -28,7 +28,14 @@ __all__ = ["Sensor", "DiffractiveSensor", "Stage"]
 
 @runtime_checkable
 class Sensor(Protocol):
-    """A wavefront sensor of a stage: the residual (modal or a phase map) -> modal measurement."""
+    """A wavefront sensor of a stage: the residual (modal or a phase map) -> modal measurement.
+
+    Parameters
+    ----------
+    *args, **kwargs
+        Not used: a protocol is not instantiated; any object with the members below
+        satisfies it (``isinstance`` checks them at run time).
+    """
 
     senses_phase: bool
 
