@@ -110,7 +110,7 @@ def test_cases_lists_every_case(capsys):
     ],
 )
 def test_unknown_names_list_the_valid_ones(argv, expected, capsys):
-    compare = pytest.importorskip("aocontrol.study.compare")
+    from aocontrol.study import compare
     from aocontrol.study.cases import list_cases
 
     valid = {
@@ -242,7 +242,6 @@ def test_design_unreadable_file(tmp_path, capsys):
 
 
 def test_sweep_with_a_typo_fails_before_any_run(tmp_path, capsys):
-    pytest.importorskip("aocontrol.study.compare")
     spec = tmp_path / "spec.toml"
     spec.write_text('cases = ["bright1-best"]\ncontrolers = ["integrator"]\n')
     assert main(["sweep", str(spec), "--out", str(tmp_path / "out")]) == 2
@@ -251,3 +250,33 @@ def test_sweep_with_a_typo_fails_before_any_run(tmp_path, capsys):
     assert not list((tmp_path / "out").glob("*.h5"))
     assert main(["sweep", str(tmp_path / "missing.toml")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------- run
+@pytest.mark.slow
+@pytest.mark.parametrize("scheme", ["single", "dcao"])
+def test_run_writes_a_results_file_and_prints_its_summary(tmp_path, capsys, scheme):
+    argv = [
+        "run",
+        "bright1-best",
+        "--controller",
+        "integrator",
+        "--scheme",
+        scheme,
+        "--quick",
+        "--seconds",
+        "0.05",
+        "--no-progress",
+        "--out",
+        str(tmp_path),
+    ]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    path = tmp_path / f"bright1-best-integrator-{scheme}-seed0.h5"
+    res = aocontrol.load_result(path)
+    assert hasattr(res, "stages") == (scheme != "single")
+    # The printed one-line summary is the file's content (3 decimals of the Strehl).
+    strehl = float(out.split("Strehl ")[1].split(",")[0])
+    assert strehl == pytest.approx(res.science.strehl, abs=5e-4)
+    assert 0.0 < strehl <= 1.0
+    assert (tmp_path / f"bright1-best-integrator-{scheme}-seed0_contrast.png").exists()

@@ -80,12 +80,16 @@ def test_rejection_and_residual_psd_plots(tmp_path):
 
 def test_contrast_plot_takes_arrays_and_results(tmp_path):
     radii = np.arange(1, 20) * 0.5
-    sci = ScienceResult(0.8, 1e-4, radii, 1e-2 * np.exp(-radii), n_frames=10)
+    prof = 1e-2 * np.exp(-radii)
+    prof[0] = 1e-14  # the perfect coronagraph's dark core
+    sci = ScienceResult(0.8, 1e-4, radii, prof, n_frames=10)
     fig = plot.plot_contrast(None, {"result": sci}, path=tmp_path / "c.png")
     _png_ok(tmp_path / "c.png")
     ax = fig.axes[0]
     _labelled(ax)
     assert ax.get_yscale() == "log"
+    # The axis is scaled on the halo beyond 1 lambda/D, not on the dark core.
+    assert ax.get_ylim()[0] == pytest.approx(0.3 * prof[radii >= 1.0].min(), rel=1e-12)
     np.testing.assert_array_equal(ax.get_lines()[0].get_xdata(), radii)
     with pytest.raises(ValueError, match="radii_ld"):
         plot.plot_contrast(None, {"bare": np.ones(3)})

@@ -34,7 +34,25 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class DemoResult:
-    """What the demo designed and measured."""
+    """What the demo designed and measured.
+
+    Parameters
+    ----------
+    fs : float
+        Loop rate [Hz].
+    latency_frames : float
+        RTC latency beyond the WFS integration [frames].
+    controllers : dict of str -> ControllerBank
+        The designed controllers, by label.
+    margins : dict of str -> Margins
+        Stability margins of each controller.
+    residual_rms : dict of str -> float
+        Predicted residual of each controller [nm RMS].
+    wiener_rms : float
+        Wiener bound: residual of the best causal linear predictor [nm RMS].
+    plot_path : str
+        The rejection plot written (PNG).
+    """
 
     fs: float
     latency_frames: float

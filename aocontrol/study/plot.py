@@ -34,6 +34,10 @@ __all__ = [
 
 # Floor of |S|, |T| before taking dB (a perfect zero would be -inf on the axis).
 _DB_FLOOR = 1e-12
+# Contrast axis: its bottom is this factor times the lowest contrast beyond the inner radius
+# [lambda/D] (inside it the perfect coronagraph leaves ~1e-14, which would flatten the halo).
+_CONTRAST_INNER_LD = 1.0
+_CONTRAST_AXIS_MARGIN = 0.3
 
 
 def _axes(ax: Any, figsize: tuple[float, float] = (7.0, 4.5)) -> tuple[Any, Any]:
@@ -274,6 +278,7 @@ def plot_contrast(
     matplotlib.figure.Figure
     """
     fig, ax = _axes(ax)
+    lows = []
     for label, item in profiles.items():
         r, prof = _profile(item)
         if r is None and radii_ld is not None:
@@ -284,6 +289,12 @@ def plot_contrast(
                 f"separation per bin"
             )
         ax.semilogy(r, prof, label=label)
+        outer = prof[(r >= _CONTRAST_INNER_LD) & np.isfinite(prof) & (prof > 0)]
+        if outer.size:
+            lows.append(float(outer.min()))
+    if lows:
+        # The perfect coronagraph leaves ~0 at the star: scale the axis on the halo.
+        ax.set_ylim(bottom=_CONTRAST_AXIS_MARGIN * min(lows))
     ax.axvspan(4.0, 6.0, color="0.9", zorder=0)
     ax.set_xlabel(r"separation [$\lambda/D$]")
     ax.set_ylabel("raw contrast [star peak = 1]")

@@ -476,7 +476,18 @@ def load_result(path: str | os.PathLike) -> Any:
 
 
 def read_settings(path: str | os.PathLike) -> dict:
-    """The settings stored with a run (the ``settings_json`` root attribute), as a dict."""
+    """The settings stored with a run (the ``settings_json`` root attribute), as a dict.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Results file.
+
+    Returns
+    -------
+    dict
+        The ``settings`` given to :func:`save_result` (JSON round trip: tuples as lists).
+    """
     with _open_checked(os.fspath(path)) as fh:
         return json.loads(_attr(fh, "settings_json"))
 
