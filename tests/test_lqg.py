@@ -55,6 +55,22 @@ def test_lqg_with_true_model_reaches_wiener_bound(latency, vibration, noise):
     assert res / bound == pytest.approx(1.0, abs=OPTIMAL)
 
 
+def test_tip_model_near_the_unit_circle_reaches_the_bound():
+    # A tip-like AR(2) at 3 kHz (poles within 1e-4 of z = 1, corner ~0.04 Hz): scipy's DARE
+    # (ordered QZ) fails on it and the doubling algorithm takes over; the oracle is still the
+    # Wiener bound (FFT grid fine enough for the 0.04 Hz corner).
+    fs = 3000.0
+    d = DisturbanceModel([[1.9998426606157083, -0.999843876911002]], [300169.1954179783],
+                         np.zeros((1, 0)), np.zeros((1, 0)), np.zeros((1, 0)), fs=fs)  # fmt: skip
+    with pytest.raises(ValueError, match="Reordering"):
+        scipy.linalg.solve_discrete_are(d.A[0].T, d.C[0][:, None], d.Q[0], np.array([[4.0]]))
+    f = np.geomspace(1e-5, fs / 2, 20_000)
+    G, npsd = loop_plant(fs, 0.83), 2 * 4.0 / fs
+    bank = lqg(G, f, d.psd(f), noise_psd=npsd, model=d)
+    res = residual_variance(G, bank, f, d.psd(f), npsd)[0]
+    assert res / wiener_bound(G, f, d.psd(f), npsd, n_fft=2**20) == pytest.approx(1, abs=OPTIMAL)
+
+
 def test_lqg_for_the_wrong_delay_misses_the_bound():
     # Twin: designed for one frame less delay than the loop has, the same LQG is far from
     # the bound (or unstable), so the oracle above can fail.
@@ -175,6 +191,18 @@ def test_filterpy_from_a_wrong_prior_converges_to_the_steady_state():
     np.testing.assert_allclose(ref_ctrl.gains, bank.state_space.kalman_gain, rtol=1e-8, atol=1e-12)
     np.testing.assert_allclose(fast[-100:], ref[-100:], atol=REFERENCE * np.max(np.abs(ref)))
     assert np.max(np.abs(fast[:10] - ref[:10])) > 1e-6  # the transient was there
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.83, 2.3])
+def test_structured_real_time_path_equals_dense_product(latency):
+    # Two real-time paths: the structured update (companion blocks, command shift register)
+    # and the batched dense product [xi-; u] = M [xi-; m], in the loop on the same data.
+    d, bank = _bank_several_modes(latency)
+    dense = LQGBank(bank.state_space, dense=True)
+    _, u1 = _closed_loop(bank, d, latency, 1e-3, 300, np.random.default_rng(4))
+    _, u2 = _closed_loop(dense, d, latency, 1e-3, 300, np.random.default_rng(4))
+    np.testing.assert_allclose(u1, u2, atol=REFERENCE * np.max(np.abs(u2)))
+    np.testing.assert_allclose(bank.predicted_state, dense.predicted_state, atol=1e-8)
 
 
 def test_margins_and_stability_are_reported():
