@@ -9,6 +9,11 @@ from aocontrol.analysis._cascade import (
     cascade_sensitivity,
     slow_stage_sensitivity,
 )
+from aocontrol.analysis._constrained import (
+    ConstrainedBound,
+    ConstrainedBoundError,
+    constrained_bound,
+)
 from aocontrol.analysis._loop import (
     LoopResponse,
     command_transfer,
@@ -31,6 +36,9 @@ from aocontrol.analysis._residual import residual_psd, residual_variance
 from aocontrol.analysis._wiener import wiener_bound
 
 __all__ = [
+    "ConstrainedBound",
+    "ConstrainedBoundError",
+    "constrained_bound",
     "cascade_rejection",
     "cascade_sensitivity",
     "slow_stage_sensitivity",

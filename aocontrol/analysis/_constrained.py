@@ -1,0 +1,526 @@
+"""Margin-constrained optimality bound: the best residual of any stabilising linear controller
+that also meets a modulus margin.
+
+For a stable plant ``G`` every stabilising controller is ``K = Q / (1 - G Q)`` with ``Q``
+stable (Youla), and ``S = 1 - G Q``, ``T = G Q`` are affine in ``Q``. With ``Q`` an FIR filter
+of ``n_taps`` coefficients ``q`` (powers of ``z^-1``) the residual variance
+
+    J(q) = int_0^{fs/2} ( |1 - G Q|^2 psd + |G Q|^2 noise_psd ) df        (trapezoid on freqs)
+
+is a convex quadratic in ``q`` and the margin ``|S| <= 1 / mu`` on a grid is a set of
+second-order cones: a convex SOCP (cvxpy + Clarabel). The problem is compiled once per call
+with ``Parameter``s (DPP) and re-solved for every mode. PSDs are one-sided [units^2/Hz].
+
+Write ``a_j = G(f_j) E(f_j)`` (``E`` the FIR basis, ``a`` complex, shape ``(n_freqs,
+n_taps)``) and ``P = psd + noise_psd``. Then
+
+    |1 - a q|^2 psd + |a q|^2 noise = P |a q - psd / P|^2 + psd noise / P,
+
+so ``J(q) = ||y - M q||^2 + c`` with the rows ``M = sqrt(w P) [Re a; Im a]``,
+``y = sqrt(w P) [psd / P; 0]`` (``w`` the trapezoid weights) and ``c = sum w psd noise / P``.
+A thin QR factorisation ``M = U R`` reduces the objective to ``||U^T y - R q||^2`` plus a
+constant: an ``n_taps``-dimensional least-squares term whatever the grid size, and no
+squared condition number.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass, field
+
+import control
+import cvxpy as cp
+import numpy as np
+
+from aocontrol._validation import check_frequency_grid, check_in_range, check_int, mode_psds
+from aocontrol.controllers import IIRBank
+from aocontrol.plant import frequency_response, plant_fs, z_inverse_coefficients
+
+__all__ = ["ConstrainedBound", "ConstrainedBoundError", "constrained_bound"]
+
+logger = logging.getLogger(__name__)
+
+# Clarabel settings: tight gaps (the bound is a yardstick, not a design step; the objective
+# is scaled to O(1) per mode, see _scale).
+_SOLVER_OPTS = {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9, "max_iter": 200}
+# Constraint grid: this many points per degree of S = 1 - G Q (linear in [0, fs/2]), and at
+# least _MIN_CONSTRAINT points. A trigonometric polynomial of degree L varies on a scale
+# pi / L rad: 16 points per degree keep its peak between grid points within ~0.5 %.
+_CONSTRAINT_PER_DEGREE = 16
+_MIN_CONSTRAINT = 2048
+# Verification grid: this many times denser than the constraint grid (plus the input grid).
+_VERIFY_FACTOR = 8
+# Cutting planes: initial cone slots, points added per round, rounds, and the tolerance on
+# mu |S| - 1 below which a constraint-grid point counts as satisfied.
+_SLOTS = 128
+_CUTS_PER_ROUND = 64
+# Base constraint grid: this many points per degree of S (shared by all modes, constant cones).
+_BASE_PER_DEGREE = 1
+_MAX_ROUNDS = 60
+_CUT_TOL = 1e-7
+# Objective scale floor relative to the disturbance-plus-noise variance (a mode whose
+# unconstrained FIR optimum is exactly zero keeps a finite scale).
+_SCALE_FLOOR = 1e-12
+
+
+class ConstrainedBoundError(RuntimeError):
+    """The bound could not be computed for some modes; the others are kept.
+
+    Parameters
+    ----------
+    failed : dict[int, str]
+        Mode index -> reason (kept as ``.failed``).
+    result : ConstrainedBound
+        Every mode; failed modes have ``ok == False`` and ``variance == nan`` (kept as
+        ``.result``).
+    """
+
+    def __init__(self, failed: dict[int, str], result: ConstrainedBound) -> None:
+        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
+        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
+        super().__init__(
+            f"constrained_bound failed for {len(failed)} of {result.variance.size} modes: "
+            f"{lines}{more}. The other modes are in this error's .result"
+        )
+        self.failed = failed
+        self.result = result
+
+
+@dataclass(frozen=True)
+class ConstrainedBound:
+    """Result of :func:`constrained_bound`.
+
+    Attributes
+    ----------
+    variance : ndarray, shape (n_modes,)
+        The bound: lowest residual variance [units^2] over FIR Youla parameters of
+        ``n_taps`` taps meeting ``|S| <= 1 / modulus_margin`` on ``constraint_freqs``
+        (trapezoid on the input grid; ``nan`` for a failed mode).
+    unconstrained : ndarray, shape (n_modes,)
+        The same without the margin (FIR Wiener filter, least squares) [units^2]: the
+        ``modulus_margin -> 0`` limit, which tends to :func:`wiener_bound` as ``n_taps`` grows.
+    q : ndarray, shape (n_modes, n_taps)
+        Optimal Youla parameters (FIR coefficients in powers of ``z^-1``).
+    verified_margin : ndarray, shape (n_modes,)
+        ``min |1 + G K| = 1 / max |S|`` on ``verify_freqs`` (dense grid).
+    certified_margin : ndarray, shape (n_modes,)
+        A lower bound of ``min |1 + G K|`` over the whole frequency axis for an FIR plant
+        (``S`` is then a polynomial of degree ``L`` in ``z^-1``; Bernstein's inequality on the
+        uniform part of ``verify_freqs`` with ``M`` intervals gives
+        ``max |S| <= max_grid |S| / (1 - pi L / (2 M))``); ``nan`` for an IIR plant.
+    ok : ndarray of bool, shape (n_modes,)
+        The mode was solved.
+    messages : tuple of str
+        Failure reason per mode (empty when ``ok``).
+    modulus_margin : float
+        Required margin ``mu`` (0: no margin).
+    n_taps : int
+        FIR length of ``Q``.
+    fs : float
+        Loop rate [Hz].
+    constraint_freqs : ndarray, shape (n_constraint,)
+        Grid on which the margin is imposed [Hz].
+    verify_freqs : ndarray, shape (n_verify,)
+        Verification grid [Hz].
+    plant_coefficients : tuple of ndarray
+        ``(B, A)`` of the plant in powers of ``z^-1`` (for :attr:`controller`).
+    solves : ndarray of int, shape (n_modes,)
+        SOCP solves per mode (cutting-plane rounds; 0 when the unconstrained FIR optimum
+        already meets the margin on the constraint grid).
+    """
+
+    variance: np.ndarray
+    unconstrained: np.ndarray
+    q: np.ndarray
+    verified_margin: np.ndarray
+    certified_margin: np.ndarray
+    ok: np.ndarray
+    messages: tuple[str, ...]
+    modulus_margin: float
+    n_taps: int
+    fs: float
+    constraint_freqs: np.ndarray = field(repr=False)
+    verify_freqs: np.ndarray = field(repr=False)
+    plant_coefficients: tuple[np.ndarray, np.ndarray] = field(repr=False)
+    solves: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0, dtype=int))
+
+    def __post_init__(self) -> None:
+        n = self.variance.shape
+        for name in ("unconstrained", "verified_margin", "certified_margin", "ok"):
+            if getattr(self, name).shape != n:
+                raise ValueError(f"{name} must have shape {n}, got {getattr(self, name).shape}")
+        if self.q.shape != n + (self.n_taps,):
+            raise ValueError(f"q must have shape {n + (self.n_taps,)}, got {self.q.shape}")
+        if len(self.messages) != n[0]:
+            raise ValueError(f"messages must have {n[0]} entries, got {len(self.messages)}")
+
+    @property
+    def controller(self) -> IIRBank:
+        """The controllers ``K = Q / (1 - G Q)`` that reach the bound, one per mode.
+
+        For ``G = B / A`` (powers of ``z^-1``), ``K = Q A / (A - B Q)``. The closed loop is
+        stable by construction (``G`` and ``Q`` stable), whether or not ``K`` itself is.
+        """
+        bg, ag = self.plant_coefficients
+        pp = np.polynomial.polynomial
+        rows_b = [pp.polymul(q, ag) for q in self.q]
+        rows_a = [pp.polysub(ag, pp.polymul(bg, q)) for q in self.q]
+        nb = max(r.size for r in rows_b)
+        na = max(r.size for r in rows_a)
+        b = np.array([np.pad(r, (0, nb - r.size)) for r in rows_b])
+        a = np.array([np.pad(r, (0, na - r.size)) for r in rows_a])
+        return IIRBank(b, a, self.fs)
+
+
+class _Problem:
+    """DPP problem ``min ||R q - r||^2 s.t. mu |1 - a_j q| <= 1`` at base points and cuts.
+
+    The margin cones at the base grid (``a_base``, shared by every mode) are constants; the
+    ``slots`` cut cones have parameter rows: the constraint set grows by cutting planes (the
+    worst points of the fine constraint grid) without recompiling. An unused slot has zero
+    rows (``0 <= 1``: neutral). ``R``, ``r`` (the mode's least-squares term) are parameters.
+    """
+
+    def __init__(self, a_base: np.ndarray, mu: float, n_taps: int, slots: int) -> None:
+        self.n_taps, self.slots = n_taps, slots
+        q = self.q = cp.Variable(n_taps, name="q")
+        self.R = cp.Parameter((n_taps, n_taps), name="R")
+        self.r = cp.Parameter(n_taps, name="r")
+        self.c0 = cp.Parameter(slots, name="c0")
+        self.cr = cp.Parameter((slots, n_taps), name="cr")
+        self.ci = cp.Parameter((slots, n_taps), name="ci")
+        rows = cp.vstack([self.c0 - self.cr @ q, -(self.ci @ q)])
+        base = cp.vstack([mu - (mu * a_base.real) @ q, -((mu * a_base.imag) @ q)])
+        cons = [
+            cp.SOC(np.ones(a_base.shape[0]), base, axis=0),
+            cp.SOC(np.ones(slots), rows, axis=0),
+        ]
+        self.problem = cp.Problem(cp.Minimize(cp.sum_squares(self.R @ q - self.r)), cons)
+        if not self.problem.is_dpp():  # pragma: no cover - construction bug
+            raise AssertionError("constrained-bound problem is not DPP")
+
+    def set_cuts(self, a_cut: np.ndarray, mu: float) -> None:
+        """Margin cones at the rows ``a_cut`` (complex, ``(n_cut, n_taps)``, ``n_cut <= slots``)."""
+        n = a_cut.shape[0]
+        c0 = np.zeros(self.slots)
+        cr = np.zeros((self.slots, self.n_taps))
+        ci = np.zeros((self.slots, self.n_taps))
+        c0[:n], cr[:n], ci[:n] = mu, mu * a_cut.real, mu * a_cut.imag
+        self.c0.value, self.cr.value, self.ci.value = c0, cr, ci
+
+    def solve(self, R: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Solve with the least-squares term ``(R, r)``; raises ``RuntimeError`` on failure."""
+        self.R.value, self.r.value = R, r
+        return _solve(self)
+
+
+def _solve(prob: _Problem) -> np.ndarray:
+    """One Clarabel solve; raises ``RuntimeError`` naming the solver status on failure."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            prob.problem.solve(solver=cp.CLARABEL, **_SOLVER_OPTS)
+    except cp.error.SolverError as exc:
+        raise RuntimeError(f"Clarabel failed ({exc})") from exc
+    status = prob.problem.status
+    if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or prob.q.value is None:
+        raise RuntimeError(f"Clarabel returned status {status!r}")
+    return np.array(prob.q.value, dtype=float)
+
+
+class _SGrid:
+    """``S = 1 - G Q`` on a uniform grid of ``[0, fs/2]`` (FFT) plus extra points (matrix)."""
+
+    def __init__(self, plant: object, fs: float, n_intervals: int, extra: np.ndarray, n_taps: int):
+        self.n = n_intervals
+        self.freqs_uniform = np.linspace(0.0, fs / 2, n_intervals + 1)
+        self.g = frequency_response(plant, self.freqs_uniform, fs)
+        self.extra = extra
+        self.a_extra = _basis(plant, extra, fs, n_taps)
+        self.plant, self.fs, self.n_taps = plant, fs, n_taps
+
+    def abs_s(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``|S|`` on the uniform grid and on the extra points."""
+        uniform = np.abs(1.0 - self.g * np.fft.rfft(q, 2 * self.n))
+        return uniform, np.abs(1.0 - self.a_extra @ q)
+
+    def cut_rows(self, q: np.ndarray, mu: float, n_max: int) -> np.ndarray:
+        """Basis rows at the ``n_max`` worst local maxima of ``mu |S|`` above 1 (tolerance)."""
+        uniform, extra = self.abs_s(q)
+        f_u = self.freqs_uniform
+        peaks = np.flatnonzero((uniform >= np.roll(uniform, 1)) & (uniform >= np.roll(uniform, -1)))
+        peaks = np.union1d(peaks, [0, uniform.size - 1])
+        cand_f = np.concatenate([f_u[peaks], self.extra])
+        cand_v = np.concatenate([uniform[peaks], extra])
+        bad = mu * cand_v > 1.0 + _CUT_TOL
+        if not bad.any():
+            return np.zeros((0, self.n_taps), complex)
+        order = np.argsort(cand_v[bad])[::-1][:n_max]
+        return _basis(self.plant, cand_f[bad][order], self.fs, self.n_taps)
+
+    def peak(self, q: np.ndarray) -> float:
+        uniform, extra = self.abs_s(q)
+        return float(max(uniform.max(), extra.max() if extra.size else 0.0))
+
+
+def _margin_solve(
+    problems: dict,
+    a_base: np.ndarray,
+    sgrid: _SGrid,
+    mu: float,
+    R: np.ndarray,
+    r: np.ndarray,
+    n_taps: int,
+) -> tuple[np.ndarray, int]:
+    """Cutting planes: impose the margin at the worst grid points until it holds everywhere.
+
+    The first problem has the base grid's cones (about two points per degree of ``S``); each
+    round adds the local maxima of ``|S|`` on the fine constraint grid that violate the
+    margin. Each solve is a relaxation of the problem on the whole constraint grid; the first
+    whose solution meets the margin on it (to ``_CUT_TOL``) solves it. Returns ``q`` and the
+    number of solves.
+    """
+    slots = _SLOTS
+    cuts = np.zeros((0, n_taps), complex)
+    q = np.linalg.lstsq(R, r, rcond=None)[0]
+    for it in range(_MAX_ROUNDS + 1):
+        new = sgrid.cut_rows(q, mu, _CUTS_PER_ROUND)
+        if new.shape[0] == 0:
+            return q, it
+        cuts = np.vstack([cuts, new])
+        while cuts.shape[0] > slots:
+            slots *= 2
+        if slots not in problems:
+            problems[slots] = _Problem(a_base, mu, n_taps, slots)
+        prob = problems[slots]
+        prob.set_cuts(cuts, mu)
+        q = prob.solve(R, r)
+    raise RuntimeError(
+        f"the margin still fails on the constraint grid after {_MAX_ROUNDS} cutting-plane "
+        f"rounds ({cuts.shape[0]} constraint points; max mu |S| = {mu * sgrid.peak(q):.6g})"
+    )
+
+
+def _basis(plant: object, f: np.ndarray, fs: float, n_taps: int) -> np.ndarray:
+    """``a = G(f) [1, z^-1, ..., z^-(n_taps-1)]``, complex, shape ``(f.size, n_taps)``."""
+    g = frequency_response(plant, f, fs)
+    w = np.exp(-2j * np.pi * f / fs)
+    return g[:, None] * w[:, None] ** np.arange(n_taps)
+
+
+def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
+    t = np.zeros_like(f)
+    df = np.diff(f)
+    t[:-1] += df / 2
+    t[1:] += df / 2
+    return t
+
+
+def _plant_polynomials(plant: control.TransferFunction) -> tuple[np.ndarray, np.ndarray]:
+    """``(B, A)`` of a stable TF plant in powers of ``z^-1``; raises if it is unstable."""
+    b, a = z_inverse_coefficients(plant)
+    a_trim = np.trim_zeros(a, "b")
+    if a_trim.size > 1:
+        poles = np.roots(a_trim)
+        if np.max(np.abs(poles)) >= 1.0:
+            raise ValueError(
+                "plant must be stable (Youla parametrisation K = Q / (1 - G Q)), got a pole of "
+                f"modulus {np.max(np.abs(poles))!r}"
+            )
+    return b, a
+
+
+def constrained_bound(
+    plant: control.TransferFunction,
+    freqs: object,
+    psd: object,
+    noise_psd: object = 0.0,
+    modulus_margin: float = 0.5,
+    *,
+    n_taps: int = 128,
+    n_constraint: int | None = None,
+    raise_on_failure: bool = True,
+    fs: float | None = None,
+) -> ConstrainedBound:
+    r"""Lowest residual variance of a stabilising linear controller with a modulus margin.
+
+    Per mode, over FIR Youla parameters ``Q`` of ``n_taps`` taps (``K = Q / (1 - G Q)``,
+    ``S = 1 - G Q``, ``T = G Q``), solves the convex SOCP
+
+    .. math::
+
+        \min_Q \int_0^{f_s/2} \left(|S|^2 \Phi_d + |T|^2 \Phi_n\right) df
+        \quad \text{s.t.} \quad |S(f_j)| \le 1/\mu \ \text{on the constraint grid}
+
+    (cvxpy + Clarabel; one problem compiled per call with ``Parameter``\ s and re-solved per
+    mode). The integral is the trapezoid on ``freqs``, exactly the residual of
+    :func:`aocontrol.analysis.residual_variance` for the returned controllers; the closed loop
+    is stable by construction. ``modulus_margin = 0`` drops the constraint (FIR Wiener filter;
+    the limit :func:`wiener_bound` is reached as ``n_taps`` grows).
+
+    What it bounds, and how well:
+
+    * The FIR class grows with ``n_taps`` (nested), so the value is non-increasing in
+      ``n_taps`` and converges to the infimum over all stable ``Q``: check convergence by
+      doubling ``n_taps`` (a resonance of damping ``z`` at ``f0`` needs
+      ``n_taps >> fs / (2 pi z f0)``).
+    * The margin is imposed on a grid only (a relaxation: the value is a lower bound for the
+      FIR class with the margin on the whole axis). The result reports the margin verified
+      on an 8x denser grid and, for an FIR plant such as :func:`aocontrol.loop_plant`, a
+      margin certified on the whole axis (Bernstein's inequality).
+    * A controller verified to meet the margin (e.g. :func:`aocontrol.synthesis.datadriven`)
+      cannot do better on the same grid, up to the FIR truncation and the grid relaxation.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+        Stable discrete SISO plant (command to measurement), e.g. :func:`aocontrol.loop_plant`.
+        A measured plant (``control.FRD``) is refused: the controller ``K`` is built from the
+        plant's polynomials.
+    freqs : array_like, shape (n_freqs,)
+        Strictly increasing grid in [0, fs/2] [Hz] that resolves the PSDs and ``S``
+        (log-spaced at low frequency for turbulent modes).
+    psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
+        Disturbance PSD, one-sided [units^2/Hz].
+    noise_psd : float or array_like, default 0.0
+        Measurement-noise PSD, one-sided [units^2/Hz]: scalar (white), like ``psd``, or one
+        white level per mode ``(n_modes,)``.
+    modulus_margin : float, default 0.5
+        Required ``min |1 + G K|`` in [0, 1] (``||S||_inf <= 1 / modulus_margin``; 0: none).
+        Every ``mu <= 1`` is feasible (``Q = 0``, ``S = 1``).
+    n_taps : int, default 128
+        FIR length of ``Q`` (>= 1).
+    n_constraint : int, optional
+        Points of the (linear) constraint grid over [0, fs/2]; default
+        ``max(2048, 16 L)`` with ``L`` the degree of ``S`` for an FIR plant.
+    raise_on_failure : bool, default True
+        Raise :class:`ConstrainedBoundError` (holding every mode) if a mode fails; if False,
+        return the result with ``ok == False`` and ``nan`` for the failed modes.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+
+    Returns
+    -------
+    ConstrainedBound
+        ``.variance`` (shape ``(n_modes,)``, units^2) is the bound; ``.q``, ``.controller``,
+        ``.verified_margin``, ``.certified_margin`` and ``.unconstrained`` describe it.
+
+    Raises
+    ------
+    TypeError
+        An FRD or non-LTI plant.
+    ValueError
+        Bad grid, PSDs, margin or ``n_taps`` (named in the message), or an unstable plant.
+    ConstrainedBoundError
+        Some modes failed in the solver (``error.result`` keeps the others).
+
+    Examples
+    --------
+    >>> from aocontrol.plant import loop_plant
+    >>> fs, a = 1000.0, 0.9
+    >>> f = np.linspace(0.0, fs / 2, 2001)
+    >>> ar1 = 2 / fs / np.abs(1 - a * np.exp(-2j * np.pi * f / fs)) ** 2  # s_w^2 = 1
+    >>> # Two-frame delay: the Wiener predictor Q = a^2 gives |S| <= 1 + a^2 = 1.81 < 2, so
+    >>> # with a margin of 0.5 the bound is the prediction error 1 + a^2.
+    >>> res = constrained_bound(loop_plant(fs, 1.0), f, ar1, modulus_margin=0.5, n_taps=4)
+    >>> round(float(res.variance[0]), 3)
+    1.81
+    """
+    if isinstance(plant, control.FRD):
+        raise TypeError(
+            "plant must be a control.TransferFunction: constrained_bound builds the controller "
+            "K = Q / (1 - G Q) from the plant's polynomials; a measured plant (FRD) is not "
+            "supported (fit a transfer function, e.g. loop_plant, first)"
+        )
+    fs_ = plant_fs(plant, fs)
+    freqs = check_frequency_grid("freqs", freqs, fs_)
+    if freqs.size < 2:
+        raise ValueError(f"freqs must have at least 2 points to integrate a PSD, got {freqs.size}")
+    psd2, noise2, _ = mode_psds(psd, noise_psd, freqs.size)
+    mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, high_inclusive=True)
+    n_taps = check_int("n_taps", n_taps, minimum=1)
+    bg, ag = _plant_polynomials(plant)
+    fir_plant = np.trim_zeros(ag, "b").size == 1
+    degree = n_taps - 1 + np.trim_zeros(bg, "b").size - 1 if fir_plant else None
+    if n_constraint is None:
+        n_con = max(_MIN_CONSTRAINT, _CONSTRAINT_PER_DEGREE * (degree or (n_taps + 8)))
+    else:
+        n_con = check_int("n_constraint", n_constraint, minimum=2)
+    con = _SGrid(plant, fs_, n_con - 1, freqs, n_taps)
+    n_uniform = _VERIFY_FACTOR * (n_con - 1)
+    ver = _SGrid(plant, fs_, n_uniform, freqs, n_taps)
+    problems: dict[int, _Problem] = {}
+    n_base = max(8, _BASE_PER_DEGREE * (degree or (n_taps + 8)))
+    a_base = _basis(plant, np.linspace(0.0, fs_ / 2, n_base), fs_, n_taps)
+    a_obj = con.a_extra
+    w = _trapezoid_weights(freqs)
+    m_rows = np.vstack([a_obj.real, a_obj.imag])
+
+    n_modes = psd2.shape[0]
+    variance = np.full(n_modes, np.nan)
+    unconstrained = np.full(n_modes, np.nan)
+    q_all = np.zeros((n_modes, n_taps))
+    verified = np.full(n_modes, np.nan)
+    certified = np.full(n_modes, np.nan)
+    ok = np.zeros(n_modes, dtype=bool)
+    messages = [""] * n_modes
+    solves = np.zeros(n_modes, dtype=int)
+    for i in range(n_modes):
+        sd, sn = psd2[i], noise2[i]
+        total = sd + sn
+        with np.errstate(divide="ignore", invalid="ignore"):
+            target = np.where(total > 0, sd / total, 0.0)
+            floor_term = float(np.sum(w * np.where(total > 0, sd * sn / total, 0.0)))
+        sw = np.sqrt(w * total)
+        M = np.concatenate([sw, sw])[:, None] * m_rows
+        y = np.concatenate([sw * target, np.zeros_like(sw)])
+
+        def value(q: np.ndarray, M: np.ndarray = M, y: np.ndarray = y, c: float = floor_term):
+            return float(np.sum((y - M @ q) ** 2) + c)
+
+        try:
+            U, R = np.linalg.qr(M, mode="reduced")
+            r = U.T @ y
+            q_unc = np.linalg.lstsq(R, r, rcond=None)[0]
+            unconstrained[i] = value(q_unc)
+            if mu == 0:
+                q = q_unc
+            else:
+                scale = np.sqrt(
+                    max(unconstrained[i], _SCALE_FLOOR * float(np.sum(w * total)), 1e-300)
+                )
+                q, solves[i] = _margin_solve(
+                    problems, a_base, con, mu, R / scale, r / scale, n_taps
+                )
+        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+            messages[i] = f"{exc}"
+            logger.warning("constrained_bound: mode %d failed: %s", i, exc)
+            continue
+        q_all[i] = q
+        variance[i] = value(q)
+        peak = ver.peak(q)
+        verified[i] = 1.0 / peak
+        if fir_plant:
+            slack = 1.0 - np.pi * degree / (2 * n_uniform)
+            certified[i] = slack / peak if slack > 0 else 0.0
+        ok[i] = True
+    result = ConstrainedBound(
+        variance=variance,
+        unconstrained=unconstrained,
+        q=q_all,
+        verified_margin=verified,
+        certified_margin=certified,
+        ok=ok,
+        messages=tuple(messages),
+        modulus_margin=mu,
+        n_taps=n_taps,
+        fs=fs_,
+        constraint_freqs=np.union1d(con.freqs_uniform, freqs),
+        verify_freqs=np.union1d(ver.freqs_uniform, freqs),
+        solves=solves,
+        plant_coefficients=(bg, ag),
+    )
+    if raise_on_failure and not ok.all():
+        raise ConstrainedBoundError({i: messages[i] for i in np.flatnonzero(~ok).tolist()}, result)
+    return result

@@ -1,0 +1,169 @@
+"""Tests of the margin-constrained optimality bound (aocontrol.analysis.constrained_bound)."""
+
+from __future__ import annotations
+
+import control
+import numpy as np
+import pytest
+
+from aocontrol.analysis import (
+    ConstrainedBoundError,
+    _constrained,
+    constrained_bound,
+    is_stable,
+    margins,
+    residual_variance,
+    white_noise_psd,
+    wiener_bound,
+)
+from aocontrol.disturbance import vibration_psd
+from aocontrol.plant import loop_plant, measured_plant
+from aocontrol.synthesis import datadriven, optimal_modal_gain
+
+FS = 1000.0
+
+
+def _ar1_psd(f: np.ndarray, a: float) -> np.ndarray:
+    """One-sided PSD of an AR(1) process with unit driving variance."""
+    return 2 / FS / np.abs(1 - a * np.exp(-2j * np.pi * f / FS)) ** 2
+
+
+@pytest.fixture(scope="module")
+def resonant():
+    """Low-pass turbulence plus a 150 Hz vibration, 1-frame latency: the margin binds at 0.5."""
+    f = np.unique(np.concatenate([np.linspace(0.0, FS / 2, 1501), np.geomspace(0.1, FS / 2, 300)]))
+    psd = 50.0 / (1.0 + (f / 5.0) ** 2) + vibration_psd(f, 150.0, 200.0, 0.02, fs=FS)
+    return loop_plant(FS, 1.0), f, psd, float(white_noise_psd(0.05, FS))
+
+
+@pytest.fixture(scope="module")
+def resonant_bound(resonant):
+    plant, f, psd, noise = resonant
+    return constrained_bound(plant, f, psd, noise, modulus_margin=0.5, n_taps=32)
+
+
+def test_equals_wiener_when_the_wiener_sensitivity_meets_the_margin():
+    # Oracle: AR(1), a = 0.9, G = z^-2. The Wiener predictor is Q = a^2, S = 1 - a^2 z^-2 with
+    # max |S| = 1 + a^2 = 1.81 <= 2: with modulus margin 0.5 the bound is the two-step
+    # prediction error 1 + a^2 (Wiener bound), reached by a one-tap Q.
+    a = 0.9
+    f = np.linspace(0.0, FS / 2, 4001)
+    plant = loop_plant(FS, 1.0)
+    res = constrained_bound(plant, f, _ar1_psd(f, a), modulus_margin=0.5, n_taps=4)
+    # Trapezoid on a 4001-point grid of a smooth PSD: ~1e-6 relative.
+    assert res.variance[0] == pytest.approx(1 + a**2, rel=1e-5)
+    assert res.variance[0] == pytest.approx(wiener_bound(plant, f, _ar1_psd(f, a)), rel=1e-4)
+    np.testing.assert_allclose(res.q[0], [a**2, 0, 0, 0], atol=1e-6)
+    # Twin: margin 0.6 (|S| <= 1.667 < 1.81) excludes the Wiener predictor: strictly higher.
+    tight = constrained_bound(plant, f, _ar1_psd(f, a), modulus_margin=0.6, n_taps=4)
+    assert tight.variance[0] > (1 + a**2) * (1 + 1e-4)
+    assert tight.verified_margin[0] >= 0.6 * (1 - 1e-5)
+
+
+def test_tends_to_wiener_bound_as_the_margin_vanishes(resonant):
+    # Oracle: with no margin (and a long FIR) the bound is the Wiener bound; a vanishing margin
+    # requirement tends to it. Tolerance 1 %: FIR truncation (64 taps) and the Wiener bound's
+    # own quadrature (FFT grid interpolated from the PSD grid).
+    plant, f, psd, noise = resonant
+    wiener = wiener_bound(plant, f, psd, noise)
+    free = constrained_bound(plant, f, psd, noise, modulus_margin=0.0, n_taps=64)
+    small = constrained_bound(plant, f, psd, noise, modulus_margin=1e-3, n_taps=64)
+    assert free.variance[0] == pytest.approx(wiener, rel=1e-2)
+    assert small.variance[0] == pytest.approx(free.variance[0], rel=1e-9)
+    assert free.unconstrained[0] == pytest.approx(free.variance[0], rel=1e-12)
+
+
+def test_margin_costs_and_bound_decreases_with_fir_length(resonant, resonant_bound):
+    # Invariant: nested FIR classes -> non-increasing in n_taps; convergence: doubling the FIR
+    # length from 32 to 48 taps changes the bound by < 1 % (measured 0.01 %).
+    plant, f, psd, noise = resonant
+    values = [constrained_bound(plant, f, psd, noise, 0.5, n_taps=n).variance[0] for n in (8, 16)]
+    values.append(resonant_bound.variance[0])
+    # Solver tolerance (gap 1e-9 on an objective scaled to O(1)).
+    assert np.all(np.diff(values) <= 1e-7 * values[0])
+    longer = constrained_bound(plant, f, psd, noise, 0.5, n_taps=48).variance[0]
+    assert longer <= values[-1] * (1 + 1e-7)
+    assert longer == pytest.approx(values[-1], rel=1e-2)
+    # The margin binds on this spectrum: the bound is above the unconstrained FIR optimum
+    # (measured +3.2 %).
+    assert resonant_bound.variance[0] > resonant_bound.unconstrained[0] * 1.01
+
+
+def test_controller_reaches_the_bound_and_meets_the_margin(resonant, resonant_bound):
+    # Two paths: residual_variance of the returned K = Q / (1 - G Q) equals the bound (same
+    # trapezoid, same grid); the loop is stable (Youla) and its modulus margin, computed by
+    # aocontrol.analysis.margins, meets the requirement up to the grid certification.
+    plant, f, psd, noise = resonant
+    res = resonant_bound
+    K = res.controller.transfer_function(0)
+    assert is_stable(plant, K)
+    assert residual_variance(plant, K, f, psd, noise) == pytest.approx(res.variance[0], rel=1e-8)
+    # Cutting planes stop at mu |S| <= 1 + 1e-7 on the constraint grid; the 8x denser grid
+    # sees at most the overshoot of a degree-33 polynomial between points 16/degree apart.
+    assert res.verified_margin[0] >= 0.5 * (1 - 1e-3)
+    assert res.certified_margin[0] <= res.verified_margin[0]
+    assert res.certified_margin[0] >= 0.5 * (1 - 2e-2)  # Bernstein slack pi L / (2 M) ~ 0.6 %
+    assert margins(plant, K).modulus_margin == pytest.approx(res.verified_margin[0], rel=1e-3)
+
+
+def test_no_verified_controller_beats_the_bound(resonant, resonant_bound):
+    # Oracle: the optimal modal-gain integrator and the data-driven controller, both verified
+    # to meet margin 0.5, are stabilising linear controllers with that margin: their residual
+    # on the same grid cannot be below the bound (up to the grid relaxation: 0.1 %).
+    plant, f, psd, noise = resonant
+    bound = resonant_bound.variance[0]
+    omg = optimal_modal_gain(plant, f, psd, noise, modulus_margin=0.5)
+    dd = datadriven(plant, f, psd, order=4, noise_psd=noise, n_jobs=1, progress=False)
+    assert dd.modulus_margin[0] >= 0.5
+    for controller in (omg, dd.controller):
+        assert residual_variance(plant, controller, f, psd, noise)[0] >= bound * (1 - 1e-3)
+
+
+def test_several_modes_and_partial_failure(resonant, monkeypatch):
+    # A failing mode is reported and the others kept (same contract as datadriven).
+    plant, f, psd, noise = resonant
+    psds = np.vstack([psd, 2 * psd, 3 * psd])
+    good = constrained_bound(plant, f, psds, noise, 0.5, n_taps=16)
+    assert good.ok.all() and good.variance.shape == (3,)
+    # Scaling psd and noise together scales the bound (same optimal Q).
+    scaled = constrained_bound(plant, f, 2 * psd, 2 * noise, 0.5, n_taps=16)
+    assert scaled.variance[0] == pytest.approx(2 * good.variance[0], rel=1e-6)
+
+    calls = {"n": 0}
+    real_solve = _constrained._solve
+
+    def flaky(prob):
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise RuntimeError("Clarabel returned status 'injected failure'")
+        return real_solve(prob)
+
+    monkeypatch.setattr(_constrained, "_solve", flaky)
+    with pytest.raises(ConstrainedBoundError, match="mode 0: .*injected failure") as info:
+        constrained_bound(plant, f, psds, noise, 0.5, n_taps=16)
+    result = info.value.result
+    assert list(info.value.failed) == [0]
+    assert result.ok.tolist() == [False, True, True]
+    assert np.isnan(result.variance[0])
+    np.testing.assert_allclose(result.variance[1:], good.variance[1:], rtol=1e-6)
+    calls["n"] = 0
+    quiet = constrained_bound(plant, f, psds, noise, 0.5, n_taps=16, raise_on_failure=False)
+    assert quiet.ok.tolist() == [False, True, True]
+
+
+def test_bad_input_is_named():
+    f = np.linspace(0.0, FS / 2, 101)
+    psd = _ar1_psd(f, 0.5)
+    plant = loop_plant(FS, 0.5)
+    with pytest.raises(ValueError, match=r"modulus_margin must be in \[0.0, 1.0\], got 1.5"):
+        constrained_bound(plant, f, psd, modulus_margin=1.5)
+    with pytest.raises(ValueError, match="n_taps must be an integer >= 1, got 0"):
+        constrained_bound(plant, f, psd, n_taps=0)
+    with pytest.raises(TypeError, match="FRD"):
+        frd = measured_plant(f, np.exp(-2j * np.pi * f / FS), FS)
+        constrained_bound(frd, f, psd)
+    unstable = control.tf([1.0], [1.0, -1.5], 1 / FS)
+    with pytest.raises(ValueError, match="plant must be stable"):
+        constrained_bound(unstable, f, psd)
+    with pytest.raises(ValueError, match="psd must have 101 values"):
+        constrained_bound(plant, f, psd[:-1])
