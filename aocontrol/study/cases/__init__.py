@@ -1,0 +1,759 @@
+"""Science cases as data: one TOML file per case, loaded and validated into frozen dataclasses.
+
+The shipped cases (``data/*.toml``) are the five science cases of the SAXO+ paper (Dinis et
+al., "Science cases results": ``bright1-best``, ``bright1-worst``, ``red1-fast``,
+``red3-medium``, ``red5-best``) and its ``vibration`` case (bright 1 best plus a tilt
+vibration). Every value carries a comment in its file naming its source.
+
+File format
+-----------
+Tables ``[atmosphere]``, ``[star]``, ``[stage1]``, ``[stage2]``, ``[science]``,
+``[simulation]`` and, optionally, ``[vibration]``; a top-level ``base = "<case>"`` inherits a
+shipped case (tables merged key by key). Dimensional values are strings with a unit, e.g.
+``tau0 = "9 ms"``, ``fs = "3 kHz"``, ``wavelength = "1.04 um"``, ``seeing = "0.4 arcsec"``;
+they are stored in canonical units: seconds, hertz, metres, arcseconds. Dimensionless values
+(magnitudes, mode counts, gains, latencies in frames, read noise in e-, throughputs) are plain
+numbers. Loading fails, naming the file, the key and the reason (:class:`CaseError`), for
+unknown or missing keys, wrong types or units, non-physical values (negative seeing or
+``tau0``, a rate <= 0), a stage-2 rate that is not an integer multiple of stage 1's, or more
+modes than the stage's DM has (valid actuators of :class:`aocontrol.sim.dm.DeformableMirror`
+minus piston).
+"""
+
+from __future__ import annotations
+
+import copy
+import decimal
+import math
+import os
+import re
+import sys
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10 (declared dependency tomli)
+    import tomli as tomllib
+
+__all__ = [
+    "AtmosphereSpec",
+    "Case",
+    "CaseError",
+    "ScienceSpec",
+    "SimulationSpec",
+    "StageSpec",
+    "StarSpec",
+    "VibrationSpec",
+    "apply_overrides",
+    "case_path",
+    "list_cases",
+    "load_case",
+]
+
+# Canonical unit of each dimension and the accepted spellings (factor to the canonical unit).
+# Factors are decimal strings so that "9 ms" gives exactly float("0.009").
+_UNITS: dict[str, tuple[str, dict[str, str]]] = {
+    "time": ("s", {"s": "1", "ms": "1e-3", "us": "1e-6"}),
+    "frequency": ("Hz", {"Hz": "1", "kHz": "1e3"}),
+    "length": ("m", {"m": "1", "mm": "1e-3", "um": "1e-6", "nm": "1e-9"}),
+    "angle": ("arcsec", {"arcsec": "1", "mas": "1e-3"}),
+}
+_QUANTITY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z]+)\s*$")
+
+
+class CaseError(ValueError):
+    """Invalid case file or override: names the file, the key and the reason.
+
+    Attributes
+    ----------
+    source : str
+        The file (or ``"overrides"``) where the bad value is.
+    key : str
+        Dotted key, e.g. ``"stage2.fs"``.
+    reason : str
+        What is wrong and what was expected.
+    """
+
+    def __init__(self, source: str, key: str, reason: str) -> None:
+        self.source, self.key, self.reason = str(source), str(key), str(reason)
+        super().__init__(f"{self.source}: {self.key}: {self.reason}")
+
+
+# ------------------------------------------------------------------------- specifications
+@dataclass(frozen=True)
+class AtmosphereSpec:
+    """Turbulence of a case.
+
+    Parameters
+    ----------
+    seeing : float
+        Seeing FWHM at 500 nm [arcsec], > 0.
+    tau0 : float
+        Coherence time at 500 nm [s], > 0.
+    L0 : float
+        Von Karman outer scale [m], > 0.
+    profile : str
+        Turbulence profile name (``"eso-median"``, the ESO 35-layer median profile).
+    n_layers : int
+        Layers of the published profile (35).
+    simulated_layers : int
+        Equivalent layers simulated (compression of the profile, <= ``n_layers``).
+    """
+
+    seeing: float
+    tau0: float
+    L0: float
+    profile: str
+    n_layers: int
+    simulated_layers: int
+
+
+@dataclass(frozen=True)
+class StarSpec:
+    """Guide star.
+
+    Parameters
+    ----------
+    G : float
+        Gaia G magnitude (Vega), flux of stage 1.
+    J : float
+        J magnitude (Vega, 2MASS), flux of stage 2.
+    """
+
+    G: float
+    J: float
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One AO stage.
+
+    Parameters
+    ----------
+    fs : float
+        Loop rate [Hz].
+    n_modes : int
+        Controlled KL modes.
+    wavelength : float
+        WFS wavelength [m].
+    latency_frames : float
+        RTC latency beyond the one-frame WFS integration [frames].
+    n_actuators : int
+        DM actuators across the diameter (Fried geometry).
+    wfs : str
+        ``"shack-hartmann"`` or ``"pyramid"``.
+    n_subapertures : int
+        Subapertures (detector pixels for the pyramid) across the pupil.
+    band : str
+        Photometric band of the flux (``"G"`` or ``"J"``).
+    read_noise : float
+        Detector read-out noise [e- RMS per pixel per frame].
+    throughput : float
+        Sky-to-detector efficiency in (0, 1].
+    gain : float
+        Gain of the reference integrator (stage 1 keeps it; stage 2's reference is scanned).
+    dm_stroke : float or None
+        Actuator stroke [m of OPD] (``None``: unlimited).
+    modulation : float
+        Pyramid modulation radius [lambda/D] (0 for a Shack-Hartmann).
+    n_modulation_points : int
+        Pyramid modulation points (0 for a Shack-Hartmann).
+    pixels_per_subaperture : int
+        Shack-Hartmann detector pixels across a subaperture (0 for a pyramid).
+    pixel_scale : float
+        Shack-Hartmann pixel scale [arcsec] (0 for a pyramid).
+    """
+
+    fs: float
+    n_modes: int
+    wavelength: float
+    latency_frames: float
+    n_actuators: int
+    wfs: str
+    n_subapertures: int
+    band: str
+    read_noise: float
+    throughput: float
+    gain: float
+    dm_stroke: float | None = None
+    modulation: float = 0.0
+    n_modulation_points: int = 0
+    pixels_per_subaperture: int = 0
+    pixel_scale: float = 0.0
+
+
+@dataclass(frozen=True)
+class ScienceSpec:
+    """Science camera and exposure.
+
+    Parameters
+    ----------
+    wavelength : float
+        Science wavelength [m] (1.65 um).
+    exposure : float
+        Exposure after start-up [s].
+    startup : float
+        Start-up discarded before the exposure [s].
+    science_every : int
+        A PSF every this many stage-2 frames.
+    field_of_view : float
+        Half-width of the science image [lambda/D].
+    coronagraph : str
+        ``"perfect"``.
+    """
+
+    wavelength: float
+    exposure: float
+    startup: float
+    science_every: int
+    field_of_view: float
+    coronagraph: str
+
+
+@dataclass(frozen=True)
+class SimulationSpec:
+    """Sampling of the simulation (not a property of the sky).
+
+    Parameters
+    ----------
+    n_pix : int
+        Pupil samples across the diameter.
+    diameter : float
+        Telescope diameter [m].
+    obstruction : float
+        Central obstruction (fraction of the diameter).
+    """
+
+    n_pix: int
+    diameter: float
+    obstruction: float
+
+
+@dataclass(frozen=True)
+class VibrationSpec:
+    """A vibration added to the atmosphere.
+
+    Parameters
+    ----------
+    modes : tuple of int
+        Modal indices (0 tip, 1 tilt) the vibration acts on.
+    frequencies : tuple of float
+        Peak frequencies [Hz].
+    dampings : tuple of float
+        Damping ratio of each peak (dimensionless, > 0).
+    rms : tuple of float
+        OPD RMS of each peak on the mode [m].
+    fir_taps : int or None
+        Length of the FIR filter fitted to the PSD [samples of the fast clock]; ``None`` for
+        the default of :func:`aocontrol.sim.vibration.fir_from_psd`.
+    """
+
+    modes: tuple[int, ...]
+    frequencies: tuple[float, ...]
+    dampings: tuple[float, ...]
+    rms: tuple[float, ...]
+    fir_taps: int | None = None
+
+
+@dataclass(frozen=True)
+class Case:
+    """A science case: every setting of one row of the paper's case tables and the rest.
+
+    Parameters
+    ----------
+    name : str
+        Case name (file stem).
+    title : str
+        Human-readable name.
+    source : str
+        File it was loaded from.
+    atmosphere : AtmosphereSpec
+    star : StarSpec
+    stage1 : StageSpec
+        SAXO (Shack-Hartmann).
+    stage2 : StageSpec
+        SAXO+ second stage (pyramid).
+    science : ScienceSpec
+    simulation : SimulationSpec
+    vibration : VibrationSpec or None
+    raw : dict
+        The merged TOML tables (unit strings kept), used to apply overrides.
+    """
+
+    name: str
+    title: str
+    source: str
+    atmosphere: AtmosphereSpec
+    star: StarSpec
+    stage1: StageSpec
+    stage2: StageSpec
+    science: ScienceSpec
+    simulation: SimulationSpec
+    vibration: VibrationSpec | None = None
+    raw: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def rate_ratio(self) -> int:
+        """Stage-2 frames per stage-1 frame (an integer by validation)."""
+        return int(round(self.stage2.fs / self.stage1.fs))
+
+    def to_dict(self) -> dict:
+        """Every value in canonical units (JSON-serialisable, tuples as lists)."""
+        out = asdict(self)
+        out.pop("raw")
+        return _jsonable(out)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
+# ------------------------------------------------------------------------- schema
+# Each key: (kind, required). kinds: "q:<dimension>", "int", "float", "str", "bool",
+# "list:float", "list:int", "list:q:<dimension>".
+_SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
+    "atmosphere": {
+        "seeing": ("q:angle", True),
+        "tau0": ("q:time", True),
+        "L0": ("q:length", True),
+        "profile": ("str", True),
+        "n_layers": ("int", True),
+        "simulated_layers": ("int", True),
+    },
+    "star": {"G": ("float", True), "J": ("float", True)},
+    "stage1": {},
+    "stage2": {},
+    "science": {
+        "wavelength": ("q:length", True),
+        "exposure": ("q:time", True),
+        "startup": ("q:time", True),
+        "science_every": ("int", True),
+        "field_of_view": ("float", True),
+        "coronagraph": ("str", True),
+    },
+    "simulation": {
+        "n_pix": ("int", True),
+        "diameter": ("q:length", True),
+        "obstruction": ("float", True),
+    },
+    "vibration": {
+        "modes": ("list:int", True),
+        "frequencies": ("list:q:frequency", True),
+        "dampings": ("list:float", True),
+        "rms": ("list:q:length", True),
+        "fir_taps": ("int", False),
+    },
+}
+_STAGE_SCHEMA: dict[str, tuple[str, bool]] = {
+    "fs": ("q:frequency", True),
+    "n_modes": ("int", True),
+    "wavelength": ("q:length", True),
+    "latency_frames": ("float", True),
+    "n_actuators": ("int", True),
+    "wfs": ("str", True),
+    "n_subapertures": ("int", True),
+    "band": ("str", True),
+    "read_noise": ("float", True),
+    "throughput": ("float", True),
+    "gain": ("float", True),
+    "dm_stroke": ("q:length", False),
+    "modulation": ("float", False),
+    "n_modulation_points": ("int", False),
+    "pixels_per_subaperture": ("int", False),
+    "pixel_scale": ("q:angle", False),
+}
+_SCHEMA["stage1"] = _STAGE_SCHEMA
+_SCHEMA["stage2"] = _STAGE_SCHEMA
+_TOP = {"name", "title", "base", "description"}
+_REQUIRED_TABLES = ("atmosphere", "star", "stage1", "stage2", "science", "simulation")
+# Plausible ranges in canonical units: a value outside is almost surely a wrong unit or a typo.
+_RANGES: dict[str, tuple[float, float]] = {
+    "atmosphere.seeing": (0.0, 5.0),
+    "atmosphere.tau0": (0.0, 0.2),
+    "atmosphere.L0": (1.0, 1000.0),
+    "science.wavelength": (0.3e-6, 5e-6),
+    "stage.wavelength": (0.3e-6, 5e-6),
+    "stage.fs": (0.0, 1e5),
+    "stage.dm_stroke": (0.0, 1e-4),
+    "science.exposure": (0.0, 3600.0),
+    "science.startup": (0.0, 3600.0),
+    "vibration.frequencies": (0.0, 1e4),
+    "vibration.rms": (0.0, 1e-5),
+}
+_WFS = ("shack-hartmann", "pyramid")
+_BANDS = ("G", "J", "H", "I", "R", "V")
+
+
+def _parse_quantity(source: str, key: str, value: Any, dim: str) -> float:
+    unit, table = _UNITS[dim]
+    if isinstance(value, bool) or not isinstance(value, str):
+        raise CaseError(
+            source,
+            key,
+            f"expected a {dim} with a unit as a string, e.g. '1 {unit}' (units "
+            f"{sorted(table)}), got {value!r}",
+        )
+    m = _QUANTITY.match(value)
+    if not m:
+        raise CaseError(source, key, f"expected '<number> <unit>' for a {dim}, got {value!r}")
+    number, u = m.group(1), m.group(2)
+    if u not in table:
+        raise CaseError(
+            source, key, f"wrong unit {u!r} for a {dim}: expected one of {sorted(table)}"
+        )
+    return float(decimal.Decimal(number) * decimal.Decimal(table[u]))
+
+
+def _parse_value(source: str, key: str, value: Any, kind: str) -> Any:
+    if kind.startswith("list:"):
+        if not isinstance(value, list) or not value:
+            raise CaseError(source, key, f"expected a non-empty array, got {value!r}")
+        return tuple(_parse_value(source, f"{key}[{i}]", v, kind[5:]) for i, v in enumerate(value))
+    if kind.startswith("q:"):
+        return _parse_quantity(source, key, value, kind[2:])
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise CaseError(source, key, f"expected an integer, got {value!r}")
+        return value
+    if kind == "float":
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise CaseError(source, key, f"expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise CaseError(source, key, f"expected a finite number, got {value!r}")
+        return float(value)
+    if kind == "str":
+        if not isinstance(value, str):
+            raise CaseError(source, key, f"expected a string, got {value!r}")
+        return value
+    raise AssertionError(kind)  # pragma: no cover
+
+
+def _check_range(source: str, key: str, value: float, rkey: str) -> None:
+    if rkey in _RANGES:
+        lo, hi = _RANGES[rkey]
+        values = value if isinstance(value, tuple) else (value,)
+        for v in values:
+            if not (lo < v <= hi):
+                raise CaseError(
+                    source,
+                    key,
+                    f"must be in ({lo:g}, {hi:g}] in canonical units, got {v:g}: a "
+                    "non-physical value or a wrong unit",
+                )
+
+
+def _parse_table(source: str, name: str, table: Any) -> dict[str, Any]:
+    if not isinstance(table, dict):
+        raise CaseError(source, name, f"expected a table [{name}], got {table!r}")
+    schema = _SCHEMA[name]
+    unknown = sorted(set(table) - set(schema))
+    if unknown:
+        raise CaseError(
+            source, f"{name}.{unknown[0]}", f"unknown key; valid keys: {sorted(schema)}"
+        )
+    out = {}
+    for key, (kind, required) in schema.items():
+        dotted = f"{name}.{key}"
+        if key not in table:
+            if required:
+                raise CaseError(source, dotted, "missing required key")
+            continue
+        value = _parse_value(source, dotted, table[key], kind)
+        rkey = f"stage.{key}" if name.startswith("stage") else dotted
+        _check_range(source, dotted, value, rkey)
+        out[key] = value
+    return out
+
+
+@lru_cache(maxsize=64)
+def _valid_actuators(n_actuators: int, diameter: float, obstruction: float) -> int:
+    """Valid actuators of the DM (geometric criterion, independent of the sampling)."""
+    from aocontrol.sim.dm import DeformableMirror
+    from aocontrol.sim.pupil import Pupil
+
+    pupil = Pupil(n_pix=2 * (n_actuators - 1), diameter=diameter, obstruction=obstruction)
+    return DeformableMirror(pupil, n_actuators=n_actuators).n_act
+
+
+def _stage(source: str, name: str, t: dict[str, Any], sim: dict[str, Any]) -> StageSpec:
+    def bad(key: str, reason: str) -> CaseError:
+        return CaseError(source, f"{name}.{key}", reason)
+
+    for key in ("n_modes", "n_actuators", "n_subapertures"):
+        if t[key] < 1:
+            raise bad(key, f"must be >= 1, got {t[key]}")
+    if t["latency_frames"] < 0:
+        raise bad("latency_frames", f"must be >= 0 frames, got {t['latency_frames']}")
+    if t["wfs"] not in _WFS:
+        raise bad("wfs", f"must be one of {list(_WFS)}, got {t['wfs']!r}")
+    if t["band"] not in _BANDS:
+        raise bad("band", f"must be one of {list(_BANDS)}, got {t['band']!r}")
+    if t["read_noise"] < 0:
+        raise bad("read_noise", f"must be >= 0 e-, got {t['read_noise']}")
+    if not 0 < t["throughput"] <= 1:
+        raise bad("throughput", f"must be in (0, 1], got {t['throughput']}")
+    if not 0 < t["gain"] < 2:
+        raise bad("gain", f"must be in (0, 2), got {t['gain']}")
+    if t["wfs"] == "pyramid":
+        for key in ("modulation", "n_modulation_points"):
+            if key not in t:
+                raise bad(key, "missing required key for a pyramid WFS")
+        if t["modulation"] < 0 or t["n_modulation_points"] < 1:
+            raise bad("modulation", "needs modulation >= 0 and n_modulation_points >= 1")
+    else:
+        for key in ("pixels_per_subaperture", "pixel_scale"):
+            if key not in t:
+                raise bad(key, "missing required key for a Shack-Hartmann WFS")
+        if t["pixels_per_subaperture"] < 2 or t["pixel_scale"] <= 0:
+            raise bad("pixels_per_subaperture", "needs >= 2 pixels of a pixel_scale > 0")
+    n_act = _valid_actuators(t["n_actuators"], sim["diameter"], sim["obstruction"])
+    if t["n_modes"] > n_act - 1:
+        raise bad(
+            "n_modes",
+            f"{t['n_modes']} modes exceed the DM's {n_act - 1} piston-free directions "
+            f"({n_act} valid actuators for n_actuators={t['n_actuators']})",
+        )
+    if 2 * (t["n_actuators"] - 1) > sim["n_pix"]:
+        raise CaseError(
+            source,
+            "simulation.n_pix",
+            f"{sim['n_pix']} samples are too coarse for {name}'s {t['n_actuators']}-actuator "
+            f"DM: need >= {2 * (t['n_actuators'] - 1)} (2 per pitch)",
+        )
+    return StageSpec(**t)
+
+
+def _build(source: str, data: dict[str, Any]) -> Case:
+    unknown = sorted(set(data) - _TOP - set(_SCHEMA))
+    if unknown:
+        raise CaseError(source, unknown[0], f"unknown key; valid: {sorted(_TOP | set(_SCHEMA))}")
+    for key in ("name", "title"):
+        if key not in data:
+            raise CaseError(source, key, "missing required key")
+        if not isinstance(data[key], str):
+            raise CaseError(source, key, f"expected a string, got {data[key]!r}")
+    for table in _REQUIRED_TABLES:
+        if table not in data:
+            raise CaseError(source, table, f"missing required table [{table}]")
+    parsed = {name: _parse_table(source, name, data[name]) for name in _REQUIRED_TABLES}
+    atm, sim, sci = parsed["atmosphere"], parsed["simulation"], parsed["science"]
+    if not 1 <= atm["simulated_layers"] <= atm["n_layers"]:
+        raise CaseError(
+            source,
+            "atmosphere.simulated_layers",
+            f"must be in [1, n_layers={atm['n_layers']}], got {atm['simulated_layers']}",
+        )
+    if atm["profile"] != "eso-median":
+        raise CaseError(
+            source, "atmosphere.profile", f"must be 'eso-median', got {atm['profile']!r}"
+        )
+    if not 0 <= sim["obstruction"] < 1:
+        raise CaseError(source, "simulation.obstruction", "must be in [0, 1)")
+    if sim["n_pix"] < 8:
+        raise CaseError(source, "simulation.n_pix", f"must be >= 8, got {sim['n_pix']}")
+    if sci["science_every"] < 1:
+        raise CaseError(source, "science.science_every", "must be >= 1")
+    if sci["coronagraph"] != "perfect":
+        raise CaseError(source, "science.coronagraph", "must be 'perfect'")
+    if not 0 < sci["field_of_view"] <= sim["n_pix"] / 2:
+        raise CaseError(
+            source,
+            "science.field_of_view",
+            f"must be in (0, n_pix/2 = {sim['n_pix'] / 2}] lambda/D, got {sci['field_of_view']}",
+        )
+    s1 = _stage(source, "stage1", parsed["stage1"], sim)
+    s2 = _stage(source, "stage2", parsed["stage2"], sim)
+    ratio = s2.fs / s1.fs
+    if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
+        raise CaseError(
+            source,
+            "stage2.fs",
+            f"stage-2 rate {s2.fs:g} Hz must be an integer multiple of stage 1's "
+            f"{s1.fs:g} Hz (ratio {ratio:g})",
+        )
+    vib = None
+    if "vibration" in data:
+        v = _parse_table(source, "vibration", data["vibration"])
+        n = len(v["frequencies"])
+        if len(v["dampings"]) != n or len(v["rms"]) != n:
+            raise CaseError(
+                source, "vibration.dampings", "frequencies, dampings and rms need one entry each"
+            )
+        if any(not 0 < d < 1 for d in v["dampings"]):
+            raise CaseError(source, "vibration.dampings", "each damping must be in (0, 1)")
+        if len(v["modes"]) != 1:
+            raise CaseError(source, "vibration.modes", "one mode expected (e.g. [1], tilt)")
+        if any(m < 0 or m >= s2.n_modes for m in v["modes"]):
+            raise CaseError(source, "vibration.modes", f"modes must be in [0, {s2.n_modes})")
+        if v.get("fir_taps", 8) < 8:
+            raise CaseError(source, "vibration.fir_taps", "must be >= 8")
+        if max(v["frequencies"]) >= s2.fs / 2:
+            raise CaseError(source, "vibration.frequencies", "must be below stage 2's Nyquist")
+        vib = VibrationSpec(**v)
+    return Case(
+        name=data["name"],
+        title=data["title"],
+        source=source,
+        atmosphere=AtmosphereSpec(**atm),
+        star=StarSpec(**parsed["star"]),
+        stage1=s1,
+        stage2=s2,
+        science=ScienceSpec(**sci),
+        simulation=SimulationSpec(**sim),
+        vibration=vib,
+        raw=data,
+    )
+
+
+def _data_dir() -> Path:
+    return Path(str(resources.files(__name__).joinpath("data")))
+
+
+def list_cases() -> list[str]:
+    """Names of the shipped cases, sorted.
+
+    Returns
+    -------
+    list of str
+        E.g. ``["bright1-best", ..., "vibration"]``.
+    """
+    return sorted(p.stem for p in _data_dir().glob("*.toml"))
+
+
+def case_path(name: str) -> Path:
+    """Path of the shipped case ``name``.
+
+    Parameters
+    ----------
+    name : str
+        One of :func:`list_cases`.
+
+    Raises
+    ------
+    ValueError
+        Unknown name (the message lists the shipped ones).
+    """
+    path = _data_dir() / f"{name}.toml"
+    if not path.is_file():
+        raise ValueError(f"unknown case {name!r}; shipped cases: {list_cases()}")
+    return path
+
+
+def _merge(base: dict, top: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _read(path: Path, seen: tuple[str, ...] = ()) -> dict:
+    source = str(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise CaseError(source, "<file>", f"invalid TOML: {exc}") from None
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise CaseError(source, "base", f"expected a case name, got {base!r}")
+    if base in seen:
+        raise CaseError(source, "base", f"circular inheritance through {base!r}")
+    try:
+        base_path = case_path(base)
+    except ValueError as exc:
+        raise CaseError(source, "base", str(exc)) from None
+    return _merge(_read(base_path, (*seen, base)), data)
+
+
+def load_case(name_or_path: str | os.PathLike | Case) -> Case:
+    """Load and validate a case: a shipped name (:func:`list_cases`) or a TOML file path.
+
+    Parameters
+    ----------
+    name_or_path : str, path-like or Case
+        A shipped case name, a path to a ``.toml`` file, or a :class:`Case` (returned as is).
+
+    Returns
+    -------
+    Case
+
+    Raises
+    ------
+    CaseError
+        Invalid file: the message names the file, the key and the reason.
+    ValueError
+        Unknown case name (lists the shipped ones) or missing file.
+    """
+    if isinstance(name_or_path, Case):
+        return name_or_path
+    text = os.fspath(name_or_path)
+    path = Path(text)
+    if not (text.endswith(".toml") or path.is_file()):
+        path = case_path(text)
+    if not path.is_file():
+        raise ValueError(f"case file {text!r} does not exist")
+    return _build(str(path), _read(path))
+
+
+def _resolve_key(raw: dict, key: str) -> tuple[str, str]:
+    if "." in key:
+        table, sub = key.split(".", 1)
+        return table, sub
+    hits = [t for t in _SCHEMA if key in _SCHEMA[t] and t in raw]
+    if len(hits) != 1:
+        raise CaseError(
+            "overrides",
+            key,
+            f"ambiguous or unknown key (found in {hits}); use 'table.key', e.g. 'stage2.fs'",
+        )
+    return hits[0], key
+
+
+def apply_overrides(case: Case, overrides: dict | None) -> Case:
+    """A new case with some values replaced, validated like a file.
+
+    Parameters
+    ----------
+    case : Case
+    overrides : dict
+        ``{"table.key": value}`` (or a bare key found in one table only, e.g. ``"seeing"``).
+        Dimensional values: a unit string (``"5 ms"``) or a number in canonical units (s, Hz,
+        m, arcsec).
+
+    Returns
+    -------
+    Case
+
+    Raises
+    ------
+    CaseError
+        Unknown key or invalid value (``source`` is ``"overrides"``).
+    """
+    if not overrides:
+        return case
+    raw = copy.deepcopy(case.raw)
+    for key, value in overrides.items():
+        table, sub = _resolve_key(raw, str(key))
+        if table not in _SCHEMA or sub not in _SCHEMA[table]:
+            raise CaseError("overrides", key, "unknown key")
+        kind = _SCHEMA[table][sub][0]
+        if kind.startswith("q:") and not isinstance(value, str) and not isinstance(value, bool):
+            value = f"{value!r} {_UNITS[kind[2:]][0]}"
+        raw.setdefault(table, {})[sub] = value
+    try:
+        return _build(f"{case.source} + overrides", raw)
+    except CaseError as exc:
+        raise CaseError("overrides", exc.key, exc.reason) from None
