@@ -44,7 +44,7 @@ def _table_rows(out, names):
 
 
 def test_cli_demo_prints_a_row_per_controller_with_its_margins(tmp_path, capsys):
-    assert main(["demo", "--output", str(tmp_path)]) == 0
+    assert main(["demo", "--output", str(tmp_path), "--no-comparison"]) == 0
     out = capsys.readouterr().out
     names = ["integrator g=0.5 (hand-tuned)", "optimal-gain integrator", "data-driven (order 5)"]
     rows = _table_rows(out, names + ["physical limit (Wiener bound)"])
@@ -60,7 +60,7 @@ def test_cli_demo_prints_a_row_per_controller_with_its_margins(tmp_path, capsys)
 
 
 def test_cli_bad_input_is_a_clear_error(tmp_path, capsys):
-    assert main(["demo", "--output", str(tmp_path), "--fs", "-3"]) == 2
+    assert main(["demo", "--output", str(tmp_path), "--fs", "-3", "--no-comparison"]) == 2
     assert "fs must be a finite number > 0, got -3.0" in capsys.readouterr().err
 
 

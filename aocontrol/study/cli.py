@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["main", "UserError", "read_telemetry"]
+__all__ = ["main", "UserError", "read_telemetry", "write_comparison"]
 
 logger = logging.getLogger(__name__)
 
@@ -38,6 +38,9 @@ RUN_SCHEMES = ("single", "standalone", "dcao")
 DESIGN_CONTROLLERS = ("datadriven", "omgi", "integrator", "lqg")
 # Fewest telemetry frames for a PSD estimate worth designing on (8 Welch segments of 16).
 _MIN_TELEMETRY_FRAMES = 64
+#: Comparison of ``demo``: one scheme, short exposures in quick mode (about 2 minutes).
+DEMO_SCHEME = "standalone"
+DEMO_SECONDS = 0.2
 # Per-mode margins are printed up to this many modes, a min/median/max summary beyond.
 _MAX_MODE_ROWS = 12
 
@@ -254,63 +257,108 @@ def _compare(args: argparse.Namespace) -> int:
     compare = _compare_module()
     case = _check_case(args.case)
     out = _out_dir(args.out)
-    fn = getattr(compare, "compare_case", None)
-    if fn is None:
-        raise RunFailed("aocontrol.study.compare has no compare_case function yet")
     try:
-        table = fn(case, quick=args.quick, progress=not args.no_progress, out=out)
+        comparison = compare.compare_case(
+            case, quick=args.quick, results_dir=out, progress=not args.no_progress
+        )
     except RuntimeError as exc:
         raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
-    return _report_comparison(table, out)
-
-
-def _report_comparison(table: Any, out: str) -> int:
-    """Print and save a comparison table and write its plots."""
-    text = table.to_text() if hasattr(table, "to_text") else str(table)
-    print(text)
-    name = getattr(table, "case", "comparison")
-    txt_path = os.path.join(out, f"{name}_table.txt")
-    with open(txt_path, "w", encoding="utf-8") as fh:
-        fh.write(text + "\n")
-    print(f"table: {txt_path}")
-    if hasattr(table, "to_csv"):
-        csv_path = os.path.join(out, f"{name}_table.csv")
-        table.to_csv(csv_path)
-        print(f"table: {csv_path}")
-    for p in _comparison_plots(table, out, name):
-        print(f"plot: {p}")
+    for line in write_comparison(comparison, out):
+        print(line)
     return 0
 
 
-def _comparison_plots(table: Any, out: str, name: str) -> list[str]:
+def write_comparison(comparison: Any, out: str) -> list[str]:
+    """Write a case comparison's table (text and CSV) and plots; return the report lines.
+
+    Parameters
+    ----------
+    comparison : CaseComparison
+        Result of :func:`aocontrol.study.compare.compare_case` (``cells`` with their
+        results files when it was given ``results_dir``).
+    out : str
+        Folder of the files (exists).
+
+    Returns
+    -------
+    list of str
+        The table, the reference gains and one line per file written.
+    """
+    import csv
+
+    name = comparison.case
+    table = comparison.table()
+    lines = [table, ""]
+    gains = ", ".join(f"{k} {v:g}" for k, v in comparison.reference_gains.items())
+    lines.append(f"reference gain (scan for the best 4-6 lambda/D contrast): {gains}")
+    txt = os.path.join(out, f"{name}_table.txt")
+    with open(txt, "w", encoding="utf-8") as fh:
+        fh.write(table + "\n")
+    fields = (
+        "scheme",
+        "controller",
+        "strehl",
+        "mean_contrast_4_6",
+        "residual_rms_nm",
+        "predicted_rms_nm",
+        "path",
+    )
+    csv_path = os.path.join(out, f"{name}_table.csv")
+    with open(csv_path, "w", encoding="utf-8", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(fields)
+        for c in comparison.cells:
+            writer.writerow([getattr(c, f) for f in fields])
+    lines += [f"table: {txt}", f"table: {csv_path}"]
+    lines += [f"plot: {p}" for p in _comparison_plots(comparison, out)]
+    return lines
+
+
+def _comparison_plots(comparison: Any, out: str) -> list[str]:
+    from aocontrol.study.results import read_psds
+
     plot = _plot_module()
+    name = comparison.case
     pngs = []
-    curves = getattr(table, "contrast_curves", None)
-    if curves:
-        radii = getattr(table, "radii_ld", None)
-        path = os.path.join(out, f"{name}_contrast.png")
-        plot.plot_contrast(radii, curves, title=f"{name}: raw contrast", path=path)
-        pngs.append(path)
-    tilt = getattr(table, "tilt_psds", None)
-    if tilt:
-        path = os.path.join(out, f"{name}_vibration.png")
+    path = os.path.join(out, f"{name}_contrast.png")
+    curves = {f"{c.scheme} {c.controller}": c for c in comparison.cells}
+    plot.plot_contrast(None, curves, title=f"{name}: raw contrast", path=path)
+    pngs.append(path)
+    for scheme in dict.fromkeys(c.scheme for c in comparison.cells):
+        psds, freqs = {}, None
+        for c in comparison.cells:
+            if c.scheme != scheme or c.path is None:
+                continue
+            f, p = read_psds(c.path)
+            if "residuals" in p:
+                if freqs is None and "disturbance" in p:
+                    psds["stage-2 input"] = p["disturbance"]
+                freqs = f
+                psds[c.controller] = p["residuals"]
+        if freqs is not None:
+            path = os.path.join(out, f"{name}_{scheme}_residual_psd.png")
+            plot.plot_residual_psd(
+                freqs, psds, path=path, title=f"{name} {scheme}: stage-2 PSDs (sum over modes)"
+            )
+            pngs.append(path)
+    vib = comparison.vibration
+    if vib:
+        tilt = {k: v[1] for k, v in vib["psd"].items()}
+        freqs = next(iter(vib["psd"].values()))[0]
+        path = os.path.join(out, f"{name}_tilt_psd.png")
         plot.plot_vibration(
-            table.tilt_freqs,
+            freqs,
             tilt,
-            open_loop_psd=getattr(table, "tilt_open_loop_psd", None),
-            vibration_hz=getattr(table, "vibration_hz", None),
-            title=f"{name}: tilt",
+            title=f"{name} {vib['scheme']}: tilt (mode {vib['mode']}) residual",
             path=path,
         )
         pngs.append(path)
-    sens = getattr(table, "sensitivities", None)
-    if sens:
         path = os.path.join(out, f"{name}_sensitivity.png")
-        plot.plot_sensitivity(
-            table.sensitivity_freqs,
-            sens,
-            disturbance_psd=getattr(table, "sensitivity_disturbance_psd", None),
-            title=name,
+        plot.plot_rejection(
+            vib["freqs"],
+            {k: np.sqrt(v) for k, v in vib["sensitivity2"].items()},
+            psd=vib["disturbance_psd"],
+            title=f"{name}: rejection and tilt disturbance PSD",
             path=path,
         )
         pngs.append(path)
@@ -565,6 +613,27 @@ def _demo(args: argparse.Namespace) -> int:
         f"{res.wiener_rms:9.2f}"
     )
     print(f"Rejection plot written to {res.plot_path}")
+    if args.no_comparison:
+        return 0
+    compare = _compare_module()
+    case = _check_case(args.case)
+    print(
+        f"\nShort comparison on {case} (quick mode: reduced modes, "
+        f"{DEMO_SECONDS:g} s exposures, scheme {DEMO_SCHEME}):"
+    )
+    try:
+        comparison = compare.compare_case(
+            case,
+            schemes=(DEMO_SCHEME,),
+            seconds=DEMO_SECONDS,
+            quick=True,
+            results_dir=_out_dir(args.output),
+            progress=False,
+        )
+    except RuntimeError as exc:
+        raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
+    for line in write_comparison(comparison, args.output):
+        print(line)
     return 0
 
 
@@ -656,8 +725,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="sweep-output", help="results folder")
     no_progress(p)
 
-    p = add("demo", _demo, "design controllers for one mode and plot the rejection")
-    p.add_argument("--output", default="demo-output", help="folder for the plot")
+    p = add(
+        "demo",
+        _demo,
+        "design controllers for one mode and plot the rejection, then a short comparison "
+        "on a science case (table and contrast plot)",
+    )
+    p.add_argument("--output", default="demo-output", help="folder for the plots and tables")
+    p.add_argument("--case", default="bright1-best", help="science case of the comparison")
+    p.add_argument(
+        "--no-comparison", action="store_true", help="only the one-mode design (seconds)"
+    )
     p.add_argument("--fs", type=float, default=3000.0, help="loop rate [Hz]")
     p.add_argument(
         "--latency", type=float, default=0.83, help="RTC latency beyond WFS integration [frames]"
