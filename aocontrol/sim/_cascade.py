@@ -270,7 +270,7 @@ def run_cascade(
                     f"the disturbance gave phase of shape {phase.shape}, expected ({m}, "
                     f"{n_valid}) (frames, valid pupil pixels of the bases)"
                 )
-            coeffs = (phase.astype(_PROJECTION_DTYPE) @ proj).astype(float)
+            coeffs = (phase.astype(_PROJECTION_DTYPE, copy=False) @ proj).astype(float)
             _check_finite_disturbance(coeffs, k, "disturbance (phase)")
             d1, d2 = coeffs[:, :n1], coeffs[:, n1:]
 
@@ -282,27 +282,26 @@ def run_cascade(
             for j in range(ns):
                 e1_prev, y1s[j] = run1.frame(og1 * e1_prev + noise1[j], d1_avg[j], j)
             run1.end_chunk(d1_avg, k // ratio)
-            y1 = np.repeat(y1s, ratio, axis=0) if ratio > 1 else y1s
             first_stat = max(settle - k, 0)
             if first_stat < m:
-                e1 = d1[first_stat:] - y1[first_stat:]
+                # Fast-frame residual of stage 1, its DM shape held over each of its frames.
+                e1 = (d1.reshape(ns, ratio, n1) - y1s[:, None, :]).reshape(m, n1)[first_stat:]
                 sum_e1 += np.einsum("ij,ij->j", e1, e1)
                 sum_d1 += np.einsum("ij,ij->j", d1[first_stat:], d1[first_stat:])
 
             # Stage 2 at the fast rate on the residual of stage 1 in its modes.
             py1s = y1s @ p_mat.T
-            py1 = np.repeat(py1s, ratio, axis=0) if ratio > 1 else py1s
-            r2 = d2 - py1
+            r2 = (d2.reshape(ns, ratio, n2) - py1s[:, None, :]).reshape(m, n2)
             d2_rec = d2 if dcao else r2
             noise2 = rng2.standard_normal((m, n2)) * ns2 if noisy2 else np.zeros((m, n2))
             run2.begin_chunk(d2_rec, m)
             want_sci = science is not None
             y2s = np.empty((m, n2)) if want_sci else None
             if dcao:
-                neg = -py1
+                neg = -py1s
                 for j in range(m):
                     e2_prev, y2 = run2.frame(
-                        og2 * e2_prev + noise2[j], d2[j], j, r_j=r2[j], offset=neg[j]
+                        og2 * e2_prev + noise2[j], d2[j], j, r_j=r2[j], offset=neg[j // ratio]
                     )
                     if want_sci:
                         y2s[j] = y2
@@ -317,7 +316,9 @@ def run_cascade(
                 frames = k + np.arange(m)
                 idx = np.flatnonzero((frames >= settle) & (frames % science_every == 0))
                 if idx.size:
-                    shape = np.concatenate([y1[idx], y2s[idx]], axis=1).astype(_PROJECTION_DTYPE)
+                    shape = np.concatenate([y1s[idx // ratio], y2s[idx]], axis=1).astype(
+                        _PROJECTION_DTYPE
+                    )
                     resid = phase[idx] - (shape @ synth)
                     science.add(basis2.pupil.to_map(resid))
             k += m

@@ -131,7 +131,6 @@ class _StageRun:
         self.limit = self.limit_unstable = self.limit_check = np.inf
         self.out: dict[str, np.ndarray] = {}
         self.out_m = self.out_u = self.out_y = self.out_e = None
-        self.chunk_e2 = np.zeros(n)
         self.energy: list[np.ndarray] = []
         radius = closed_loop_pole_radius(stage, optical_gain)
         self.radius = radius
@@ -162,17 +161,30 @@ class _StageRun:
         self.out_m = self.out.get("measurements")
         self.out_u = self.out.get("commands")
         self.out_y = self.out.get("dm")
+        # The residuals are always kept for the chunk (statistics computed per chunk).
         self.out_e = self.out.get("residuals")
-        # The per-frame check compares the largest residual with the smallest guard.
-        self.limit_check = self.limit_unstable if self.unstable.any() else self.limit
-        self.chunk_e2 = np.zeros(self.n)
+        if self.out_e is None:
+            self.out_e = np.empty((m_chunk, self.n))
+        # The per-frame check compares the residual energy with the smallest guard squared:
+        # below it every mode is within the guard; above it the modes are checked one by one.
+        limit = self.limit_unstable if self.unstable.any() else self.limit
+        self.limit_check = limit * limit
 
     def end_chunk(self, d_rec: np.ndarray, first: int) -> None:
-        """Store the chunk's telemetry (frames ``first...``) and check for sustained growth."""
-        stop = first + d_rec.shape[0]
+        """Store the chunk's telemetry (frames ``first...``), accumulate the statistics and
+        check for sustained growth."""
+        m = d_rec.shape[0]
+        stop = first + m
         for name in self.record:
             self.tele[name][first:stop] = d_rec if name == "disturbance" else self.out[name]
-        self.energy.append(self.chunk_e2)
+        e = self.out_e[:m]
+        start = max(self.settle - first, 0)
+        if self.accumulate and start < m:
+            # Sequential sums over frames (cumsum adds row after row, as a per-frame +=).
+            self.sum_e2 = np.cumsum(np.concatenate([self.sum_e2[None], e[start:] ** 2]), axis=0)[-1]
+            d = d_rec[start:]
+            self.sum_d2 = np.cumsum(np.concatenate([self.sum_d2[None], d**2]), axis=0)[-1]
+        self.energy.append(np.einsum("ij,ij->j", e, e))
         if len(self.energy) > _GROWTH_CHUNKS:
             e = np.array(self.energy[-_GROWTH_CHUNKS - 1 :]) + 1e-30
             growing = np.all(e[1:] > _GROWTH_FACTOR * e[:-1], axis=0)
@@ -215,24 +227,16 @@ class _StageRun:
             if self.clip:
                 y = self.dm.clip(y, self.dm_state)
         e = (d_j if r_j is None else r_j) - y
-        ae = np.abs(e)
         # One reduction per frame (NaN fails the comparison and is caught here too).
-        amax = ae.max()
-        if not amax < self.limit_check:
-            self._diverged(k, ae)
-        e2 = e * e
-        self.chunk_e2 += e2
-        if self.accumulate and k >= self.settle:
-            self.sum_e2 += e2
-            self.sum_d2 += d_j * d_j
+        if not e @ e < self.limit_check:
+            self._diverged(k, np.abs(e))
         if self.out_m is not None:
             self.out_m[j] = m
         if self.out_u is not None:
             self.out_u[j] = u
         if self.out_y is not None:
             self.out_y[j] = y
-        if self.out_e is not None:
-            self.out_e[j] = e
+        self.out_e[j] = e
         self.k = k + 1
         return e, y
 

@@ -1,0 +1,202 @@
+"""Benchmark: a two-stage cascade exposure (SAXO 1200 modes at 1 kHz + SAXO+ 540 at 3 kHz).
+
+Goal (issue 7): a 5.1-s two-stage exposure (1200 KL modes of the 41x41 stage-1 DM, 540 KL
+modes of the 28x28 stage-2 DM, 3 kHz / 1 kHz, PSF every 10th fast frame) in <= 20 s on a
+2-core machine. The pupil must sample the 41x41 DM with >= 2 pixels per pitch (1200 KL modes
+need the DM's full space): 96 px by default (2.4 px per pitch).
+
+Prints, all measured in one run: the calibration (DM influence functions + KL bases) apart;
+the median of ``--repeat`` cascade runs; the per-part split of a run (atmosphere,
+projection on both bases, stage steps, science), each part timed separately on the same
+sizes and scaled to the run; the ratio to the goal and to the single-stage loop (stage 2
+alone, same atmosphere and science) run in the same process.
+
+Usage: python benchmarks/bench_cascade.py [--frames 15300] [--n-pix 96] [--layers 10]
+       [--repeat 3] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+from aocontrol.controllers import Integrator
+from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
+from aocontrol.sim.loop import LinearModalSensor, Stage, TurbulenceSource, run_cascade, run_loop
+from aocontrol.sim.modes import kl_basis
+from aocontrol.sim.profiles import eso_atmosphere
+from aocontrol.sim.pupil import vlt_pupil
+from aocontrol.sim.science import ScienceCamera
+from aocontrol.sim.turbulence import r0_from_seeing
+
+GOAL_SECONDS = 20.0
+FS1, FS2 = 1000.0, 3000.0
+LAT1, LAT2 = 0.84, 0.828  # COMPASS SAXO+ parameter files (issue 7)
+SEEING, TAU0 = 0.4, 9e-3  # bright 1 best order of magnitude
+
+
+class _Zeros:
+    """A flat phase at the fast rate: the cascade without atmosphere (stage-step timing)."""
+
+    def __init__(self, n_valid: int, fs: float) -> None:
+        self.fs, self._n = fs, n_valid
+
+    def phase_vectors(self, n: int) -> np.ndarray:
+        return np.zeros((n, self._n))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--frames", type=int, default=15300, help="fast frames (5.1 s at 3 kHz)")
+    p.add_argument("--n-pix", type=int, default=96)
+    p.add_argument("--modes1", type=int, default=1200)
+    p.add_argument("--modes2", type=int, default=540)
+    p.add_argument("--layers", type=int, default=10, help="ESO profile compressed to N layers")
+    p.add_argument("--science-every", type=int, default=10)
+    p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--quick", action="store_true", help="3000 frames, 64 px, 400 + 200 modes")
+    args = p.parse_args()
+    if args.quick:
+        args.frames, args.n_pix, args.modes1, args.modes2, args.repeat = 3000, 84, 400, 200, 1
+
+    r0 = r0_from_seeing(SEEING)
+    pupil = vlt_pupil(args.n_pix)
+    t0 = time.perf_counter()
+    dm1 = DeformableMirror(pupil, n_actuators=SAXO_N_ACTUATORS)
+    b1 = kl_basis(dm1, args.modes1, r0=r0)
+    t_kl1 = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    dm2 = DeformableMirror(pupil, n_actuators=SAXO_PLUS_N_ACTUATORS)
+    b2 = kl_basis(dm2, args.modes2, r0=r0)
+    t_kl2 = time.perf_counter() - t0
+    camera = ScienceCamera(pupil, field_of_view=20.0)
+
+    def stages() -> tuple[Stage, Stage]:
+        s1 = Stage(
+            Integrator(0.4, fs=FS1, n_modes=b1.n_modes),
+            LinearModalSensor(1.0, 2.0),
+            LAT1,
+            name="SAXO",
+        )
+        s2 = Stage(
+            Integrator(0.4, fs=FS2, n_modes=b2.n_modes),
+            LinearModalSensor(1.0, 1.0),
+            LAT2,
+            name="SAXO+",
+        )
+        return s1, s2
+
+    def atmosphere():
+        # float32 phase: the cascade projects in float32 anyway; halves the screen cost.
+        return eso_atmosphere(
+            pupil, SEEING, TAU0, FS2, n_layers=args.layers, rng=1, dtype=np.float32
+        )
+
+    runs, res = [], None
+    for _ in range(args.repeat):
+        s1, s2 = stages()
+        atm = atmosphere()
+        t0 = time.perf_counter()
+        res = run_cascade(
+            s1,
+            s2,
+            atm,
+            args.frames,
+            scheme="dcao",
+            basis1=b1,
+            basis2=b2,
+            rng=2,
+            science=camera.long_exposure(),
+            science_every=args.science_every,
+            record=("measurements", "commands"),
+        )
+        runs.append(time.perf_counter() - t0)
+    t_run = statistics.median(runs)
+
+    # Parts, timed separately on the same sizes and scaled to the run.
+    n_part = min(1500, args.frames)
+    scale = args.frames / n_part
+    atm = atmosphere()
+    t0 = time.perf_counter()
+    phase = atm.phase_vectors(n_part)
+    t_atm = (time.perf_counter() - t0) * scale
+    proj = (np.concatenate([b1.modes, b2.modes]).T / pupil.n_valid).astype(np.float32)
+    t0 = time.perf_counter()
+    coeffs = (phase.astype(np.float32) @ proj).astype(float)
+    t_proj = (time.perf_counter() - t0) * scale
+    s1, s2 = stages()
+    t0 = time.perf_counter()
+    run_cascade(
+        s1,
+        s2,
+        _Zeros(pupil.n_valid, FS2),
+        n_part,
+        scheme="dcao",
+        basis1=b1,
+        basis2=b2,
+        rng=3,
+        record=(),
+    )
+    t_steps = (time.perf_counter() - t0) * scale - t_proj
+    sci_frames = coeffs[:: args.science_every]
+    synth = np.concatenate([b1.modes, b2.modes]).astype(np.float32)
+    exp = camera.long_exposure()
+    t0 = time.perf_counter()
+    resid = phase[:: args.science_every] - sci_frames.astype(np.float32) @ synth
+    exp.add(pupil.to_map(resid))
+    t_sci = (time.perf_counter() - t0) * scale
+
+    # Single-stage loop (stage 2 alone), same atmosphere and science, in the same process.
+    _, s2 = stages()
+    t0 = time.perf_counter()
+    run_loop(
+        s2,
+        TurbulenceSource(atmosphere(), b2),
+        args.frames,
+        rng=2,
+        science=camera.long_exposure(),
+        basis=b2,
+        science_every=args.science_every,
+        record=("measurements", "commands"),
+    )
+    t_single = time.perf_counter() - t0
+
+    sci = res.science
+    print(
+        f"two-stage dCAO cascade: {args.modes1} modes (41x41 DM) at {FS1:g} Hz + "
+        f"{args.modes2} modes (28x28 DM) at {FS2:g} Hz, {args.frames} fast frames "
+        f"({args.frames / FS2:g} s), pupil {args.n_pix} px ({pupil.n_valid} valid, "
+        f"{dm1.pitch / pupil.pixel_scale:.2f} px per stage-1 pitch), ESO profile in "
+        f"{args.layers} layers, PSF every {args.science_every} frames"
+    )
+    print(
+        f"  calibration: DM + {args.modes1} KL modes {t_kl1:.1f} s, "
+        f"DM + {args.modes2} KL modes {t_kl2:.1f} s"
+    )
+    print(
+        f"  cascade run: median {t_run:.2f} s of {args.repeat} "
+        f"({', '.join(f'{t:.2f}' for t in runs)}), {args.frames / t_run:,.0f} fast frames/s"
+    )
+    total = t_atm + t_proj + t_steps + t_sci
+    print(
+        "    parts (timed apart, scaled to the run): "
+        f"atmosphere {t_atm:.2f} s ({t_atm / total:.0%}), projection on both bases "
+        f"{t_proj:.2f} s ({t_proj / total:.0%}), stage steps {t_steps:.2f} s "
+        f"({t_steps / total:.0%}), science {t_sci:.2f} s ({t_sci / total:.0%}); "
+        f"per fast frame {1e6 * t_run / args.frames:.0f} us"
+    )
+    print(f"  run time / goal ({GOAL_SECONDS:g} s): {t_run / GOAL_SECONDS:.2f}")
+    print(
+        f"  cascade / single-stage loop (stage 2 alone, {t_single:.2f} s): {t_run / t_single:.2f}"
+    )
+    print(
+        f"  Strehl @1.65um {sci.strehl:.4f}, mean contrast 4-6 l/D {sci.mean_contrast_4_6:.3e}, "
+        f"final residual {res.residual_rms:.1f} nm RMS in stage-2 modes"
+    )
+
+
+if __name__ == "__main__":
+    main()
