@@ -185,12 +185,26 @@ def test_fit_of_a_zero_psd_names_the_mode():
 
 
 def test_fit_of_a_psd_without_stable_ar_model_names_the_mode():
-    # A spectrum that keeps rising as 1/f^2 down to the lowest frequency (a random walk):
-    # the AR(2) fit puts a pole on the unit circle.
-    f = np.geomspace(1e-7, FS / 2, 2000)
-    psd = np.vstack([1.0 / (1 + (f / 10) ** 2), 1.0 / f**2])
-    with pytest.raises(ValueError, match="mode 1.*no stable AR"):
+    # All the variance in the 0 Hz bin: a constant offset, no stationary AR model.
+    f = np.linspace(0.0, FS / 2, 64)
+    psd = np.ones((2, 64))
+    psd[1] = 0.0
+    psd[1, 0] = 5.0
+    with pytest.raises(ValueError, match="mode 1: no stable AR model.*0 Hz"):
         fit_disturbance_model(f, psd, FS)
+
+
+def test_unresolved_low_frequency_is_shrunk_with_a_warning():
+    # A spectrum that keeps rising as 1/f^2 down to the lowest grid frequency (a random walk
+    # as far as the grid sees): the fitted pole is shrunk to the radius the grid resolves,
+    # 1 - pi f_lo / fs, and the mode is named in a warning; the model stays usable.
+    f = np.geomspace(1e-2, FS / 2, 2000)
+    psd = np.vstack([1.0 / (1 + (f / 10) ** 2), 1.0 / f**2])
+    with pytest.warns(UserWarning, match=r"modes \[1\] keeps rising"):
+        fit = fit_disturbance_model(f, psd, FS)
+    r_max = 1 - np.pi * f[0] / FS
+    poles = np.abs(np.roots([1.0, -fit.turbulence_ar[1, 0], -fit.turbulence_ar[1, 1]]))
+    assert np.max(poles) == pytest.approx(r_max, rel=1e-12)
 
 
 def test_fit_option_errors_are_clear():

@@ -23,6 +23,7 @@ component of driving variance ``s_w^2`` per frame has ``P(f) = (2 s_w^2 / fs) /
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -49,6 +50,10 @@ _ATANH_BOUND = 15.0
 # Fitted damping ratios are kept within these bounds (a resonance narrower than 1e-5 is not
 # resolved by any telemetry record; one wider than 0.9 is not a resonance).
 _XI_BOUNDS = (1e-5, 0.9)
+# A PSD whose lag-1 correlation is within this of 1 has its variance at 0 Hz (no AR model).
+_DC_TOL = 1e-12
+# Fitted turbulence poles are kept at least this far inside the unit circle.
+_R_MAX_GAP = 1e-8
 # Iterations of the peak-masking loop that separates the smooth turbulence from the peaks.
 _MASK_ITER = 6
 
@@ -413,6 +418,54 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
 
 
+def _ar2_psd_grad(
+    c1: float, c2: float, s2: float, zi: np.ndarray, fs: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """PSD ``M`` of one AR(2) component and ``dM / d(c1, c2, log s2)``, shape ``(3, n)``.
+
+    ``M = 2 s2 / fs / |A|^2``, ``A = 1 - c1 z^-1 - c2 z^-2``:
+    ``dM/dc = 2 M Re(z^-i conj(A)) / |A|^2`` (i = 1, 2), ``dM/dlog s2 = M``.
+    """
+    a = 1 - c1 * zi - c2 * zi * zi
+    a2 = (a * np.conj(a)).real
+    m = 2 * s2 / fs / a2
+    ca = np.conj(a)
+    d = np.empty((3, zi.size))
+    d[0] = 2 * m * (zi * ca).real / a2
+    d[1] = 2 * m * (zi * zi * ca).real / a2
+    d[2] = m
+    return m, d
+
+
+def _turb_jacobian(p: np.ndarray) -> np.ndarray:
+    """``d(a1, a2, log s2) / d(atanh k1, atanh k2, log s2)``, shape ``(3, 3)``."""
+    k1, k2 = np.tanh(p[0]), np.tanh(p[1])
+    return np.array(
+        [
+            [(1 - k1 * k1) * (1 - k2), -k1 * (1 - k2 * k2), 0.0],
+            [0.0, 1 - k2 * k2, 0.0],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def _vib_coefficients(q: np.ndarray, fs: float) -> np.ndarray:
+    """``(b1, b2, log s_w^2)`` of a resonance from ``(f0, log xi, log variance)``."""
+    b1, b2 = _resonator(np.asarray(q[0]), np.exp(q[1]), fs)
+    return np.array([b1, b2, q[2] - np.log(ar2_variance(b1, b2, 1.0))])
+
+
+def _vib_jacobian(q: np.ndarray, fs: float) -> np.ndarray:
+    """Central-difference Jacobian of :func:`_vib_coefficients`, shape ``(3, 3)``."""
+    jac = np.empty((3, 3))
+    for i in range(3):
+        h = 1e-6 * max(abs(q[i]), 1.0)
+        dq = np.zeros(3)
+        dq[i] = h
+        jac[:, i] = (_vib_coefficients(q + dq, fs) - _vib_coefficients(q - dq, fs)) / (2 * h)
+    return jac
+
+
 def _log_weights(freqs: np.ndarray) -> np.ndarray:
     """Quadrature weights of the log-frequency measure ``df / f`` (0 Hz as half the first bin)."""
     pos = freqs[freqs > 0]
@@ -451,8 +504,12 @@ def _fit_turbulence(
             m = _ar2_psd(np.asarray(a1), np.asarray(a2), np.asarray(s2), zi[keep], fs)
             return w[keep] * (np.log(np.maximum(m + noise, floor)) - logp[keep])
 
+        def jac(x: np.ndarray, keep: np.ndarray = keep) -> np.ndarray:
+            m, dm = _ar2_psd_grad(*_turb_from_params(x), zi[keep], fs)
+            return ((w[keep] / np.maximum(m + noise, floor)) * dm).T @ _turb_jacobian(x)
+
         x = optimize.least_squares(
-            resid, x, bounds=bounds, loss="soft_l1", f_scale=0.1 * float(w.mean())
+            resid, x, jac=jac, bounds=bounds, loss="soft_l1", f_scale=0.1 * float(w.mean())
         ).x
         a1, a2, s2 = _turb_from_params(x)
         model = _ar2_psd(np.asarray(a1), np.asarray(a2), np.asarray(s2), zi, fs)
@@ -473,8 +530,9 @@ class _FitSettings:
 
 def _fit_mode(
     mode: int, freqs: np.ndarray, p: np.ndarray, noise: float, s: _FitSettings
-) -> tuple[tuple[float, float, float], list[tuple[float, float, float]]]:
-    """Fit one mode: turbulence ``(a1, a2, variance)`` and resonances ``[(f0, xi, var)]``."""
+) -> tuple[tuple[float, float, float], list[tuple[float, float, float]], bool]:
+    """Fit one mode: turbulence ``(a1, a2, variance)``, resonances ``[(f0, xi, var)]`` and
+    whether a turbulence pole was shrunk to the grid's resolution."""
     fs = s.fs
     zi = np.exp(-2j * np.pi * freqs / fs)
     w = np.gradient(freqs) if freqs.size > 1 else np.ones(1)
@@ -487,6 +545,12 @@ def _fit_mode(
     r = _autocov(freqs, p, fs, 2)
     if not r[0] > 0:
         raise ValueError(f"psd of mode {mode} has no variance: no AR model can be fitted")
+    if abs(r[1]) >= (1 - _DC_TOL) * r[0]:
+        raise ValueError(
+            f"psd of mode {mode}: no stable AR model can be fitted, its variance sits at 0 Hz "
+            f"(lag-1 correlation {r[1] / r[0]:.15g}: a constant or a random walk, not a "
+            "stationary disturbance)"
+        )
     turb = _fit_turbulence(freqs, p, noise, zi, fs, _yule_walker_ar2(r), s.peak_ratio)
     mask = (p + noise) > s.peak_ratio * (_ar2_psd(*(np.asarray(v) for v in turb), zi, fs) + noise)
     model = _ar2_psd(*(np.asarray(v) for v in turb), zi, fs)
@@ -498,7 +562,9 @@ def _fit_mode(
         var = float(np.trapezoid(excess[seg], freqs[seg])) if i1 - i0 >= 1 else 0.0
         ipk = i0 + int(np.argmax(excess[i0:i1]))
         f0 = freqs[ipk]
-        if not (0 < f0 < fs / 2) or var < s.min_vibration_fraction * total_var:
+        above = freqs >= f0 / 2
+        ref = float(np.trapezoid(model[above] + noise, freqs[above])) if above.sum() > 1 else 0.0
+        if not (0 < f0 < fs / 2) or var <= s.min_vibration_fraction * ref:
             continue
         half = excess[i0:i1] >= excess[ipk] / 2
         width = max(float(np.sum(w[i0:i1][half]) * (freqs[-1] - freqs[0])), 1e-12)
@@ -524,31 +590,47 @@ def _fit_mode(
         v = x[3:].reshape(-1, 3)
         return a1, a2, s2, v[:, 0], np.exp(v[:, 1]), np.exp(v[:, 2])
 
-    def spectrum(x: np.ndarray) -> np.ndarray:
-        a1, a2, s2, f0, xi, var = unpack(x)
-        out = _ar2_psd(np.asarray(a1), np.asarray(a2), np.asarray(s2), zi, fs)
-        if f0.size:
-            b1, b2 = _resonator(f0, xi, fs)
-            sv = var / ar2_variance(b1, b2, 1.0)
-            out = out + _ar2_psd(b1, b2, sv, zi, fs).sum(axis=0)
-        return out + noise
-
-    def objective(x: np.ndarray) -> float:
-        sp = np.maximum(spectrum(x), 1e-300)
-        return float(np.sum(w * (np.log(sp / scale) + target / sp)))
+    def objective(x: np.ndarray) -> tuple[float, np.ndarray]:
+        # Whittle objective and its exact gradient (chain rule through each component).
+        m, dm = _ar2_psd_grad(*_turb_from_params(x[:3]), zi, fs)
+        parts = [(dm, _turb_jacobian(x[:3]))]
+        total = m + noise
+        for q in x[3:].reshape(-1, 3):
+            mv, dmv = _ar2_psd_grad(*_vib_coefficients(q, fs)[:2], 1.0, zi, fs)
+            c = _vib_coefficients(q, fs)
+            mv, dmv = mv * np.exp(c[2]), dmv * np.exp(c[2])
+            total = total + mv
+            parts.append((dmv, _vib_jacobian(q, fs)))
+        sp = np.maximum(total, 1e-300)
+        value = float(np.sum(w * (np.log(sp / scale) + target / sp)))
+        dj = w * (1 / sp - target / (sp * sp))
+        grad = np.concatenate([(dmx @ dj) @ jx for dmx, jx in parts])
+        return value, grad
 
     res = optimize.minimize(
-        objective, x0, method="L-BFGS-B", bounds=bounds, options={"maxiter": 2000, "ftol": 1e-14}
+        objective,
+        x0,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=bounds,
+        options={"maxiter": 2000, "ftol": 1e-15, "gtol": 1e-12},
     )
-    x = res.x if np.isfinite(res.fun) and res.fun <= objective(x0) else x0
+    x = res.x if np.isfinite(res.fun) and res.fun <= objective(x0)[0] else x0
     a1, a2, s2, f0, xi, var = unpack(x)
-    if _ar2_stable(np.asarray(a1), np.asarray(a2)) >= 1 - _POLE_MARGIN:
-        raise ValueError(
-            f"psd of mode {mode}: no stable AR(2) turbulence model fits it (the fitted pole "
-            "reaches the unit circle: the spectrum keeps rising towards 0 Hz)"
-        )
+    tv = float(ar2_variance(a1, a2, s2))
+    # Poles closer to the unit circle than the grid resolves (time constants beyond
+    # fs / (pi f_lo) frames) are not supported by the data: shrink them to that radius.
+    pos = freqs[freqs > 0]
+    r_max = min(1.0 - np.pi * pos[0] / fs, 1.0 - _R_MAX_GAP)
+    poles = np.roots([1.0, -a1, -a2])
+    clipped = bool(np.max(np.abs(poles)) > r_max)
+    if clipped:
+        poles = np.where(np.abs(poles) > r_max, poles / np.abs(poles) * r_max, poles)
+        a1, a2 = float(np.real(poles.sum())), float(-np.real(np.prod(poles)))
+    if not (np.isfinite(tv) and tv >= 0 and np.all(np.isfinite([a1, a2]))):
+        raise ValueError(f"psd of mode {mode}: no stable AR model can be fitted (fit diverged)")
     vibs = [(float(a), float(b), float(c)) for a, b, c in zip(f0, xi, var, strict=True)]
-    return (a1, a2, float(ar2_variance(a1, a2, s2))), vibs
+    return (a1, a2, tv), vibs, clipped
 
 
 def fit_disturbance_model(
@@ -559,25 +641,31 @@ def fit_disturbance_model(
     n_vibrations: int = 2,
     noise_psd: object = 0.0,
     peak_ratio: float = 4.0,
-    min_vibration_fraction: float = 1e-3,
+    min_vibration_fraction: float = 1e-2,
 ) -> DisturbanceModel:
     """Fit AR(2) turbulence plus up to ``n_vibrations`` AR(2) resonances per mode to a PSD.
 
     Per mode:
 
-    1. Smooth turbulence: Yule-Walker AR(2) (the autocovariances at lags 0-2, integrated from
-       the PSD) of the PSD whose peaks are replaced by the current fit, iterated: a peak is
+    1. Smooth turbulence: an AR(2) fitted to ``log(psd + noise)`` by robust (soft L1) least
+       squares over log frequency, started from Yule-Walker (autocovariances at lags 0-2
+       integrated from the PSD), refitted without the peaks until they settle; a peak is
        where ``psd + noise > peak_ratio * (fit + noise)``.
     2. Resonance candidates: each contiguous peak region, its excess variance over the fit
-       (kept if above ``min_vibration_fraction`` of the mode's variance), its frequency at the
-       largest excess and its damping from the half-power width; the strongest
-       ``n_vibrations`` are kept.
+       (kept if above ``min_vibration_fraction`` of the fit-plus-noise variance above half
+       its frequency: a resonance counts against what the loop leaves at that frequency, not
+       against the low-order turbulence), its frequency at the largest excess and its
+       damping from the half-power width; the strongest ``n_vibrations`` are kept.
     3. Joint refinement of every parameter by the Whittle likelihood of the total spectrum
        ``S = model + noise``, ``sum_i df_i (log S_i + (psd_i + noise) / S_i)`` (the
        maximum-likelihood fit of a periodogram; minimal at ``S = psd + noise``, so a PSD of
        the model's form is recovered exactly). Parametrisations keep the turbulence stable
        (reflection coefficients ``tanh``), ``f0`` within its peak region and the damping in
        ``(1e-5, 0.9)``.
+    4. Resolution: a turbulence pole closer to the unit circle than the grid resolves
+       (modulus above ``1 - pi f_lo / fs``, ``f_lo`` the lowest positive grid frequency: a
+       spectrum still rising at ``f_lo``, e.g. tip/tilt on a Welch grid) is shrunk to that
+       radius, with a ``UserWarning`` naming the modes.
 
     Parameters
     ----------
@@ -595,8 +683,9 @@ def fit_disturbance_model(
         ``(n_modes,)``. It weights the fit (frequencies where noise dominates carry little).
     peak_ratio : float, default 4.0
         Threshold of ``(psd + noise) / (turbulence fit + noise)`` marking a peak, > 1.
-    min_vibration_fraction : float, default 1e-3
-        Smallest resonance variance kept, as a fraction of the mode's variance.
+    min_vibration_fraction : float, default 1e-2
+        Smallest resonance variance kept, as a fraction of the variance of the turbulence fit
+        plus noise above half the resonance frequency.
 
     Returns
     -------
@@ -605,8 +694,13 @@ def fit_disturbance_model(
     Raises
     ------
     ValueError
-        Non-finite or negative PSD, a mode with no variance or whose spectrum no stable AR
-        model fits (naming the mode), bad grid or options.
+        Non-finite or negative PSD, a mode with no variance or whose variance sits at 0 Hz
+        (no stable AR model; naming the mode), bad grid or options.
+
+    Warns
+    -----
+    UserWarning
+        Modes whose spectrum is not resolved at low frequency (step 4).
 
     Examples
     --------
@@ -635,9 +729,25 @@ def fit_disturbance_model(
     vf = np.full((n, n_vib), np.nan)
     vd = np.full((n, n_vib), np.nan)
     vv = np.zeros((n, n_vib))
+    clipped = []
     for mode in range(n):
-        (a1, a2, tv), vibs = _fit_mode(mode, freqs, psd2[mode], float(noise_level[mode]), settings)
+        (a1, a2, tv), vibs, clip = _fit_mode(
+            mode, freqs, psd2[mode], float(noise_level[mode]), settings
+        )
         turb[mode] = a1, a2, tv
         for j, (f0, xi, var) in enumerate(vibs):
             vf[mode, j], vd[mode, j], vv[mode, j] = f0, xi, var
+        if clip:
+            clipped.append(mode)
+    if clipped:
+        pos = freqs[freqs > 0]
+        warnings.warn(
+            f"fit_disturbance_model: the PSD of modes {clipped[:10]}"
+            f"{' ...' if len(clipped) > 10 else ''} keeps rising down to the lowest grid "
+            f"frequency {pos[0]:.3g} Hz: its AR(2) pole was shrunk to the radius that grid "
+            "resolves; the model (and an LQG from it) may be suboptimal there. Use a PSD "
+            "resolved at lower frequency (longer Welch segments or a log-spaced grid)",
+            UserWarning,
+            stacklevel=2,
+        )
     return DisturbanceModel(turb[:, :2], turb[:, 2], vf, vd, vv, fs)

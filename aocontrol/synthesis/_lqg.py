@@ -338,7 +338,7 @@ def lqg(
     control_weight: float = 0.0,
     model: DisturbanceModel | None = None,
     peak_ratio: float = 4.0,
-    min_vibration_fraction: float = 1e-3,
+    min_vibration_fraction: float = 1e-2,
 ) -> LQGBank:
     """LQG bank from disturbance and noise PSDs (the conventions of ``datadriven``).
 
