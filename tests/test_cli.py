@@ -280,3 +280,48 @@ def test_run_writes_a_results_file_and_prints_its_summary(tmp_path, capsys, sche
     assert strehl == pytest.approx(res.science.strehl, abs=5e-4)
     assert 0.0 < strehl <= 1.0
     assert (tmp_path / f"bright1-best-integrator-{scheme}-seed0_contrast.png").exists()
+
+
+# ------------------------------------------------------------------------------- compare
+def test_write_comparison_saves_table_csv_and_plots(tmp_path):
+    # A comparison assembled from two real (short) loop runs with their results files: the
+    # writer must save the table, a CSV row per cell with its figures, and the plots.
+    import csv
+    import dataclasses
+
+    from aocontrol.sim import ScienceResult
+    from aocontrol.study.cli import write_comparison
+    from aocontrol.study.compare import CaseComparison, Cell
+
+    radii = np.arange(1, 30) * 0.5
+    cells = []
+    for i, name in enumerate(("reference", "datadriven")):
+        sci = ScienceResult(
+            0.8 + 0.05 * i, 1e-4 / (i + 1), radii, 1e-3 * np.exp(-radii / (i + 1)), n_frames=10
+        )
+        res = dataclasses.replace(_telemetry(n_frames=512, n_modes=2, seed=i), science=sci)
+        path = save_result(res, tmp_path / f"{name}.h5", settings={"case": "x"})
+        cells.append(
+            Cell(
+                name,
+                "standalone",
+                sci.strehl,
+                sci.mean_contrast_4_6,
+                res.residual_rms,
+                float("nan"),
+                radii,
+                sci.contrast_profile,
+                {},
+                path,
+            )
+        )
+    comparison = CaseComparison("bright1-best", tuple(cells), {"standalone": 0.4}, {})
+    lines = write_comparison(comparison, str(tmp_path))
+    assert lines[0] == comparison.table()
+    with open(tmp_path / "bright1-best_table.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["controller"] for r in rows] == ["reference", "datadriven"]
+    assert [float(r["strehl"]) for r in rows] == pytest.approx([0.8, 0.85], rel=1e-12)
+    for png in ("bright1-best_contrast.png", "bright1-best_standalone_residual_psd.png"):
+        assert (tmp_path / png).stat().st_size > 10_000, png
+        assert f"plot: {tmp_path / png}" in lines
