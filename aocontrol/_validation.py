@@ -22,7 +22,12 @@ __all__ = [
     "check_broadcast",
     "is_programming_error",
     "PROGRAMMING_ERRORS",
+    "MAX_MODES",
 ]
+
+#: Largest number of modes accepted where a count allocates per-mode arrays (an ELT has
+#: ~10^4 controlled modes); beyond this a request is taken for a mistake, not allocated.
+MAX_MODES = 100_000
 
 #: Exception types that signal a bug in our code or a wrong call, never a numerical failure:
 #: per-mode designs report every other exception for the failing mode and keep the others,
@@ -87,11 +92,19 @@ def check_in_range(
     return value
 
 
-def check_int(name: str, value: object, *, minimum: int | None = None) -> int:
-    """Return ``value`` as an int, requiring an integer (not bool) >= ``minimum``."""
+def check_int(
+    name: str, value: object, *, minimum: int | None = None, maximum: int | None = None
+) -> int:
+    """Return ``value`` as an int, requiring an integer (not bool) in [``minimum``, ``maximum``]."""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise TypeError(f"{name} must be an integer, got {_short(value)}")
     value = int(value)
+    if maximum is not None and (value > maximum or (minimum is not None and value < minimum)):
+        low = "" if minimum is None else f"[{minimum}, "
+        raise ValueError(
+            f"{name} must be an integer {'in ' + low if low else '<= '}{maximum}"
+            f"{']' if low else ''}, got {value}"
+        )
     if minimum is not None and value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value}")
     return value

@@ -53,6 +53,7 @@ import numpy as np
 from scipy import integrate, special
 
 from aocontrol._validation import (
+    MAX_MODES,
     check_finite_array,
     check_frequency_grid,
     check_in_range,
@@ -103,7 +104,7 @@ def radial_orders(n_modes: int) -> np.ndarray:
     >>> radial_orders(10).tolist()
     [1, 1, 2, 2, 2, 3, 3, 3, 3, 4]
     """
-    n_modes = check_int("n_modes", n_modes, minimum=1)
+    n_modes = check_int("n_modes", n_modes, minimum=1, maximum=MAX_MODES)
     # Modes before order n: sum_{m=1}^{n-1} (m+1) = (n-1)(n+2)/2; invert for index j.
     j = np.arange(n_modes)
     n = np.floor((-1 + np.sqrt(9 + 8 * j)) / 2).astype(int)
@@ -201,7 +202,7 @@ def modal_variances(
     >>> round(float(v[0] / (0.4489 * (8 / 0.15) ** (5 / 3) * (500 / (2 * np.pi)) ** 2)), 3)
     1.0
     """
-    n_modes = check_int("n_modes", n_modes, minimum=1)
+    n_modes = check_int("n_modes", n_modes, minimum=1, maximum=MAX_MODES)
     diameter = check_positive("diameter", diameter)
     r0 = check_positive("r0", r0)
     L0 = _check_outer_scale(L0)
@@ -319,7 +320,7 @@ def synthetic_turbulence_psd(
     >>> bool(np.allclose(var, modal_variances(5), rtol=1e-3))
     True
     """
-    n_modes = check_int("n_modes", n_modes, minimum=1)
+    n_modes = check_int("n_modes", n_modes, minimum=1, maximum=MAX_MODES)
     diameter = check_positive("diameter", diameter)
     wind_speed = check_positive("wind_speed", wind_speed)
     r0 = check_positive("r0", r0)

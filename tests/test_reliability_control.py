@@ -24,6 +24,7 @@ from aocontrol.analysis import (
     winding_stability,
 )
 from aocontrol.controllers import IIRBank, Integrator
+from aocontrol.disturbance import synthetic_turbulence_psd
 from aocontrol.plant import check_frd_coverage, tf_from_z_inverse, z_inverse_coefficients
 from aocontrol.synthesis import (
     DataDrivenError,
@@ -351,6 +352,11 @@ def test_datadriven_sizes_are_bounded(kwargs, match):
         datadriven(loop_plant(FS, 1.0), f, np.ones(11), n_jobs=1, progress=False, **kwargs)
 
 
-def test_latency_is_bounded_everywhere_it_enters():
+def test_latency_and_mode_counts_are_bounded():
+    # Before: a latency of 1e9 frames or 1e9 modes tried to allocate gigabytes.
     with pytest.raises(ValueError, match="latency_frames must be <= 1000"):
         loop_plant(FS, 1e9)
+    with pytest.raises(ValueError, match=r"n_modes must be an integer in \[1, 100000\]"):
+        Integrator(0.5, fs=FS, n_modes=10**9)
+    with pytest.raises(ValueError, match=r"n_modes must be an integer in \[1, 100000\]"):
+        synthetic_turbulence_psd(np.linspace(0.0, 500.0, 11), 10**9, fs=FS)

@@ -30,12 +30,16 @@ import logging
 import control
 import numpy as np
 
-from aocontrol._validation import check_finite_array, check_int, check_positive
+from aocontrol._validation import MAX_MODES, check_finite_array, check_int, check_positive
 from aocontrol.plant import check_system, tf_from_z_inverse, z_inverse_coefficients
 
 __all__ = ["ControllerBank", "IIRBank"]
 
 logger = logging.getLogger(__name__)
+
+
+def _check_n_modes(n_modes: object) -> int:
+    return check_int("n_modes", n_modes, minimum=1, maximum=MAX_MODES)
 
 
 #: A rejected frame is logged on its first occurrence and then every this many rejections.
@@ -233,10 +237,10 @@ class IIRBank(ControllerBank):
             raise ValueError(f"b and a must have the same number of modes, got {sorted(rows)}")
         if rows:
             n = rows.pop()
-            if n_modes is not None and check_int("n_modes", n_modes, minimum=1) != n:
+            if n_modes is not None and _check_n_modes(n_modes) != n:
                 raise ValueError(f"n_modes={n_modes} disagrees with coefficient rows {n}")
         else:
-            n = 1 if n_modes is None else check_int("n_modes", n_modes, minimum=1)
+            n = 1 if n_modes is None else _check_n_modes(n_modes)
         if n < 1:
             raise ValueError(f"n_modes must be >= 1, got {n}")
         b = np.broadcast_to(b, (n, b.shape[-1])).astype(float)

@@ -280,10 +280,7 @@ def _design_mode(
 
 
 def _check_bounded_int(name: str, value: object, low: int, high: int) -> int:
-    value = check_int(name, value, minimum=low)
-    if value > high:
-        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value}")
-    return value
+    return check_int(name, value, minimum=low, maximum=high)
 
 
 def _design_chunk(ctx: _Context, items: list) -> list:
