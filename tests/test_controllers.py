@@ -136,6 +136,11 @@ def test_coefficients_are_read_only():
         (lambda: IIRBank(np.ones((2, 2)), np.ones((3, 2)), fs=10.0), ValueError, "same number"),
         (lambda: IIRBank([1.0], [1.0], fs=10.0, stroke=-1.0), ValueError, "stroke must be > 0"),
         (lambda: Integrator("a", fs=1000.0), TypeError, "gain must be array-like"),
+        (
+            lambda: Integrator([0.1, 0.2], fs=1000.0, stroke=[1.0, 2.0, 3.0]),
+            ValueError,
+            r"stroke must have shape scalar or \(n_modes,\) = \(2,\), got shape \(3,\)",
+        ),
     ],
 )
 def test_bad_construction(make, exc, match):

@@ -30,7 +30,13 @@ import logging
 import control
 import numpy as np
 
-from aocontrol._validation import MAX_MODES, check_finite_array, check_int, check_positive
+from aocontrol._validation import (
+    MAX_MODES,
+    check_broadcast,
+    check_finite_array,
+    check_int,
+    check_positive,
+)
 from aocontrol.plant import check_system, tf_from_z_inverse, z_inverse_coefficients
 
 __all__ = ["ControllerBank", "IIRBank"]
@@ -260,7 +266,7 @@ class IIRBank(ControllerBank):
             self._stroke = None
         else:
             s = check_finite_array("stroke", stroke, ndim=(0, 1))
-            s = np.broadcast_to(s, (n,)).astype(float)
+            s = check_broadcast("stroke", s, (n,), f"scalar or (n_modes,) = ({n},)").astype(float)
             if np.any(s <= 0):
                 raise ValueError(f"stroke must be > 0, got min {s.min()!r}")
             s.setflags(write=False)
