@@ -7,6 +7,7 @@ from aocontrol.controllers._base import ControllerBank, IIRBank
 from aocontrol.controllers._integrator import Integrator
 from aocontrol.controllers._io import load_controller, register_controller_format, save_controller
 from aocontrol.controllers._lqg import FilterpyLQG, LQGBank, LQGStateSpace
+from aocontrol.controllers._mpc import MPCBank
 
 __all__ = [
     "ControllerBank",
@@ -15,6 +16,7 @@ __all__ = [
     "FilterpyLQG",
     "LQGBank",
     "LQGStateSpace",
+    "MPCBank",
     "save_controller",
     "load_controller",
     "register_controller_format",

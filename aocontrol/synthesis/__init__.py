@@ -18,6 +18,7 @@ from aocontrol.synthesis._modal_gain import (
     integrator_gain_limit,
     optimal_modal_gain,
 )
+from aocontrol.synthesis._mpc import mpc
 from aocontrol.synthesis._telemetry import (
     TelemetryPSD,
     disturbance_from_telemetry,
@@ -39,6 +40,7 @@ __all__ = [
     "lqg",
     "lqg_from_telemetry",
     "lqg_state_space",
+    "mpc",
     "optimal_modal_gain",
     "plant_latency",
     "pseudo_open_loop",

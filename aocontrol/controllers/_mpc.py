@@ -1,0 +1,431 @@
+"""Model predictive control bank (casadi QP) with LQG's disturbance model and Kalman predictor.
+
+Per mode the estimator is the steady-state Kalman predictor of an
+:class:`~aocontrol.controllers.LQGStateSpace` (the same ``A``, ``B``, ``C`` and gain as
+:class:`~aocontrol.controllers.LQGBank`). Each frame, with ``xi+`` the updated estimate and
+``z0 = regulator_map xi+`` the regulator state ``(x_d[j+k], u[j-1])``, the command minimises
+the predicted residual over a horizon of ``N`` frames::
+
+    min_U  sum_{i<N} (H z_i + D u_i)^2 + rho u_i^2 + z_N^T P z_N,  z_{i+1} = A_z z_i + B_z u_i
+    s.t.   |u_i| <= stroke,   |u_i - u_{i-1}| <= rate_limit      (u_{-1}: the last command)
+
+(``e = H z + D u`` is the residual the command first acts on; ``P`` the regulator Riccati
+solution, so that with no active constraint the first command is exactly LQG's). The
+prediction is condensed (variables ``U`` only): ``0.5 U^T Hq U + (Gz z0)^T U`` with constant
+``Hq``, ``Gz``. One casadi ``qpsol`` is built per group of modes with the parameters
+``(z0, u_prev)`` and warm-started from the previous frame's shifted solution and multipliers.
+Only ``u_0`` is applied; the predictor is advanced with the applied command.
+
+Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import casadi
+import control
+import numpy as np
+
+from aocontrol._validation import check_int
+from aocontrol.controllers._base import ControllerBank
+from aocontrol.controllers._lqg import LQGBank, LQGStateSpace
+
+__all__ = ["MPCBank"]
+
+logger = logging.getLogger(__name__)
+
+# Solvers and their settings. qpOASES (active set, dense, exact on the active set: the
+# default) prints its licence banner (discarded, see _Discard). OSQP (ADMM) is approximate to
+# eps and, measured, slower on these small dense QPs.
+_SOLVER_OPTIONS = {
+    "qpoases": {
+        "printLevel": "none",
+        "sparse": False,
+        "hessian_type": "posdef",
+        "error_on_fail": False,
+    },
+    "osqp": {
+        "osqp": {"verbose": False, "eps_abs": 1e-9, "eps_rel": 1e-9, "polish": False},
+        "warm_start_primal": True,
+        "warm_start_dual": True,
+        "error_on_fail": False,
+    },
+}
+# The shortcut (unconstrained optimum applied without a QP) requires every constraint to
+# hold with this relative slack: a solution on the boundary goes to the QP.
+_SLACK = 1e-9
+
+
+class _Discard:
+    """A text sink: casadi routes qpOASES's C++ output (its licence banner, printed when a
+    solver is created and on its first solve) through ``sys.stdout``; library code must not
+    print."""
+
+    def write(self, text: str) -> int:
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+
+_SINK = _Discard()
+# A failure is logged on its first occurrence and then every this many failures.
+_LOG_EVERY = 1000
+
+
+@dataclass
+class _Group:
+    """One QP: the modes it covers, the casadi solver and its warm start."""
+
+    modes: np.ndarray
+    solver: casadi.Function
+    lbx: np.ndarray
+    ubx: np.ndarray
+    lbg: np.ndarray
+    ubg: np.ndarray
+    x0: np.ndarray
+    lam_x: np.ndarray
+    lam_g: np.ndarray
+
+
+def _condensed(ss: LQGStateSpace, horizon: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per mode, ``Hq`` (n, N, N) and ``Gz`` (n, N, nz) of ``0.5 U^T Hq U + (Gz z0)^T U``."""
+    Az, Bz, Hz, Dz, P = (
+        ss.regulator_A,
+        ss.regulator_B,
+        ss.regulator_H,
+        ss.regulator_D,
+        ss.regulator_P,
+    )
+    n, nz = Bz.shape
+    N = horizon
+    # powers[i] = Az^i, i = 0..N
+    powers = np.empty((N + 1, n, nz, nz))
+    powers[0] = np.eye(nz)
+    for i in range(1, N + 1):
+        powers[i] = powers[i - 1] @ Az
+    Phi = np.einsum("mk,imkl->mil", Hz, powers[:N])  # (n, N, nz): H Az^i
+    HAB = np.einsum("mk,imkl,ml->mi", Hz, powers[:N], Bz)  # (n, N): H Az^i Bz
+    Gamma = np.zeros((n, N, N))
+    for i in range(N):
+        Gamma[:, i, i] = Dz
+        for l in range(i):
+            Gamma[:, i, l] = HAB[:, i - 1 - l]
+    Psi = np.stack([np.einsum("mkl,ml->mk", powers[N - 1 - l], Bz) for l in range(N)], axis=2)
+    AzN = powers[N]
+    rho = ss.control_weight
+    GtG = np.einsum("mik,mil->mkl", Gamma, Gamma)
+    PsiP = np.einsum("mkl,mki->mli", Psi, P)  # Psi^T P: (n, N, nz)
+    Hq = 2 * (GtG + rho * np.eye(N) + PsiP @ Psi)
+    Gz = 2 * (np.einsum("mik,mil->mkl", Gamma, Phi) + PsiP @ AzN)
+    Hq = (Hq + np.swapaxes(Hq, 1, 2)) / 2
+    return Hq, Gz
+
+
+def _per_mode(name: str, value: object, n: int) -> np.ndarray:
+    """A limit per mode (> 0, ``inf`` for none), naming the first bad mode."""
+    if value is None:
+        return np.full(n, np.inf)
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim > 1 or (arr.ndim == 1 and arr.size != n):
+        raise ValueError(f"{name} must be a scalar or have shape ({n},), got shape {arr.shape}")
+    arr = np.broadcast_to(arr, (n,)).astype(float)
+    bad = np.flatnonzero(~(arr > 0))  # NaN too
+    if bad.size:
+        raise ValueError(
+            f"{name} must be > 0 for every mode (a limit that no command can meet makes the "
+            f"constraints infeasible), got {float(arr[bad[0]])!r} for mode {int(bad[0])}"
+        )
+    return arr
+
+
+class MPCBank(ControllerBank):
+    """MPC bank: LQG's Kalman predictor and a constrained predicted-residual QP per group.
+
+    See the module docstring for the problem. Groups of modes (e.g. tip and tilt) are solved
+    as one QP each (block-diagonal: the limits are per mode); the Kalman update, the
+    prediction and the unconstrained optimum are vectorised over all modes. With
+    ``skip_inactive`` the unconstrained optimum over the horizon is applied without calling
+    the solver whenever it meets every limit (it is then the QP's solution); only groups
+    with an active limit are solved, one casadi call each.
+
+    When a solve fails (solver status or exception) the group's command is the unconstrained
+    LQG command clipped to the limits (stroke, and the rate around the last command), the
+    failure is counted in ``n_solver_failures`` and logged (first, then every 1000th).
+
+    Parameters
+    ----------
+    state_space : LQGStateSpace
+        The LQG design (:func:`aocontrol.synthesis.lqg_state_space`): disturbance model,
+        delays, Kalman gain and the regulator (cost, terminal cost).
+    horizon : int, default 10
+        Prediction horizon ``N`` [frames], >= 1.
+    stroke : float or array_like of shape (n_modes,), optional
+        Hard limit ``|u| <= stroke`` on the command [units of the command]; ``None``: none.
+    rate_limit : float or array_like of shape (n_modes,), optional
+        Hard limit ``|u[j] - u[j-1]| <= rate_limit`` [units per frame]; ``None``: none.
+    groups : sequence of sequences of int, optional
+        Modes solved together, e.g. ``[[0, 1]]`` (tip and tilt); modes not listed get a group
+        of their own. Default: one group per mode.
+    solver : {"qpoases", "osqp"}, default "qpoases"
+        casadi QP plugin (qpOASES: active set, exact; OSQP: ADMM to ``1e-9``).
+    skip_inactive : bool, default True
+        Apply the unconstrained optimum without a solve when it meets every limit.
+    model : object, optional
+        The disturbance model the design came from (kept as ``.model`` for reports).
+
+    Attributes
+    ----------
+    n_solver_failures : ndarray of int, shape (n_modes,)
+        Frames whose command came from the clipped-LQG fallback since the last reset.
+    n_solves : ndarray of int, shape (n_modes,)
+        Frames whose command came from the QP solver.
+
+    Raises
+    ------
+    ValueError
+        ``horizon < 1``, a limit that is not > 0 (naming the mode), bad groups.
+
+    Examples
+    --------
+    >>> from aocontrol.synthesis import DisturbanceModel, lqg_state_space
+    >>> d = DisturbanceModel([[0.9, 0.0]], [1.0], np.zeros((1, 0)), np.zeros((1, 0)),
+    ...                      np.zeros((1, 0)), fs=1000.0)
+    >>> ss = lqg_state_space(d, latency_frames=0.0, noise_variance=0.0)
+    >>> mpc = MPCBank(ss, horizon=5, stroke=0.5)
+    >>> float(np.round(mpc.step(np.array([1.0]))[0], 6))   # LQG would command 0.9
+    0.5
+    """
+
+    def __init__(
+        self,
+        state_space: LQGStateSpace,
+        horizon: int = 10,
+        *,
+        stroke: object = None,
+        rate_limit: object = None,
+        groups: Sequence[Sequence[int]] | None = None,
+        solver: str = "qpoases",
+        skip_inactive: bool = True,
+        model: object = None,
+    ) -> None:
+        if not isinstance(state_space, LQGStateSpace):
+            raise TypeError(
+                f"state_space must be an LQGStateSpace, got {type(state_space).__name__}"
+            )
+        self._ss = state_space
+        self.model = model
+        n = state_space.n_modes
+        self._horizon = check_int("horizon", horizon, minimum=1)
+        self._stroke = _per_mode("stroke", stroke, n)
+        self._rate = _per_mode("rate_limit", rate_limit, n)
+        if solver not in _SOLVER_OPTIONS:
+            raise ValueError(f"solver must be one of {sorted(_SOLVER_OPTIONS)}, got {solver!r}")
+        self._solver_name = solver
+        self._skip = bool(skip_inactive)
+        self._group_modes = self._partition(groups, n)
+        Hq, Gz = _condensed(state_space, self._horizon)
+        self._Hq, self._Gz = Hq, Gz
+        # Unconstrained optimum U* = Kfull z0 (n, N, nz); Kfull[:, 0] is LQG's law on z.
+        self._Kfull = -np.linalg.solve(Hq, Gz)
+        self._lqg_law = np.einsum("mk,mkl->ml", self._Kfull[:, 0], state_space.regulator_map)
+        self._groups = [self._build_group(idx) for idx in self._group_modes]
+        self._group_of = np.empty(n, dtype=int)
+        for g, idx in enumerate(self._group_modes):
+            self._group_of[idx] = g
+        self.reset()
+
+    # -- construction ---------------------------------------------------------------------
+    @staticmethod
+    def _partition(groups: object, n: int) -> list[np.ndarray]:
+        seen = np.zeros(n, dtype=bool)
+        out: list[np.ndarray] = []
+        for gi, group in enumerate(groups or []):
+            idx = np.asarray(group)
+            if idx.ndim != 1 or idx.size == 0 or not np.issubdtype(idx.dtype, np.integer):
+                raise ValueError(f"groups[{gi}] must be a non-empty list of mode indices")
+            if np.any((idx < 0) | (idx >= n)):
+                raise ValueError(f"groups[{gi}] has modes outside [0, {n - 1}]: {idx.tolist()}")
+            if np.any(seen[idx]) or np.unique(idx).size != idx.size:
+                raise ValueError(f"groups[{gi}] repeats a mode already in a group: {idx.tolist()}")
+            seen[idx] = True
+            out.append(np.sort(idx))
+        out.extend(np.array([m]) for m in np.flatnonzero(~seen))
+        return sorted(out, key=lambda a: int(a[0]))
+
+    def _build_group(self, modes: np.ndarray) -> _Group:
+        """casadi qpsol of one group, parameters ``p = (z0 of each mode, u_prev of each)``."""
+        N, nz, ng = self._horizon, self._ss.regulator_A.shape[-1], modes.size
+        U = casadi.SX.sym("U", ng * N)
+        p = casadi.SX.sym("p", ng * nz + ng)
+        cost = 0
+        rate_rows = []
+        for j, m in enumerate(modes):
+            u = U[j * N : (j + 1) * N]
+            z0 = p[j * nz : (j + 1) * nz]
+            lin = casadi.mtimes(casadi.DM(self._Gz[m]), z0)
+            cost += 0.5 * casadi.mtimes([u.T, casadi.DM(self._Hq[m]), u]) + casadi.dot(lin, u)
+            if np.isfinite(self._rate[m]):
+                rate_rows.append(u[0] - p[ng * nz + j])
+                rate_rows.append(u[1:] - u[:-1])
+        g = casadi.vertcat(*rate_rows) if rate_rows else casadi.SX(0, 1)
+        with contextlib.redirect_stdout(_SINK):
+            solver = casadi.qpsol(
+                f"mpc_{int(modes[0])}",
+                self._solver_name,
+                {"x": U, "p": p, "f": cost, "g": g},
+                _SOLVER_OPTIONS[self._solver_name],
+            )
+        stroke = np.repeat(self._stroke[modes], N)
+        rate = np.concatenate([np.full(N, r) for r in self._rate[modes] if np.isfinite(r)] or [[]])
+        return _Group(
+            modes=modes,
+            solver=solver,
+            lbx=-stroke,
+            ubx=stroke,
+            lbg=-rate,
+            ubg=rate,
+            x0=np.zeros(ng * N),
+            lam_x=np.zeros(ng * N),
+            lam_g=np.zeros(rate.size),
+        )
+
+    # -- interface ------------------------------------------------------------------------
+    @property
+    def n_modes(self) -> int:
+        return self._ss.n_modes
+
+    @property
+    def fs(self) -> float:
+        return self._ss.fs
+
+    @property
+    def horizon(self) -> int:
+        """Prediction horizon [frames]."""
+        return self._horizon
+
+    @property
+    def state_space(self) -> LQGStateSpace:
+        """The LQG design whose estimator and regulator the MPC uses."""
+        return self._ss
+
+    @property
+    def groups(self) -> list[np.ndarray]:
+        """Mode indices of each QP."""
+        return [g.copy() for g in self._group_modes]
+
+    def reset(self) -> None:
+        n = self._ss.n_modes
+        self._xi = np.zeros((n, self._ss.ns))
+        self._u_prev = np.zeros(n)
+        self.n_solver_failures = np.zeros(n, dtype=np.int64)
+        self.n_solves = np.zeros(n, dtype=np.int64)
+        self._failures_logged = 0
+        for g in getattr(self, "_groups", []):
+            g.x0[:] = 0.0
+            g.lam_x[:] = 0.0
+            g.lam_g[:] = 0.0
+
+    def _step(self, m: np.ndarray) -> np.ndarray:
+        ss = self._ss
+        xi = self._xi
+        innov = m - np.einsum("ij,ij->i", ss.C, xi)
+        xi_post = xi + ss.kalman_gain * innov[:, None]
+        z0 = np.einsum("mij,mj->mi", ss.regulator_map, xi_post)
+        U = np.einsum("mik,mk->mi", self._Kfull, z0)  # unconstrained optimum (n, N)
+        u = U[:, 0].copy()
+        if self._skip:
+            dU = np.diff(U, axis=1, prepend=self._u_prev[:, None])
+            ok = np.all(np.abs(U) <= self._stroke[:, None] * (1 - _SLACK), axis=1) & np.all(
+                np.abs(dU) <= self._rate[:, None] * (1 - _SLACK), axis=1
+            )
+            active = np.unique(self._group_of[~ok])
+        else:
+            active = range(len(self._groups))
+        for gi in active:
+            self._solve_group(self._groups[gi], z0, U, u)
+        if not np.isfinite(u).all():
+            bad = np.flatnonzero(~np.isfinite(u))[:10].tolist()
+            raise FloatingPointError(f"MPC command is not finite for modes {bad}")
+        self._xi = np.einsum("mij,mj->mi", ss.A, xi_post) + ss.B * u[:, None]
+        self._u_prev = u
+        return u.copy()
+
+    def _solve_group(self, group: _Group, z0: np.ndarray, U: np.ndarray, u: np.ndarray) -> None:
+        """Solve one group's QP and write its first commands into ``u`` (fallback on failure)."""
+        modes, N = group.modes, self._horizon
+        p = np.concatenate([z0[modes].ravel(), self._u_prev[modes]])
+        try:
+            with contextlib.redirect_stdout(_SINK):
+                sol = group.solver(
+                    x0=group.x0,
+                    p=p,
+                    lbx=group.lbx,
+                    ubx=group.ubx,
+                    lbg=group.lbg,
+                    ubg=group.ubg,
+                    lam_x0=group.lam_x,
+                    lam_g0=group.lam_g,
+                )
+            success = bool(group.solver.stats().get("success", False))
+            x = np.asarray(sol["x"], dtype=float).ravel()
+            if not success or not np.all(np.isfinite(x)):
+                raise RuntimeError(
+                    f"solver status {group.solver.stats().get('return_status', 'unknown')!r}"
+                )
+        except RuntimeError as exc:
+            self._fallback(group, U, u, exc)
+            return
+        X = x.reshape(modes.size, N)
+        # Keep the solution within the limits exactly (solver tolerance).
+        u[modes] = np.clip(X[:, 0], -self._stroke[modes], self._stroke[modes])
+        self.n_solves[modes] += 1
+        # Warm start of the next frame: the solution shifted by one frame.
+        group.x0[:] = np.concatenate([X[:, 1:], X[:, -1:]], axis=1).ravel()
+        group.lam_x[:] = np.asarray(sol["lam_x"], dtype=float).ravel()
+        group.lam_g[:] = np.asarray(sol["lam_g"], dtype=float).ravel()
+
+    def _fallback(self, group: _Group, U: np.ndarray, u: np.ndarray, exc: Exception) -> None:
+        """The unconstrained LQG command clipped to the stroke and the rate limit."""
+        modes = group.modes
+        prev, rate, stroke = self._u_prev[modes], self._rate[modes], self._stroke[modes]
+        lo = np.maximum(-stroke, prev - rate)
+        hi = np.minimum(stroke, prev + rate)
+        u[modes] = np.clip(U[modes, 0], lo, hi)
+        self.n_solver_failures[modes] += 1
+        group.x0[:] = 0.0
+        group.lam_x[:] = 0.0
+        group.lam_g[:] = 0.0
+        self._failures_logged += 1
+        if self._failures_logged == 1 or self._failures_logged % _LOG_EVERY == 0:
+            logger.warning(
+                "MPC: QP of modes %s failed (%s); clipped LQG command applied (%d failure(s) "
+                "since reset)",
+                modes.tolist(),
+                exc,
+                self._failures_logged,
+            )
+
+    def transfer_function(self, mode: int = 0) -> control.TransferFunction:
+        """The unconstrained linear equivalent of ``mode``: LQG's controller, ``dt = 1/fs``.
+
+        With no active limit the MPC command is the LQG command (terminal cost = the
+        regulator's Riccati solution), so this is
+        :meth:`aocontrol.controllers.LQGBank.transfer_function`.
+
+        Parameters
+        ----------
+        mode : int, default 0
+            Mode index.
+        """
+        return LQGBank(self._ss).transfer_function(self._check_mode(mode))
+
+    def __repr__(self) -> str:
+        return (
+            f"MPCBank(n_modes={self.n_modes}, fs={self.fs}, horizon={self._horizon}, "
+            f"groups={len(self._groups)}, solver={self._solver_name!r})"
+        )
