@@ -483,7 +483,7 @@ def _design(args: argparse.Namespace) -> int:
     elif controller == "omgi":
         bank = optimal_modal_gain(plant, freqs, psd, noise, modulus_margin=args.modulus_margin)
     elif controller == "lqg":
-        bank = lqg(plant, freqs, psd, noise_psd=noise)
+        bank = lqg(plant, freqs, psd, noise_psd=noise, control_weight=args.control_weight)
     else:
         bank = datadriven(
             plant,
@@ -713,6 +713,12 @@ def _parser() -> argparse.ArgumentParser:
         "--modulus-margin", type=float, default=0.5, help="required modulus margin (default 0.5)"
     )
     p.add_argument("--gain", type=float, default=0.5, help="gain of --controller integrator")
+    p.add_argument(
+        "--control-weight",
+        type=float,
+        default=0.0,
+        help="LQ weight of u^2 for --controller lqg (default 0: minimum variance)",
+    )
     p.add_argument("--stage", default=None, help="stage group of a cascade results file")
     p.add_argument("--out", default="controller.h5", help="controller file (HDF5)")
     no_progress(p)
