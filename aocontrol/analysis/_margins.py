@@ -154,6 +154,13 @@ def margins(
     -------
     Margins
 
+    Raises
+    ------
+    ValueError
+        An FRD plant or controller that does not cover [0, fs/2] (margins and the stability
+        verdict need the whole band); an improper (non-causal) or non-finite controller or
+        plant; a controller at another rate than the plant.
+
     Examples
     --------
     >>> from aocontrol.plant import loop_plant
@@ -315,7 +322,9 @@ def winding_stability(
     Raises
     ------
     ValueError
-        If the frequency grid is too coarse to follow the phase of ``P``.
+        If the grid (the FRD's, or ``freqs``) does not cover [0, fs/2] (the missing band is
+        named, see :func:`aocontrol.plant.check_frd_coverage`), or is too coarse to follow
+        the phase of ``P``; an improper or non-finite controller or plant.
     """
     fs_ = plant_fs(plant, fs)
     K = _controller_tf(controller, fs_, mode)
@@ -407,7 +416,8 @@ def is_stable(
     """Closed-loop stability of the loop ``G K``.
 
     TF plant: all roots of the characteristic polynomial strictly inside the unit circle.
-    FRD plant: winding-number test (the FRD is assumed stable, as AO plants are).
+    FRD plant: winding-number test (the FRD is assumed stable, as AO plants are, and must
+    cover [0, fs/2]: a verdict from part of the band is refused, not guessed).
 
     Parameters
     ----------
@@ -419,6 +429,16 @@ def is_stable(
         Loop rate [Hz] if the plant lost its ``dt``.
     mode : int, default 0
         Mode of a controller bank.
+
+    Returns
+    -------
+    bool
+
+    Raises
+    ------
+    ValueError
+        An FRD plant not covering [0, fs/2], or a grid too coarse for the winding number;
+        an improper (non-causal) or non-finite controller or plant; mismatched rates.
 
     Examples
     --------
