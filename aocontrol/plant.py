@@ -12,6 +12,14 @@ Conventions (control layer)
 * A measured plant is a :class:`control.FRD` with ``dt = 1/fs``. python-control 0.10.2 resets
   ``dt`` to 0 on FRD arithmetic, so every function here takes ``fs`` explicitly when the FRD has
   lost it, and evaluates FRDs itself instead of relying on FRD arithmetic.
+* What a control object contains is checked in one place, :func:`check_system`, by every entry
+  point of the control layer: SISO, finite coefficients / FRD points, a causal (proper)
+  transfer function, a definite sampling period (``dt = 1.0`` is 1 s; ``dt = True`` is
+  python-control's "unspecified" and needs ``fs``). Errors name the argument (``plant``,
+  ``controller``, ``initial``...).
+* A stability verdict from an FRD needs the whole of [0, fs/2] (:func:`check_frd_coverage`):
+  the first point within ``FRD_END_GAP_FRACTION`` = 0.5 of the first grid step of 0 Hz, the
+  last within 0.5 of the last step of fs/2; otherwise the missing band is named.
 """
 
 from __future__ import annotations
@@ -41,6 +49,7 @@ __all__ = [
     "plant_delay_frames",
     "split_latency",
     "MAX_LATENCY_FRAMES",
+    "FRD_END_GAP_FRACTION",
 ]
 
 # Relative tolerance to decide that a fractional delay is an integer (numerical noise of
