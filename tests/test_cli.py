@@ -325,3 +325,28 @@ def test_write_comparison_saves_table_csv_and_plots(tmp_path):
     for png in ("bright1-best_contrast.png", "bright1-best_standalone_residual_psd.png"):
         assert (tmp_path / png).stat().st_size > 10_000, png
         assert f"plot: {tmp_path / png}" in lines
+
+
+def test_sweep_unreachable_scheduler_is_a_clear_error(tmp_path, capsys):
+    import socket
+
+    with socket.socket() as s:  # a free local port: nothing listens there once closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    spec = tmp_path / "spec.toml"
+    spec.write_text(
+        'cases = ["bright1-best"]\ncontrollers = ["integrator"]\nschemes = ["single"]\n'
+        "seeds = [0]\nseconds = 0.05\nquick = true\n"
+    )
+    argv = [
+        "sweep",
+        str(spec),
+        "--scheduler",
+        f"tcp://127.0.0.1:{port}",
+        "--out",
+        str(tmp_path / "out"),
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "no Dask scheduler answered" in err and "Traceback" not in err
+    assert not list((tmp_path / "out").glob("*.h5"))

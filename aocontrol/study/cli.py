@@ -584,9 +584,14 @@ def _sweep(args: argparse.Namespace) -> int:
     report = run_sweep(
         args.spec, out=args.out, scheduler=args.scheduler, progress=not args.no_progress
     )
-    print(report.to_text() if hasattr(report, "to_text") else str(report))
-    failed = getattr(report, "failed", ())
-    return 1 if failed else 0
+    print(
+        f"sweep {args.spec}: {len(report.ran)} run, {len(report.skipped)} already present, "
+        f"{len(report.failed)} failed in {report.wall_s:.1f} s"
+    )
+    for hash_, error in report.failed:
+        print(f"failed {hash_}: {error} (details in {os.path.join(args.out, hash_)}.error.json)")
+    print(f"summary table ({len(report.table)} rows): {os.path.join(args.out, 'summary.csv')}")
+    return 1 if report.failed else 0
 
 
 # ----------------------------------------------------------------------------- demo
