@@ -5,7 +5,13 @@ import numpy as np
 import pytest
 
 from aocontrol import frequency_response, loop_plant, measured_plant
-from aocontrol.plant import plant_delay_frames, plant_fs, tf_from_z_inverse, z_inverse_coefficients
+from aocontrol.plant import (
+    check_system,
+    plant_delay_frames,
+    plant_fs,
+    tf_from_z_inverse,
+    z_inverse_coefficients,
+)
 
 # Exact polynomial evaluation on the unit circle: only rounding error.
 EXACT = 1e-12
@@ -125,3 +131,26 @@ def test_measured_plant_bad_input():
         measured_plant([1.0, 2.0], [1, np.nan], 100.0)
     with pytest.raises(ValueError, match="shape of freqs"):
         measured_plant([1.0, 2.0], [1, 1, 1], 100.0)
+
+
+def test_frd_covering_the_band_is_held_over_the_end_gap_only():
+    # A grid ending half a step short of Nyquist covers [0, fs/2] (FRD_END_GAP_FRACTION):
+    # the last value is held there; a frequency beyond a real gap still raises.
+    fs, n = 1000.0, 51
+    f = np.arange(n) * fs / (2 * n - 1)
+    resp = np.exp(-2j * np.pi * f / fs)
+    P = measured_plant(f, resp, fs)
+    assert frequency_response(P, [fs / 2]) == pytest.approx(resp[-1], abs=EXACT)
+    partial = measured_plant(f[:40], resp[:40], fs)
+    with pytest.raises(ValueError, match="measured range"):
+        frequency_response(partial, [fs / 2])
+
+
+def test_check_system_reads_dt_types_not_values():
+    # python-control keeps dt=True ("unspecified") distinct from dt=1.0; True == 1.0 in Python.
+    assert check_system("plant", control.tf([1.0], [1.0, 0.0], 1.0)) == 1.0
+    with pytest.raises(ValueError, match="plant must be discrete-time.*unspecified.*pass fs"):
+        check_system("plant", control.tf([1.0], [1.0, 0.0], True))
+    assert check_system("plant", control.tf([1.0], [1.0, 0.0], True), 50.0) == 50.0
+    with pytest.raises(ValueError, match="controller must be a discrete-time transfer function"):
+        check_system("controller", control.tf([1.0], [1.0, 1.0]), 50.0)
