@@ -167,12 +167,12 @@ def test_unstable_turbulence_names_the_mode():
 
 
 def test_non_finite_values_rejected():
-    with pytest.raises(ValueError, match="turbulence_variance.*finite"):
+    with pytest.raises(ValueError, match="turbulence_variance.*finite.*mode 1"):
         _one(turbulence_variance=[1.0, np.nan])
     f = np.linspace(0.0, FS / 2, 64)
     psd = np.ones((2, 64))
     psd[1, 3] = np.inf
-    with pytest.raises(ValueError, match="finite"):
+    with pytest.raises(ValueError, match="psd must contain only finite values, mode 1 has 1"):
         fit_disturbance_model(f, psd, FS)
 
 

@@ -14,8 +14,11 @@ the loop plant ``G = z^-1 ((1-f) z^-k + f z^-(k+1))`` (see :mod:`aocontrol.plant
     u   = L xi+                        (control law)
     xi- = A xi+ + B u                  (prediction of the next frame's state)
 
-which :class:`LQGBank` runs as one batched matrix product ``[xi-; u] = M [xi-; m]`` over all
-modes. Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+which :class:`LQGBank` runs vectorised over all modes (elementwise operations on a state
+array ``(ns, n_modes)``; a batched matrix product as a fallback). The LQG controller itself
+may be unstable (e.g. the minimum-variance controller of a near-integrating AR(2) behind a
+two-frame delay has a pole near ``-a1``); the closed loop is stable.
+Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
 """
 
 from __future__ import annotations
@@ -70,7 +73,9 @@ class LQGStateSpace:
     regulator_map : ndarray, shape (n_modes, nz, ns)
         ``E[z[j] | m[..j]] = regulator_map xi+[j]``: ``x_d[j+k] = A_d^(k+1) x_d[j-1]``.
     regulator_P : ndarray, shape (n_modes, nz, nz)
-        Regulator DARE solution (cost-to-go ``z^T P z``; an MPC's terminal cost).
+        Regulator DARE solution (cost-to-go ``z^T P z``; an MPC's terminal cost). Its
+        disturbance block (a constant for the optimisation) comes from a Stein equation and
+        is ill-conditioned for poles near ``z = 1``; the blocks involving ``u`` are exact.
     control_weight : float
         Weight ``rho`` of ``u^2`` in the stage cost ``e^2 + rho u^2``.
     nx : int

@@ -31,7 +31,6 @@ import numpy as np
 from scipy import optimize
 
 from aocontrol._validation import (
-    check_finite_array,
     check_frequency_grid,
     check_int,
     check_positive,
@@ -160,14 +159,14 @@ class DisturbanceModel:
 
     def __post_init__(self) -> None:
         fs = check_positive("fs", self.fs)
-        ar = check_finite_array("turbulence_ar", self.turbulence_ar, ndim=2)
+        ar = _finite_rows("turbulence_ar", self.turbulence_ar, 2)
         n = ar.shape[0]
         if ar.shape[1] != 2 or n < 1:
             raise ValueError(f"turbulence_ar must have shape (n_modes, 2), got {ar.shape}")
-        tv = check_finite_array("turbulence_variance", self.turbulence_variance, ndim=1)
+        tv = _finite_rows("turbulence_variance", self.turbulence_variance, 1)
         if tv.shape != (n,):
             raise ValueError(f"turbulence_variance must have shape ({n},), got {tv.shape}")
-        vv = check_finite_array("vibration_variance", self.vibration_variance, ndim=2)
+        vv = _finite_rows("vibration_variance", self.vibration_variance, 2)
         if vv.shape[0] != n:
             raise ValueError(f"vibration_variance must have shape ({n}, n_vib), got {vv.shape}")
         vf = np.asarray(self.vibration_frequency, dtype=float)
@@ -367,6 +366,37 @@ class DisturbanceModel:
             if k >= burn_in:
                 out[k - burn_in] = x.sum(axis=1)
         return out
+
+
+def _finite_rows(name: str, value: object, ndim: int | tuple[int, ...]) -> np.ndarray:
+    """``value`` as a float array; NaN/inf raise naming the first mode concerned.
+
+    The mode is the row of a 2-D array and the index of a 1-D per-mode array; a 1-D PSD
+    (``name == "psd"``) is the single mode 0.
+    """
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(
+            f"{name} must be array-like of numbers, got {type(value).__name__}"
+        ) from exc
+    allowed = (ndim,) if isinstance(ndim, int) else ndim
+    if arr.ndim not in allowed:
+        dims = " or ".join(map(str, allowed))
+        raise ValueError(f"{name} must have {dims} dimension(s), got shape {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        rows = (
+            bad.reshape(1, -1)
+            if (arr.ndim == 1 and name == "psd")
+            else bad.reshape(arr.shape[0], -1)
+        )
+        mode = int(np.flatnonzero(rows.any(axis=1))[0])
+        raise ValueError(
+            f"{name} must contain only finite values, mode {mode} has "
+            f"{int(rows[mode].sum())} NaN/inf"
+        )
+    return arr
 
 
 def _first(mask: np.ndarray) -> int:
@@ -719,6 +749,7 @@ def fit_disturbance_model(
     frac = check_positive("min_vibration_fraction", min_vibration_fraction)
     if freqs.size < 8:
         raise ValueError(f"freqs must have at least 8 points to fit a model, got {freqs.size}")
+    _finite_rows("psd", psd, (1, 2))
     psd2, noise2, _ = mode_psds(psd, noise_psd, freqs.size)
     noise_level = noise2.mean(axis=1)
     if not np.allclose(noise2, noise_level[:, None], rtol=1e-9, atol=0):
