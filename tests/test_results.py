@@ -144,7 +144,7 @@ def test_cascade_has_one_group_per_stage(tmp_path):
     fields = dict(scheme="dcao", stages=(s1, s2), science=_science(strehl=0.9), metadata={}, fs=FS)
     casc = cls(**fields)
     path = save_result(casc, tmp_path / "casc.h5", settings=SETTINGS, telemetry=True)
-    with xr.open_dataset(path, engine="h5netcdf", group="stage1") as ds:
+    with xr.open_dataset(path, group="stage1") as ds:  # engine found from the file
         assert ds.sizes["mode"] == 5
     with xr.open_dataset(path, engine="h5netcdf", group="stage2") as ds:
         assert ds.sizes["mode"] == 3
