@@ -205,6 +205,27 @@ def test_structured_real_time_path_equals_dense_product(latency):
     np.testing.assert_allclose(bank.predicted_state, dense.predicted_state, atol=1e-8)
 
 
+def test_stroke_clips_and_keeps_the_estimator_consistent():
+    # With a stroke limit the applied (clipped) command enters the delay line, on both
+    # real-time paths alike; a limit that never binds changes nothing.
+    d, bank = _bank_several_modes(0.83)
+    ss = bank.state_space
+    _, free = _closed_loop(bank, d, 0.83, 1e-3, 300, np.random.default_rng(9))
+    limit = 0.5 * np.max(np.abs(free), axis=0)
+    clipped = LQGBank(ss, stroke=limit)
+    clipped_dense = LQGBank(ss, stroke=limit, dense=True)
+    _, u1 = _closed_loop(clipped, d, 0.83, 1e-3, 300, np.random.default_rng(9))
+    _, u2 = _closed_loop(clipped_dense, d, 0.83, 1e-3, 300, np.random.default_rng(9))
+    assert np.all(np.abs(u1) <= limit)
+    assert np.all(clipped.n_saturated > 0)
+    np.testing.assert_array_equal(clipped.n_saturated, clipped_dense.n_saturated)
+    np.testing.assert_allclose(u1, u2, atol=REFERENCE * np.max(np.abs(u2)))
+    loose = LQGBank(ss, stroke=1e6)
+    _, u3 = _closed_loop(loose, d, 0.83, 1e-3, 300, np.random.default_rng(9))
+    np.testing.assert_array_equal(u3, free)
+    assert not loose.n_saturated.any()
+
+
 def test_margins_and_stability_are_reported():
     # LQG promises no margin; the analysis reports them like for any controller, and the
     # closed loop (estimator and regulator poles inside the unit circle) is stable.

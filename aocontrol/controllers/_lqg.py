@@ -223,6 +223,15 @@ class LQGBank(ControllerBank):
         The disturbance model it was designed from (kept for reports; not used).
     dense : bool, default False
         Always use the batched dense product (a check of the structured path).
+    stroke : float or array of shape (n_modes,), optional
+        Command limit (same unit as the command); ``None`` for no limit. The command is
+        clipped to ``[-stroke, stroke]`` and the *applied* command enters the delay line of
+        the state, so the estimator stays consistent with what the DM did (anti-windup).
+
+    Attributes
+    ----------
+    n_saturated : numpy.ndarray of int, shape (n_modes,)
+        Number of frames each mode's command was clipped since the last reset.
 
     Examples
     --------
@@ -235,7 +244,12 @@ class LQGBank(ControllerBank):
     """
 
     def __init__(
-        self, state_space: LQGStateSpace, *, model: object = None, dense: bool = False
+        self,
+        state_space: LQGStateSpace,
+        *,
+        model: object = None,
+        dense: bool = False,
+        stroke: float | np.ndarray | None = None,
     ) -> None:
         if not isinstance(state_space, LQGStateSpace):
             raise TypeError(
@@ -243,6 +257,15 @@ class LQGBank(ControllerBank):
             )
         self._ss = state_space
         self.model = model
+        if stroke is None:
+            self._stroke = None
+        else:
+            st = check_finite_array("stroke", stroke, ndim=(0, 1))
+            st = np.broadcast_to(st, (state_space.n_modes,)).astype(float)
+            if np.any(st <= 0):
+                raise ValueError(f"stroke must be > 0, got min {st.min()!r}")
+            st.setflags(write=False)
+            self._stroke = st
         F, G, H, J = state_space.controller_matrices
         n, ns = state_space.n_modes, state_space.ns
         M = np.zeros((n, ns + 1, ns + 1))
@@ -270,6 +293,7 @@ class LQGBank(ControllerBank):
     def reset(self) -> None:
         ss = self._ss
         n, ns, nx = ss.n_modes, ss.ns, ss.nx
+        self.n_saturated = np.zeros(n, dtype=np.int64)
         if self._structured:
             # State transposed, (ns, n_modes), in the component-major order [x0 of each
             # component, x1 of each component, commands]: every operation then runs over
@@ -304,6 +328,8 @@ class LQGBank(ControllerBank):
             s += buf
             np.multiply(self._l, s, out=buf)
             u = buf.sum(axis=0)
+            if self._stroke is not None:
+                u = self._clip(u)
             # Prediction: companion blocks (x0, x1) <- (a1 x0 + a2 x1, x0); command shift.
             np.multiply(self._a2, self._x1, out=self._tmp)
             self._x1[...] = self._x0
@@ -317,10 +343,27 @@ class LQGBank(ControllerBank):
             np.matmul(self._M, self._v, out=self._out)
             self._v, self._out = self._out, self._v
             u = self._v[:, ns, 0].copy()
+            if self._stroke is not None:
+                uc = self._clip(u)
+                # The delay line holds the applied command: xi- += B (u_applied - u).
+                self._v[:, :ns, 0] += ss.B * (uc - u)[:, None]
+                u = uc
         if not np.isfinite(u).all():
             bad = np.flatnonzero(~np.isfinite(u))[:10].tolist()
             raise FloatingPointError(f"LQG command is not finite for modes {bad}")
         return u
+
+    def _clip(self, u: np.ndarray) -> np.ndarray:
+        clipped = np.abs(u) > self._stroke
+        if clipped.any():
+            self.n_saturated += clipped
+            u = np.clip(u, -self._stroke, self._stroke)
+        return u
+
+    @property
+    def stroke(self) -> np.ndarray | None:
+        """Command limit per mode, or ``None``."""
+        return self._stroke
 
     @property
     def predicted_state(self) -> np.ndarray:
