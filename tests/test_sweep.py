@@ -234,3 +234,48 @@ def test_failing_run_is_recorded_and_the_others_complete(tmp_path, scheduler_add
     }
     assert not (out / PARTIAL_DIR).exists()
     assert set(VALID["cases"]) >= {r["case"] for r in report.table}
+
+
+@pytest.mark.slow
+def test_real_runs_write_results_files_that_the_summary_reads(tmp_path, scheduler_address):
+    pytest.importorskip("aocontrol.study.compare", reason="the case comparison (task C)")
+    from aocontrol.study.results import load_result, read_settings
+
+    # The cheapest real run: quick scene, stage 2 alone, 0.05 s of exposure.
+    text = (
+        'cases = ["bright1-best"]\ncontrollers = ["integrator"]\nschemes = ["single"]\n'
+        "seeds = [0]\nseconds = 0.05\nquick = true\n\n[overrides]\nseeing = [0.6]\n"
+    )
+    spec = _write(tmp_path, text)
+    out = tmp_path / "out"
+    report = run_sweep(spec, out=out, scheduler=scheduler_address)
+    assert report.failed == ()
+    (hash_,) = report.ran
+    path = out / f"{hash_}.h5"
+    # the file is a results file of the results module, with the sweep's request inside
+    stored = read_settings(path)
+    assert stored["sweep"]["hash"] == hash_
+    assert run_hash(stored["sweep"]["request"]) == hash_
+    assert stored["case"] == "bright1-best" and stored["overrides"] == {"seeing": 0.6}
+    # two paths to the same figure: the summary row and the reloaded result
+    (row,) = report.table
+    strehl = load_result(path).science.strehl
+    assert row["strehl"] == pytest.approx(strehl, rel=1e-12)  # same stored number
+    assert 0.0 < row["strehl"] <= 1.0
+    assert row["case"] == "bright1-best" and row["overrides.seeing"] == 0.6
+    # run again: everything is present, nothing runs (and no cluster is needed)
+    again = run_sweep(spec, out=out, scheduler="tcp://127.0.0.1:9")
+    assert again.ran == () and again.skipped == (hash_,)
+
+
+def test_real_spec_typos_name_the_valid_cases_and_keys(tmp_path):
+    pytest.importorskip("aocontrol.study.compare", reason="the case comparison (task C)")
+    from aocontrol.study.cases import list_cases
+
+    text = 'cases = ["bright-best"]\ncontrollers = ["integrator"]\nschemes = ["single"]\n'
+    with pytest.raises(SweepSpecError, match="did you mean 'bright1-best'") as info:
+        load_sweep_spec(_write(tmp_path, text))
+    assert all(name in str(info.value) for name in list_cases())
+    text = text.replace("bright-best", "bright1-best") + "\n[overrides]\nseeinng = [0.6]\n"
+    with pytest.raises(SweepSpecError, match="overrides.*seeinng"):
+        load_sweep_spec(_write(tmp_path, text, "typo.toml"))

@@ -383,6 +383,13 @@ def _read_result_row(path: pathlib.Path) -> dict:
     return {"settings": request, **{k: row[k] for k in _RESULT_FIGURES if k in row}}
 
 
+def _check_run(settings: dict) -> None:
+    """Default check: the case loads and takes the overrides (before any run starts)."""
+    from aocontrol.study.cases import apply_overrides, load_case
+
+    apply_overrides(load_case(settings["case"]), dict(settings["overrides"]) or None)
+
+
 def default_runner() -> SweepRunner:
     """The real runner: ``run_configuration`` of the case comparison, HDF5 results files.
 
@@ -390,7 +397,8 @@ def default_runner() -> SweepRunner:
     -------
     SweepRunner
         Valid names from :func:`aocontrol.study.cases.list_cases`, the controller registry and
-        the schemes of :mod:`aocontrol.study.compare`.
+        the schemes of :mod:`aocontrol.study.compare`; every run's overrides are checked with
+        :func:`aocontrol.study.cases.apply_overrides` before any run starts.
     """
     from aocontrol.study import compare
     from aocontrol.study.cases import list_cases
@@ -400,7 +408,9 @@ def default_runner() -> SweepRunner:
         "controllers": tuple(compare.CONTROLLERS),
         "schemes": tuple(compare.SCHEMES),
     }
-    return SweepRunner(run=_run_configuration_and_save, read=_read_result_row, valid=valid)
+    return SweepRunner(
+        run=_run_configuration_and_save, read=_read_result_row, valid=valid, check=_check_run
+    )
 
 
 def load_sweep_spec(
