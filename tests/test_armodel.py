@@ -215,3 +215,18 @@ def test_fit_option_errors_are_clear():
         fit_disturbance_model(f, np.ones(64), FS, n_vibrations=-1)
     with pytest.raises(ValueError, match="noise_psd must be white"):
         fit_disturbance_model(f, np.ones(64), FS, noise_psd=np.linspace(1, 2, 64))
+
+
+@pytest.mark.slow  # worker processes start slowly on a loaded machine (~5-30 s)
+def test_parallel_fit_equals_serial():
+    # Each mode's fit is independent: two workers over chunks give the serial result.
+    f = np.geomspace(0.01, FS / 2, 800)
+    m = DisturbanceModel(np.tile([1.9, -0.9025], (20, 1)), np.linspace(1, 2, 20),
+                         np.full((20, 1), 60.0), np.full((20, 1), 0.02), np.full((20, 1), 0.3),
+                         fs=FS)  # fmt: skip
+    serial = fit_disturbance_model(f, m.psd(f), FS, n_vibrations=1)
+    parallel = fit_disturbance_model(f, m.psd(f), FS, n_vibrations=1, n_jobs=2)
+    np.testing.assert_array_equal(parallel.turbulence_ar, serial.turbulence_ar)
+    np.testing.assert_array_equal(parallel.vibration_frequency, serial.vibration_frequency)
+    with pytest.raises(ValueError, match="n_jobs must be a nonzero integer"):
+        fit_disturbance_model(f, m.psd(f), FS, n_jobs=0)

@@ -23,6 +23,7 @@ component of driving variance ``s_w^2`` per frame has ``P(f) = (2 s_w^2 / fs) /
 from __future__ import annotations
 
 import logging
+import os
 import warnings
 from dataclasses import dataclass
 from functools import cached_property
@@ -53,6 +54,8 @@ _XI_BOUNDS = (1e-5, 0.9)
 _DC_TOL = 1e-12
 # Fitted turbulence poles are kept at least this far inside the unit circle.
 _R_MAX_GAP = 1e-8
+# Modes per parallel work item of the fit.
+_FIT_CHUNK = 16
 # Iterations of the peak-masking loop that separates the smooth turbulence from the peaks.
 _MASK_ITER = 6
 
@@ -663,6 +666,28 @@ def _fit_mode(
     return (a1, a2, tv), vibs, clipped
 
 
+def _fit_chunk(freqs: np.ndarray, chunk: list, settings: _FitSettings) -> list:
+    return [_fit_mode(m, freqs, p, noise, settings) for m, p, noise in chunk]
+
+
+def _run_fits(freqs: np.ndarray, items: list, settings: _FitSettings, n_jobs: int | None) -> list:
+    """Per-mode fits in this process or over joblib workers (chunks of modes, in order)."""
+    if n_jobs is not None:
+        n_jobs = check_int("n_jobs", n_jobs)
+        if n_jobs == 0:
+            raise ValueError("n_jobs must be a nonzero integer (negative: joblib convention)")
+    cores = os.cpu_count() or 1
+    workers = cores if n_jobs is None else (n_jobs if n_jobs > 0 else max(1, cores + 1 + n_jobs))
+    chunks = [items[i : i + _FIT_CHUNK] for i in range(0, len(items), _FIT_CHUNK)]
+    workers = min(workers, len(chunks))
+    if workers <= 1:
+        return [r for chunk in chunks for r in _fit_chunk(freqs, chunk, settings)]
+    from joblib import Parallel, delayed
+
+    parts = Parallel(n_jobs=workers)(delayed(_fit_chunk)(freqs, c, settings) for c in chunks)
+    return [r for part in parts for r in part]
+
+
 def fit_disturbance_model(
     freqs: object,
     psd: object,
@@ -672,6 +697,7 @@ def fit_disturbance_model(
     noise_psd: object = 0.0,
     peak_ratio: float = 4.0,
     min_vibration_fraction: float = 1e-2,
+    n_jobs: int | None = 1,
 ) -> DisturbanceModel:
     """Fit AR(2) turbulence plus up to ``n_vibrations`` AR(2) resonances per mode to a PSD.
 
@@ -716,6 +742,9 @@ def fit_disturbance_model(
     min_vibration_fraction : float, default 1e-2
         Smallest resonance variance kept, as a fraction of the variance of the turbulence fit
         plus noise above half the resonance frequency.
+    n_jobs : int or None, default 1
+        Worker processes (joblib) over chunks of modes; ``None`` uses every core. Each mode's
+        fit is independent: the result does not depend on ``n_jobs``.
 
     Returns
     -------
@@ -761,10 +790,10 @@ def fit_disturbance_model(
     vd = np.full((n, n_vib), np.nan)
     vv = np.zeros((n, n_vib))
     clipped = []
-    for mode in range(n):
-        (a1, a2, tv), vibs, clip = _fit_mode(
-            mode, freqs, psd2[mode], float(noise_level[mode]), settings
-        )
+    items = [(m, psd2[m], float(noise_level[m])) for m in range(n)]
+    for mode, ((a1, a2, tv), vibs, clip) in zip(
+        range(n), _run_fits(freqs, items, settings, n_jobs), strict=True
+    ):
         turb[mode] = a1, a2, tv
         for j, (f0, xi, var) in enumerate(vibs):
             vf[mode, j], vd[mode, j], vv[mode, j] = f0, xi, var

@@ -339,6 +339,7 @@ def lqg(
     model: DisturbanceModel | None = None,
     peak_ratio: float = 4.0,
     min_vibration_fraction: float = 1e-2,
+    n_jobs: int | None = 1,
 ) -> LQGBank:
     """LQG bank from disturbance and noise PSDs (the conventions of ``datadriven``).
 
@@ -366,6 +367,8 @@ def lqg(
         A known model (then ``psd`` only fixes the number of modes, which must agree).
     peak_ratio, min_vibration_fraction : float
         Peak detection of the fit (see :func:`fit_disturbance_model`).
+    n_jobs : int or None, default 1
+        Worker processes of the fit (``None``: every core).
 
     Returns
     -------
@@ -405,6 +408,7 @@ def lqg(
             noise_psd=level,
             peak_ratio=peak_ratio,
             min_vibration_fraction=min_vibration_fraction,
+            n_jobs=n_jobs,
         )
     elif not isinstance(model, DisturbanceModel):
         raise TypeError(f"model must be a DisturbanceModel or None, got {type(model).__name__}")
@@ -425,6 +429,7 @@ def lqg_from_telemetry(
     noise_band: tuple[float, float] = (0.8, 1.0),
     n_vibrations: int = 2,
     control_weight: float = 0.0,
+    n_jobs: int | None = 1,
 ) -> LQGBank:
     """LQG bank from closed-loop telemetry: pseudo open loop -> PSD and noise -> model -> LQG.
 
@@ -447,6 +452,8 @@ def lqg_from_telemetry(
         Largest number of resonances fitted per mode.
     control_weight : float, default 0.0
         Weight ``rho`` of ``u^2`` in the LQ cost.
+    n_jobs : int or None, default 1
+        Worker processes of the fit (``None``: every core).
 
     Returns
     -------
@@ -462,4 +469,5 @@ def lqg_from_telemetry(
         noise_psd=tel.noise_psd,
         n_vibrations=n_vibrations,
         control_weight=control_weight,
+        n_jobs=n_jobs,
     )
