@@ -538,6 +538,16 @@ def frequency_response(sys: object, freqs: object, fs: float | None = None) -> n
     freqs = np.atleast_1d(freqs)
     if np.any(freqs < 0) or np.any(freqs > fs / 2 * (1 + 1e-12)):
         raise ValueError(f"freqs must lie in [0, fs/2] = [0, {fs / 2}] Hz")
+    out = _response(sys, freqs, fs)
+    return out[0] if scalar else out
+
+
+def _response(sys: object, freqs: np.ndarray, fs: float) -> np.ndarray:
+    """:func:`frequency_response` of an already validated system on a 1-D grid [Hz].
+
+    For inner loops (root refinement, bisection) that evaluate the same checked system many
+    times; the public function validates, this one only computes.
+    """
     if isinstance(sys, control.TransferFunction):
         z = np.exp(2j * np.pi * freqs / fs)
         num = np.asarray(sys.num[0][0], dtype=float)
@@ -576,4 +586,4 @@ def frequency_response(sys: object, freqs: object, fs: float | None = None) -> n
         near = np.where(np.abs(f_grid[prev] - fq) < np.abs(f_grid[idx] - fq), prev, idx)
         hit = np.abs(f_grid[near] - fq) <= tol
         out[hit] = data[near[hit]]
-    return out[0] if scalar else out
+    return out

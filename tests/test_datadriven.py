@@ -277,7 +277,7 @@ def test_identical_modes_continue_from_previous_design(plant):
         (dict(psd=np.zeros(51)), "psd must not be zero everywhere"),
         (dict(freqs=np.linspace(0, 500, 51)[::-1]), "freqs must be strictly increasing"),
         (dict(freqs=np.linspace(0, 600, 51)), "Nyquist"),
-        (dict(order=0), "order must be an integer >= 1"),
+        (dict(order=0), r"order must be an integer in \[1, 64\], got 0"),
         (dict(modulus_margin=1.0), r"modulus_margin must be in \(0.0, 1.0\)"),
         (dict(modulus_margin=0.0), r"modulus_margin must be in \(0.0, 1.0\)"),
         (dict(modulus_margin=1.7), "got 1.7"),

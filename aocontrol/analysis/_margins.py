@@ -26,8 +26,8 @@ from aocontrol._validation import check_frequency_grid
 from aocontrol.analysis._loop import _as_siso_controller
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import (
+    _response,
     check_frd_coverage,
-    frequency_response,
     plant_fs,
     z_inverse_coefficients,
 )
@@ -108,10 +108,9 @@ class _LoopEval:
 
     def __call__(self, theta: np.ndarray) -> np.ndarray:
         f = np.clip(np.asarray(theta, dtype=float) * self.fs / (2 * np.pi), 0.0, self.fs / 2)
+        # Both validated by the caller: the unchecked evaluation (called in root refinement).
         with np.errstate(divide="ignore", invalid="ignore"):
-            return frequency_response(self.plant, f, self.fs) * frequency_response(
-                self.controller, f, self.fs
-            )
+            return _response(self.plant, f, self.fs) * _response(self.controller, f, self.fs)
 
 
 def _roots_of(fun, theta: np.ndarray, values: np.ndarray, exact: bool) -> list[float]:
@@ -343,9 +342,7 @@ def winding_stability(
 
     def char(f: np.ndarray) -> np.ndarray:
         zi = np.exp(-2j * np.pi * f / fs_)
-        return np.polyval(ak[::-1], zi) + frequency_response(plant, f, fs_) * np.polyval(
-            bk[::-1], zi
-        )
+        return np.polyval(ak[::-1], zi) + _response(plant, f, fs_) * np.polyval(bk[::-1], zi)
 
     P = char(freqs)
     exact = isinstance(plant, control.TransferFunction)
