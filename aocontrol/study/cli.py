@@ -62,7 +62,7 @@ def _valid_name(kind: str, value: str, valid: Iterable[str]) -> str:
     raise UserError(f"unknown {kind} {value!r}{hint}; valid: {', '.join(valid)}")
 
 
-def _print_table(rows: Sequence[dict], columns: Sequence[tuple[str, str, str]]) -> str:
+def _format_table(rows: Sequence[dict], columns: Sequence[tuple[str, str, str]]) -> str:
     """Format ``rows`` as a fixed-width table; ``columns`` are (key, header, format)."""
     cells = [
         [
@@ -129,7 +129,7 @@ def _cases(args: argparse.Namespace) -> int:
             }
         )
     print(
-        _print_table(
+        _format_table(
             rows,
             [
                 ("name", "case", ""),
@@ -227,7 +227,7 @@ def _last_stage(result: Any) -> Any:
 
 
 def _result_plots(plot: Any, results: dict[str, Any], out: str, stem: str) -> list[str]:
-    """Contrast curves and residual PSDs of results (what ``run`` and ``compare`` draw)."""
+    """Contrast curve and residual PSD plots of ``run`` (one or more results, by label)."""
     pngs = []
     with_science = {k: r for k, r in results.items() if getattr(r, "science", None) is not None}
     if with_science:
@@ -538,7 +538,7 @@ def _design(args: argparse.Namespace) -> int:
             summary[-1]["stable"] = f"{sum(r['stable'] == 'yes' for r in rows)}/{n_modes}"
         columns[0] = ("mode", "over modes", "")
         rows = summary
-    print(_print_table(rows, columns))
+    print(_format_table(rows, columns))
     total, total_ref = float(np.sqrt(np.sum(rms**2))), float(np.sqrt(np.sum(rms_ref**2)))
     print(
         f"predicted residual (all modes): {total:.2f} nm RMS; optimal-gain integrator "
