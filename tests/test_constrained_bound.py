@@ -73,6 +73,7 @@ def test_tends_to_wiener_bound_as_the_margin_vanishes(resonant):
     assert free.unconstrained[0] == pytest.approx(free.variance[0], rel=1e-12)
 
 
+@pytest.mark.slow
 def test_margin_costs_and_bound_decreases_with_fir_length(resonant, resonant_bound):
     # Invariant: nested FIR classes -> non-increasing in n_taps; convergence: doubling the FIR
     # length from 32 to 48 taps changes the bound by < 1 % (measured 0.01 %).

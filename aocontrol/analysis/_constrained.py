@@ -21,6 +21,14 @@ so ``J(q) = ||y - M q||^2 + c`` with the rows ``M = sqrt(w P) [Re a; Im a]``,
 A thin QR factorisation ``M = U R`` reduces the objective to ``||U^T y - R q||^2`` plus a
 constant: an ``n_taps``-dimensional least-squares term whatever the grid size, and no
 squared condition number.
+
+The margin is imposed on a fine uniform constraint grid (16 points per degree of ``S``) plus
+the input grid, by cutting planes: the unconstrained optimum first (often it already meets
+the margin: no solve), then a problem with cones at a coarse base grid (one point per degree
+of ``S``, constant cones shared by every mode) and at the worst violating local maxima of
+``|S|`` on the constraint grid (parameter slots), re-solved with the new violators until none
+is left. Clarabel's cost grows with the number of cones times ``n_taps^2`` (measured: 2048
+cones at 128 taps, ~10 s per solve), which the cutting planes keep small.
 """
 
 from __future__ import annotations

@@ -232,7 +232,11 @@ class MPCBank(ControllerBank):
         self._Hq, self._Gz = Hq, Gz
         # Unconstrained optimum U* = Kfull z0 (n, N, nz); Kfull[:, 0] is LQG's law on z.
         self._Kfull = -np.linalg.solve(Hq, Gz)
-        self._lqg_law = np.einsum("mk,mkl->ml", self._Kfull[:, 0], state_space.regulator_map)
+        self._KT = self._Kfull @ state_space.regulator_map  # (n, N, ns)
+        self._lqg_law = self._KT[:, 0]  # = LQG's control_gain (tested)
+        self._stroke_tol = self._stroke * (1 - _SLACK)
+        self._rate_tol = self._rate * (1 - _SLACK)
+        self._has_rate = bool(np.isfinite(self._rate).any())
         self._groups = [self._build_group(idx) for idx in self._group_modes]
         self._group_of = np.empty(n, dtype=int)
         for g, idx in enumerate(self._group_modes):
@@ -335,23 +339,28 @@ class MPCBank(ControllerBank):
         xi = self._xi
         innov = m - np.einsum("ij,ij->i", ss.C, xi)
         xi_post = xi + ss.kalman_gain * innov[:, None]
-        z0 = np.einsum("mij,mj->mi", ss.regulator_map, xi_post)
-        U = np.einsum("mik,mk->mi", self._Kfull, z0)  # unconstrained optimum (n, N)
+        # Unconstrained optimum over the horizon, U = Kfull z0 = (Kfull Tz) xi+, (n, N).
+        U = np.matmul(self._KT, xi_post[:, :, None])[:, :, 0]
         u = U[:, 0].copy()
         if self._skip:
-            dU = np.diff(U, axis=1, prepend=self._u_prev[:, None])
-            ok = np.all(np.abs(U) <= self._stroke[:, None] * (1 - _SLACK), axis=1) & np.all(
-                np.abs(dU) <= self._rate[:, None] * (1 - _SLACK), axis=1
-            )
-            active = np.unique(self._group_of[~ok])
+            lim = self._stroke_tol
+            ok = np.abs(U).max(axis=1) <= lim
+            if self._has_rate:
+                dU = np.empty_like(U)
+                dU[:, 0] = U[:, 0] - self._u_prev
+                np.subtract(U[:, 1:], U[:, :-1], out=dU[:, 1:])
+                ok &= np.abs(dU).max(axis=1) <= self._rate_tol
+            active = () if ok.all() else np.unique(self._group_of[~ok])
         else:
             active = range(len(self._groups))
-        for gi in active:
-            self._solve_group(self._groups[gi], z0, U, u)
+        if len(active):
+            z0 = np.matmul(ss.regulator_map, xi_post[:, :, None])[:, :, 0]
+            for gi in active:
+                self._solve_group(self._groups[gi], z0, U, u)
         if not np.isfinite(u).all():
             bad = np.flatnonzero(~np.isfinite(u))[:10].tolist()
             raise FloatingPointError(f"MPC command is not finite for modes {bad}")
-        self._xi = np.einsum("mij,mj->mi", ss.A, xi_post) + ss.B * u[:, None]
+        self._xi = np.matmul(ss.A, xi_post[:, :, None])[:, :, 0] + ss.B * u[:, None]
         self._u_prev = u
         return u.copy()
 
