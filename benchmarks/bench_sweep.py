@@ -14,6 +14,10 @@ Measured in one run, on the same machine:
    table) vs called directly, after a warm-up sweep (the workers' first task imports
    aocontrol, timed apart); the difference per run is the price of the machinery.
 
+Each worker process builds (and caches in memory) the scene of each case it runs, as the one
+process does once per case: with one seed per case (the default) both sides build every scene
+once; with more seeds the cluster may build a scene on both workers.
+
 ``--quick`` runs two cases, one seed, and fewer trivial runs (smoke test).
 """
 
@@ -76,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--controllers", nargs="+", default=["integrator"])
     parser.add_argument("--schemes", nargs="+", default=["standalone"])
-    parser.add_argument("--seeds", type=int, default=2, help="seeds per configuration")
+    parser.add_argument("--seeds", type=int, default=1, help="seeds per configuration")
     parser.add_argument("--seconds", type=float, default=0.2, help="simulated time per run [s]")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--trivial", type=int, default=40, help="trivial runs (overhead)")
