@@ -157,6 +157,8 @@ def test_design_from_npz_writes_a_reloadable_controller(tmp_path, capsys):
         str(LATENCY),
         "--order",
         "3",
+        "--jobs",
+        "1",
         "--no-progress",
         "--out",
         str(out),

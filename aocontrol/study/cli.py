@@ -493,6 +493,7 @@ def _design(args: argparse.Namespace) -> int:
             order=args.order,
             modulus_margin=args.modulus_margin,
             progress=not args.no_progress,
+            n_jobs=args.jobs,
         ).controller
     reference = optimal_modal_gain(plant, freqs, psd, noise, modulus_margin=args.modulus_margin)
     rms = np.sqrt(np.atleast_1d(residual_variance(plant, bank, freqs, psd, noise)))
@@ -725,6 +726,12 @@ def _parser() -> argparse.ArgumentParser:
         help="LQ weight of u^2 for --controller lqg (default 0: minimum variance)",
     )
     p.add_argument("--stage", default=None, help="stage group of a cascade results file")
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="worker processes of the data-driven design (default: every core; 1: none)",
+    )
     p.add_argument("--out", default="controller.h5", help="controller file (HDF5)")
     no_progress(p)
 
