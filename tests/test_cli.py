@@ -317,14 +317,32 @@ def test_write_comparison_saves_table_csv_and_plots(tmp_path):
                 path,
             )
         )
-    comparison = CaseComparison("bright1-best", tuple(cells), {"standalone": 0.4}, {})
+    # The vibration report as compare_case gives it for a case with a vibration.
+    f = np.linspace(0.0, 500.0, 257)
+    vibration = {
+        "mode": 0,
+        "scheme": "standalone",
+        "psd": {c.controller: (f, 1.0 / (1.0 + f)) for c in cells},
+        "freqs": f,
+        "sensitivity2": {c.controller: np.full(f.shape, 0.5) for c in cells},
+        "disturbance_psd": 1.0 / (1.0 + f**2),
+    }
+    comparison = CaseComparison(
+        "bright1-best", tuple(cells), {"standalone": 0.4}, {}, vibration=vibration
+    )
     lines = write_comparison(comparison, str(tmp_path))
     assert lines[0] == comparison.table()
     with open(tmp_path / "bright1-best_table.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["controller"] for r in rows] == ["reference", "datadriven"]
     assert [float(r["strehl"]) for r in rows] == pytest.approx([0.8, 0.85], rel=1e-12)
-    for png in ("bright1-best_contrast.png", "bright1-best_standalone_residual_psd.png"):
+    pngs = (
+        "bright1-best_contrast.png",
+        "bright1-best_standalone_residual_psd.png",
+        "bright1-best_tilt_psd.png",
+        "bright1-best_sensitivity.png",
+    )
+    for png in pngs:
         assert (tmp_path / png).stat().st_size > 10_000, png
         assert f"plot: {tmp_path / png}" in lines
 
