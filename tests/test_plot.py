@@ -58,6 +58,10 @@ def test_sensitivity_plot(tmp_path):
     # Oracle: the drawn T is 1 - S, so at low frequency (integrator: S -> 0) |T| -> 0 dB.
     t_line = ax_t.get_lines()[0].get_ydata()
     assert abs(t_line[0]) < 0.5
+    # Half-frame latency: G(-1) = 0, so T = 0 at Nyquist (-240 dB at the floor); the axis
+    # stops at -80 dB so that the notch does not squash the useful range.
+    assert t_line[-1] < -200
+    assert ax_t.get_ylim()[0] == -80.0
     # The disturbance PSD is on a log twin axis.
     assert any(a.get_yscale() == "log" and "disturbance" in a.get_ylabel() for a in fig.axes)
 

@@ -34,6 +34,9 @@ __all__ = [
 
 # Floor of |S|, |T| before taking dB (a perfect zero would be -inf on the axis).
 _DB_FLOOR = 1e-12
+# Lowest level shown on a dB axis: deep notches (|T| = 0 at Nyquist for a half-frame latency)
+# would otherwise squash the useful range.
+_DB_AXIS_FLOOR = -80.0
 # Contrast axis: its bottom is this factor times the lowest contrast beyond the inner radius
 # [lambda/D] (inside it the perfect coronagraph leaves ~1e-14, which would flatten the halo).
 _CONTRAST_INNER_LD = 1.0
@@ -55,6 +58,12 @@ def _finish(fig: Any, path: str | os.PathLike | None, dpi: int = 120) -> Any:
 
 def _db(x: np.ndarray) -> np.ndarray:
     return 20.0 * np.log10(np.maximum(np.abs(x), _DB_FLOOR))
+
+
+def _floor_db_axis(ax: Any) -> None:
+    lows = [np.nanmin(ln.get_ydata()) for ln in ax.get_lines() if len(ln.get_ydata()) > 1]
+    if lows and min(lows) < _DB_AXIS_FLOOR:
+        ax.set_ylim(bottom=_DB_AXIS_FLOOR)
 
 
 def _positive(freqs: object) -> tuple[np.ndarray, np.ndarray]:
@@ -99,6 +108,7 @@ def plot_rejection(
     for label, S in sensitivities.items():
         ax.semilogx(freqs[keep], _db(np.asarray(S)[keep]), label=label)
     ax.axhline(0.0, color="0.6", lw=0.8)
+    _floor_db_axis(ax)
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel(r"$|S|^2$ [dB]")
     ax.grid(True, which="both", alpha=0.3)
@@ -176,6 +186,7 @@ def plot_sensitivity(
         )
     for ax, name in ((ax_s, r"$|S|$ [dB]"), (ax_t, r"$|T|$ [dB]")):
         ax.axhline(0.0, color="0.6", lw=0.8)
+        _floor_db_axis(ax)
         ax.set_ylabel(name)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(loc="upper left", fontsize="small")
