@@ -6,7 +6,7 @@ from scipy import signal
 
 from aocontrol import loop_plant
 from aocontrol.analysis import residual_variance, sensitivity, white_noise_psd
-from aocontrol.controllers import IIRBank, Integrator
+from aocontrol.controllers import ControllerBank, IIRBank, Integrator
 from aocontrol.sim.loop import (
     LinearModalSensor,
     LoopDivergedError,
@@ -405,3 +405,52 @@ def test_slowly_diverging_loop_is_reported():
     with pytest.raises(LoopDivergedError, match="unstable") as info:
         run_loop(stage, ModalTimeSeries(_white(3000, 1)), 3000)
     np.testing.assert_array_equal(info.value.modes, [0])
+
+
+class _Opaque(ControllerBank):
+    """A controller bank that is not an IIRBank; optionally without a transfer function."""
+
+    def __init__(self, inner, *, has_tf=True):
+        self._inner = inner
+        self._has_tf = has_tf
+
+    n_modes = property(lambda self: self._inner.n_modes)
+    fs = property(lambda self: self._inner.fs)
+
+    def _step(self, measurement):
+        return self._inner.step(measurement)
+
+    def reset(self):
+        self._inner.reset()
+
+    def transfer_function(self, mode=0):
+        if not self._has_tf:
+            raise NotImplementedError("no linear model")
+        return self._inner.transfer_function(mode)
+
+
+def test_slow_divergence_found_through_any_controllers_transfer_function():
+    # The pole check uses transfer_function() of a controller that is not an IIRBank.
+    stage = Stage(_Opaque(Integrator(1.205, fs=FS)), latency_frames=0.83)
+    with pytest.raises(LoopDivergedError, match="linear closed loop is unstable"):
+        run_loop(stage, ModalTimeSeries(_white(3000, 1)), 3000)
+
+
+def test_sustained_growth_is_reported_without_a_linear_model():
+    # Pole radius ~1.0009 (integrator 1.207, 1.83 frames of delay) in a controller without a
+    # transfer function: the residual energy grows ~6x per 1000-frame chunk; relative to the
+    # disturbance it passes 30x, growing > 2x per chunk 3 times, well before the residual
+    # reaches 1e3 x the disturbance: the sustained-growth check stops the run.
+    stage = Stage(_Opaque(Integrator(1.207, fs=FS), has_tf=False), latency_frames=0.83)
+    with pytest.raises(LoopDivergedError, match="sustained growth") as info:
+        run_loop(stage, ModalTimeSeries(_white(12000, 1)), 12000)
+    assert 3000 <= info.value.frame < 12000
+    np.testing.assert_array_equal(info.value.modes, [0])
+    # Stable loops of the same kind run through, with white or strongly varying disturbance.
+    d = _white(6000, 2) * np.linspace(0.01, 10.0, 6000)[:, None] ** 3
+    ok = run_loop(
+        Stage(_Opaque(Integrator([0.5, 0.05], fs=FS), has_tf=False), latency_frames=0.83),
+        ModalTimeSeries(d),
+        6000,
+    )
+    assert np.all(ok.residual_variance < 2 * ok.disturbance_variance)

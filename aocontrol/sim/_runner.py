@@ -16,6 +16,7 @@ import numpy as np
 
 from aocontrol._validation import check_int
 from aocontrol.controllers import IIRBank
+from aocontrol.plant import z_inverse_coefficients
 from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
@@ -34,11 +35,15 @@ _UNSTABLE_FACTOR = 10.0
 # Closed-loop pole radius above which a mode is linearly unstable (rounding of the
 # eigenvalues of a companion matrix of a few dozen coefficients: ~1e-12).
 _POLE_RADIUS_TOL = 1e-9
-# Sustained growth: the residual energy of a mode over successive chunks (of the stage's own
-# frames) growing by more than this factor each time, _GROWTH_CHUNKS times in a row, is a
-# diverging loop (for a stationary stable loop the chunk energies fluctuate by tens of %).
-_GROWTH_FACTOR = 4.0
-_GROWTH_CHUNKS = 4
+# Sustained growth, for loops the pole check cannot see (a controller without a transfer
+# function): per mode, the ratio q of the residual energy to the disturbance-plus-noise
+# energy over a chunk of the stage's frames. A stable loop keeps q below max |S|^2 (a few;
+# ~11 for a modulus margin of 0.3) whatever the disturbance does; a diverging one makes q
+# grow without bound. Reported when q grew by more than _GROWTH_FACTOR in each of
+# _GROWTH_CHUNKS successive chunks and exceeds _GROWTH_RATIO.
+_GROWTH_FACTOR = 2.0
+_GROWTH_CHUNKS = 3
+_GROWTH_RATIO = 30.0
 # Flat-wavefront measurements used to estimate a diffractive sensor's noise level.
 _NOISE_PROBES = 8
 
@@ -47,9 +52,10 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
     """Largest closed-loop pole modulus per mode of a linear stage, or ``None``.
 
     The loop of :func:`aocontrol.loop_plant` with the stage's latency, the sensor's optical
-    gain and an :class:`~aocontrol.controllers.IIRBank` controller (the characteristic
-    polynomial ``A_k + og B_g B_k`` in powers of ``z^-1``, roots from batched companion
-    matrices); ``None`` for other controllers.
+    gain and the controller's linear part (an :class:`~aocontrol.controllers.IIRBank`'s
+    coefficients, else every mode's ``transfer_function``): the characteristic polynomial
+    ``A_k + og B_g B_k`` in powers of ``z^-1``, roots from batched companion matrices.
+    ``None`` when the controller has no transfer function.
 
     Parameters
     ----------
@@ -63,13 +69,14 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
     ndarray (n_modes,) or None
     """
     ctrl = stage.controller
-    if not isinstance(ctrl, IIRBank):
+    coeffs = _controller_coefficients(ctrl)
+    if coeffs is None:
         return None
     k0, frac = stage.delay
     bg = np.zeros(k0 + 3)
     bg[k0 + 1] = 1.0 - frac
     bg[k0 + 2] = frac
-    b, a = ctrl.b, ctrl.a
+    b, a = coeffs
     n = ctrl.n_modes
     length = max(a.shape[1], bg.size + b.shape[1] - 1)
     char = np.zeros((n, length))
@@ -90,6 +97,28 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
         idx = np.arange(order - 1)
         comp[:, idx + 1, idx] = 1.0
     return np.abs(np.linalg.eigvals(comp)).max(axis=1)
+
+
+def _controller_coefficients(ctrl: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(b, a)`` in powers of ``z^-1``, shape ``(n_modes, n)``, of a linear controller bank.
+
+    From the coefficients of an :class:`IIRBank`, else from ``transfer_function(mode)`` of
+    every mode; ``None`` when the controller has no (causal, finite) transfer function.
+    """
+    if isinstance(ctrl, IIRBank):
+        return ctrl.b, ctrl.a
+    try:
+        pairs = [z_inverse_coefficients(ctrl.transfer_function(i)) for i in range(ctrl.n_modes)]
+    except (NotImplementedError, TypeError, ValueError, ArithmeticError) as exc:
+        logger.info("no closed-loop pole check for %s: %s", type(ctrl).__name__, exc)
+        return None
+    length = max(max(bi.size, ai.size) for bi, ai in pairs)
+    b = np.zeros((len(pairs), length))
+    a = np.zeros((len(pairs), length))
+    for i, (bi, ai) in enumerate(pairs):
+        b[i, : bi.size] = bi
+        a[i, : ai.size] = ai
+    return b, a
 
 
 class _StageRun:
@@ -127,6 +156,7 @@ class _StageRun:
         self.og = optical_gain
         self.noise_std = noise_std
         self.noise_scale = 10.0 * float(np.max(noise_std / optical_gain))
+        self.noise_energy = (noise_std / optical_gain) ** 2
         self.k = 0
         self.limit = self.limit_unstable = self.limit_check = np.inf
         self.out: dict[str, np.ndarray] = {}
@@ -184,17 +214,21 @@ class _StageRun:
             self.sum_e2 = np.cumsum(np.concatenate([self.sum_e2[None], e[start:] ** 2]), axis=0)[-1]
             d = d_rec[start:]
             self.sum_d2 = np.cumsum(np.concatenate([self.sum_d2[None], d**2]), axis=0)[-1]
-        self.energy.append(np.einsum("ij,ij->j", e, e))
+        # Sustained growth of the residual relative to its input (see _GROWTH_FACTOR).
+        e_energy = np.einsum("ij,ij->j", e, e)
+        d_energy = np.einsum("ij,ij->j", d_rec, d_rec) + m * self.noise_energy + 1e-300
+        self.energy.append(e_energy / d_energy)
         if len(self.energy) > _GROWTH_CHUNKS:
-            e = np.array(self.energy[-_GROWTH_CHUNKS - 1 :]) + 1e-30
-            growing = np.all(e[1:] > _GROWTH_FACTOR * e[:-1], axis=0)
+            q = np.array(self.energy[-_GROWTH_CHUNKS - 1 :])
+            growing = np.all(q[1:] > _GROWTH_FACTOR * q[:-1], axis=0) & (q[-1] > _GROWTH_RATIO)
             if growing.any():
                 raise LoopDivergedError(
                     self.k - 1,
                     np.flatnonzero(growing),
                     self.name,
-                    f"grew by more than {_GROWTH_FACTOR:g}x in each of {_GROWTH_CHUNKS} "
-                    "successive chunks (sustained growth, a slowly diverging loop)",
+                    f"grew relative to the disturbance by more than {_GROWTH_FACTOR:g}x in each "
+                    f"of {_GROWTH_CHUNKS} successive chunks, to {float(q[-1].max()):.3g} x its "
+                    "energy (sustained growth, a slowly diverging loop)",
                 )
             del self.energy[0]
 
