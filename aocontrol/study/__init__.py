@@ -3,6 +3,7 @@
 Only :mod:`aocontrol.study.plot` imports matplotlib.
 """
 
+from aocontrol.study.cases import Case, CaseError, list_cases, load_case
 from aocontrol.study.results import (
     convert_npz,
     load_result,
@@ -19,4 +20,8 @@ __all__: list[str] = [
     "read_psds",
     "read_settings",
     "summary_table",
+    "Case",
+    "CaseError",
+    "load_case",
+    "list_cases",
 ]

@@ -68,7 +68,7 @@ _QUANTITY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Z
 class CaseError(ValueError):
     """Invalid case file or override: names the file, the key and the reason.
 
-    Attributes
+    Parameters
     ----------
     source : str
         The file (or ``"overrides"``) where the bad value is.

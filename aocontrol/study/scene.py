@@ -1,0 +1,441 @@
+"""Build everything a science case needs: pupil, DMs and KL bases, the projection between the
+stage bases, the atmosphere at the case's seeing and tau0, the sensors with their noise, the
+plants, the science camera and the vibration.
+
+Physics of the sensors
+----------------------
+- Photons: :func:`aocontrol.sim.noise.photons_per_frame` from the case's G (stage 1) and J
+  (stage 2) magnitudes, the stage's frame time and throughput (photo-electrons per frame over
+  the pupil).
+- Stage 2, pyramid: the diffractive model (:class:`aocontrol.sim.wfs.PyramidWFS`, 3 lambda/D,
+  20 modulation points) is calibrated on the stage-2 KL modes
+  (as :meth:`aocontrol.sim.wfs.LinearModalWFS.from_diffractive` does, with exact-derivative
+  interaction matrices): noise propagation per mode from
+  the photon and read noise on its pixels, and optical gains around residual screens with the
+  fitting-error spectrum (:func:`aocontrol.sim.wfs.fitting_residual_screens`) of RMS the
+  fitting error of the finer of the two DMs (:func:`aocontrol.sim.modes.fitting_error`), the
+  part of the residual no stage corrects. The loop's reconstructor compensates the optical
+  gains (modal gain compensation, as a calibrated instrument does): the linear sensor has unit
+  gain and noise ``sigma / g`` per mode. Approximation: the gains are those of the fitting
+  error alone (servo-lag and noise residuals are smaller in the bright cases, not in the red
+  ones, where the true gains are lower).
+- Stage 1, Shack-Hartmann: the reconstructor is that of the geometric model on the stage-1 KL
+  modes (:func:`aocontrol.sim.wfs.calibrate`); the noise of each slope comes from the
+  diffractive model of :mod:`aocontrol.sim.wfs.shack_hartmann` (centre of gravity of a spot
+  sampled at lambda/(2d) per pixel, i.e. 0.356" at 0.69 um for the 0.36" of SAXO; the model
+  needs >= 4 pupil samples per subaperture, hence 8x8 pixels instead of SAXO's 6x6) linearised
+  around the flat-wavefront spots; slopes of different subapertures are independent and x/y
+  uncorrelated for a symmetric spot, so the modal variance is ``sum_j R_ij^2 var_j``, with the
+  flux-normalisation correction of :meth:`aocontrol.sim.wfs.WFSCalibration.noise_variance`.
+  The EMCCD excess-noise factor is not modelled (the case's read noise is the effective one).
+
+Calibrations (DMs, bases, reconstructors, noise coefficients, optical gains) are cached in
+memory per (sampling, seeing, stage geometry, quick): a gain scan, the calibration runs and
+the configurations of a case share them, and a change of flux, rate or tau0 reuses them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from aocontrol.plant import loop_plant
+from aocontrol.sim.atmosphere import Atmosphere
+from aocontrol.sim.dm import DeformableMirror
+from aocontrol.sim.loop import projection_matrix
+from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
+from aocontrol.sim.noise import photons_per_frame
+from aocontrol.sim.profiles import eso_median_profile, scale_to_tau0
+from aocontrol.sim.pupil import Pupil
+from aocontrol.sim.science import ScienceCamera
+from aocontrol.sim.turbulence import r0_from_seeing
+from aocontrol.sim.vibration import TiltVibration, VibrationPSD, tilt_vibration_psd
+from aocontrol.sim.wfs import (
+    LinearModalWFS,
+    PyramidWFS,
+    ShackHartmannWFS,
+    WFSCalibration,
+    calibrate,
+    fitting_residual_screens,
+    optical_gains,
+)
+from aocontrol.study.cases import Case, StageSpec, apply_overrides, load_case
+
+__all__ = ["QUICK_MODES", "Scene", "StageScene", "build_scene", "clear_scene_cache"]
+
+logger = logging.getLogger(__name__)
+
+#: Quick mode (tests, smoke runs): at most this many KL modes per stage (stage 1, stage 2).
+QUICK_MODES = (100, 24)
+# Residual screens averaged for the pyramid's optical gains (2 is enough: the gains of one
+# screen differ from the mean of many by a few per cent for this spectrum).
+_OG_SCREENS = 2
+# Push-pull amplitude of the calibrations [nm RMS]: small against the 1.04-um wavelength
+# (linear regime) and large against rounding.
+_CAL_AMPLITUDE = 10.0
+# Signals per block when building the Shack-Hartmann's per-slope noise coefficients.
+_SH_BLOCK = 128
+_CACHE: dict[str, Scene] = {}
+_GEOMETRY_CACHE: dict[str, dict] = {}
+
+
+@dataclass(frozen=True, eq=False)
+class StageScene:
+    """What one stage needs: DM, modal basis, plant and linear sensor.
+
+    Parameters
+    ----------
+    spec : StageSpec
+        The case's stage values.
+    dm : DeformableMirror
+    basis : ModalBasis
+        ``spec.n_modes`` KL modes (fewer in quick mode).
+    plant : control.TransferFunction
+        ``loop_plant(fs, latency_frames)``.
+    photons : float
+        Photo-electrons per frame on the WFS.
+    sensor : LinearModalWFS
+        Unit optical gain (compensated), noise per mode [nm RMS per frame].
+    optical_gain : ndarray, shape (n_modes,)
+        Calibrated optical gains (compensated by the reconstructor; 1 for the Shack-Hartmann).
+    raw_noise_std : ndarray, shape (n_modes,)
+        Noise per mode before the optical-gain compensation [nm RMS per frame].
+    """
+
+    spec: StageSpec
+    dm: DeformableMirror
+    basis: ModalBasis
+    plant: Any
+    photons: float
+    sensor: LinearModalWFS
+    optical_gain: np.ndarray
+    raw_noise_std: np.ndarray
+
+    @property
+    def fs(self) -> float:
+        """Loop rate [Hz]."""
+        return self.spec.fs
+
+    @property
+    def n_modes(self) -> int:
+        """Controlled modes."""
+        return self.basis.n_modes
+
+    @property
+    def noise_std(self) -> np.ndarray:
+        """Measurement noise per mode seen by the controller [nm RMS per frame]."""
+        return np.asarray(self.sensor.noise_std)
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """Everything built for one case (see the module docstring).
+
+    Parameters
+    ----------
+    case : Case
+    pupil : Pupil
+    stage1, stage2 : StageScene
+    projection : ndarray, shape (n_modes2, n_modes1)
+        Stage-1 modal coefficients to stage-2 ones, from the phase over the pupil
+        (:func:`aocontrol.sim.loop.projection_matrix`, the cascade's own).
+    r0 : float
+        Fried parameter at 500 nm [m].
+    layers : tuple of Layer
+        The simulated profile, winds scaled to ``tau0``.
+    quick : bool
+    """
+
+    case: Case
+    pupil: Pupil
+    stage1: StageScene
+    stage2: StageScene
+    projection: np.ndarray
+    r0: float
+    layers: tuple
+    quick: bool = False
+
+    def atmosphere(
+        self, rng: np.random.Generator | int | None, fs: float | None = None
+    ) -> Atmosphere:
+        """A fresh atmosphere at the fast clock (stage 2's rate by default).
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator or int
+            Seed of the phase screens.
+        fs : float, optional
+            Frame rate [Hz]; default stage 2's.
+        """
+        return Atmosphere(
+            self.pupil,
+            self.r0,
+            list(self.layers),
+            self.stage2.fs if fs is None else fs,
+            L0=self.case.atmosphere.L0,
+            rng=rng,
+            dtype=np.float32,
+        )
+
+    def camera(self) -> ScienceCamera:
+        """The science camera: perfect coronagraph at the case's science wavelength."""
+        sci = self.case.science
+        return ScienceCamera(self.pupil, wavelength=sci.wavelength, field_of_view=sci.field_of_view)
+
+    def vibration_psd(self) -> VibrationPSD:
+        """The case's vibration PSD (one mode), :class:`aocontrol.sim.vibration.VibrationPSD`.
+
+        Raises
+        ------
+        ValueError
+            If the case has no vibration.
+        """
+        vib = self.case.vibration
+        if vib is None:
+            raise ValueError(f"case {self.case.name!r} has no [vibration] table")
+        return tilt_vibration_psd(
+            [
+                (f, z, r * 1e9)
+                for f, z, r in zip(vib.frequencies, vib.dampings, vib.rms, strict=True)
+            ]
+        )
+
+    def vibration_source(self, rng: np.random.Generator | int) -> TiltVibration:
+        """The vibration as a phase source at the fast clock (FIR-filtered white noise).
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator or int
+            Source of the white noise.
+        """
+        vib = self.case.vibration
+        psd = self.vibration_psd()
+        return TiltVibration(
+            self.stage2.fs,
+            self.stage2.basis,
+            rng,
+            psd=psd,
+            mode=vib.modes[0],
+            numtaps=vib.fir_taps,
+        )
+
+    def settings(self) -> dict:
+        """JSON-serialisable description of what was built (sampling, modes, noise)."""
+        return {
+            "n_pix": self.pupil.n_pix,
+            "quick": self.quick,
+            "r0": self.r0,
+            "layers": [
+                {"altitude": lay.altitude, "fraction": lay.fraction, "wind_speed": lay.wind_speed}
+                for lay in self.layers
+            ],
+            "stage1": _stage_settings(self.stage1),
+            "stage2": _stage_settings(self.stage2),
+        }
+
+
+def _stage_settings(st: StageScene) -> dict:
+    return {
+        "n_modes": st.n_modes,
+        "photons_per_frame": st.photons,
+        "noise_rms_nm_median": float(np.median(st.noise_std)),
+        "noise_rms_nm_tiptilt": [float(x) for x in st.noise_std[:2]],
+        "optical_gain_median": float(np.median(st.optical_gain)),
+    }
+
+
+def clear_scene_cache() -> None:
+    """Forget every cached scene (frees the calibrations)."""
+    _CACHE.clear()
+    _GEOMETRY_CACHE.clear()
+
+
+def build_scene(
+    case: str | Case,
+    *,
+    overrides: dict | None = None,
+    quick: bool = False,
+    cache: bool = True,
+    rng: int = 0,
+) -> Scene:
+    """Build (or fetch from the in-memory cache) the scene of a case.
+
+    Parameters
+    ----------
+    case : str or Case
+        Case name, TOML path or :class:`Case`.
+    overrides : dict, optional
+        Case values replaced (:func:`aocontrol.study.cases.apply_overrides`).
+    quick : bool
+        At most :data:`QUICK_MODES` modes per stage (fast calibration for tests).
+    cache : bool
+        Reuse a scene built for the same case values and ``quick``.
+    rng : int
+        Seed of the residual screens of the optical-gain calibration.
+
+    Returns
+    -------
+    Scene
+
+    Raises
+    ------
+    CaseError, ValueError
+        Invalid case or overrides.
+    """
+    c = apply_overrides(load_case(case), overrides)
+    key = json.dumps([c.to_dict(), bool(quick), int(rng)], sort_keys=True, default=str)
+    if cache and key in _CACHE:
+        return _CACHE[key]
+    geo = _geometry(c, bool(quick), int(rng), cache)
+    s1 = _stage_scene(c, c.stage1, c.star.G, geo["stage1"])
+    s2 = _stage_scene(c, c.stage2, c.star.J, geo["stage2"])
+    layers = tuple(
+        scale_to_tau0(
+            eso_median_profile(c.atmosphere.simulated_layers), geo["r0"], c.atmosphere.tau0
+        )
+    )
+    scene = Scene(c, geo["pupil"], s1, s2, geo["projection"], geo["r0"], layers, bool(quick))
+    logger.info("scene %s built: %s", c.name, scene.settings())
+    if cache:
+        _CACHE[key] = scene
+    return scene
+
+
+def _geometry_key(c: Case, quick: bool, rng: int) -> str:
+    """The case values the calibrations depend on (not the flux, rates, gains or tau0)."""
+    flux = ("fs", "band", "read_noise", "throughput", "gain", "latency_frames", "dm_stroke")
+    stages = [
+        {k: v for k, v in dataclasses.asdict(s).items() if k not in flux}
+        for s in (c.stage1, c.stage2)
+    ]
+    atm = (c.atmosphere.seeing, c.atmosphere.L0)
+    return json.dumps([dataclasses.asdict(c.simulation), atm, stages, quick, rng], default=str)
+
+
+def _geometry(c: Case, quick: bool, rng: int, cache: bool) -> dict:
+    """Pupil, DMs, KL bases, projection and WFS calibrations (cached; see the module notes)."""
+    key = _geometry_key(c, quick, rng)
+    if cache and key in _GEOMETRY_CACHE:
+        return _GEOMETRY_CACHE[key]
+    sim = c.simulation
+    pupil = Pupil(diameter=sim.diameter, n_pix=sim.n_pix, obstruction=sim.obstruction)
+    r0 = r0_from_seeing(c.atmosphere.seeing)
+    n1, n2 = c.stage1.n_modes, c.stage2.n_modes
+    if quick:
+        n1, n2 = min(n1, QUICK_MODES[0]), min(n2, QUICK_MODES[1])
+    dm1 = DeformableMirror(pupil, n_actuators=c.stage1.n_actuators)
+    dm2 = DeformableMirror(pupil, n_actuators=c.stage2.n_actuators)
+    b1 = kl_basis(dm1, n1, r0=r0, L0=c.atmosphere.L0)
+    b2 = kl_basis(dm2, n2, r0=r0, L0=c.atmosphere.L0)
+    # Residual no stage corrects: fitting error of the basis with more modes.
+    finer = b1 if n1 >= n2 else b2
+    fit_rms = math.sqrt(fitting_error(finer, r0, c.atmosphere.L0))
+    cutoff = (max(c.stage1.n_actuators, c.stage2.n_actuators) - 1) / (2 * sim.diameter)
+    gen = np.random.default_rng(rng)
+    out = {"pupil": pupil, "r0": r0, "projection": projection_matrix(b1, b2)}
+    for name, spec, dm, basis in (("stage1", c.stage1, dm1, b1), ("stage2", c.stage2, dm2, b2)):
+        if spec.wfs == "pyramid":
+            wfs = PyramidWFS(
+                pupil,
+                spec.wavelength,
+                n_subapertures=spec.n_subapertures,
+                modulation=spec.modulation,
+                n_modulation_points=spec.n_modulation_points,
+            )
+            screens = fitting_residual_screens(
+                pupil, fit_rms, _OG_SCREENS, gen, cutoff_frequency=cutoff, L0=c.atmosphere.L0
+            )
+            # The "derivative" interaction matrices (exact linearisation) cost half the
+            # push-pull ones; the optical gains are by definition the linear sensitivity
+            # around the residual screens.
+            model = calibrate(wfs, basis, _CAL_AMPLITUDE, method="derivative")
+            og = optical_gains(
+                wfs,
+                basis,
+                screens,
+                amplitude=_CAL_AMPLITUDE,
+                recon=model.recon,
+                method="derivative",
+            )
+        else:
+            model = _shack_hartmann_model(pupil, spec, basis)
+            og = np.ones(basis.n_modes)
+        if not np.all(og > 0):
+            raise ValueError(f"{spec.wfs} optical gains must be > 0, got min {og.min()!r}")
+        out[name] = (dm, basis, model, np.asarray(og, dtype=float))
+    if cache:
+        _GEOMETRY_CACHE[key] = out
+    return out
+
+
+def _stage_scene(case: Case, spec: StageSpec, magnitude: float, geo: tuple) -> StageScene:
+    dm, basis, model, og = geo
+    photons = photons_per_frame(
+        magnitude,
+        spec.band,
+        fs=spec.fs,
+        diameter=case.simulation.diameter,
+        obstruction=case.simulation.obstruction,
+        throughput=spec.throughput,
+    )
+    raw = np.sqrt(model.noise_variance(photons, spec.read_noise))
+    sensor = LinearModalWFS(optical_gain=np.ones(basis.n_modes), noise_std=raw / og)
+    return StageScene(
+        spec=spec,
+        dm=dm,
+        basis=basis,
+        plant=loop_plant(spec.fs, spec.latency_frames),
+        photons=photons,
+        sensor=sensor,
+        optical_gain=og,
+        raw_noise_std=raw,
+    )
+
+
+def _shack_hartmann_model(pupil: Pupil, spec: StageSpec, basis: ModalBasis) -> WFSCalibration:
+    """Reconstructor and modal noise coefficients of the Shack-Hartmann (module docstring)."""
+    geo = ShackHartmannWFS(pupil, spec.wavelength, spec.n_subapertures, model="geometric")
+    cal = calibrate(geo, basis, _CAL_AMPLITUDE)
+    p = 4  # samples per subaperture of the diffractive model (its minimum)
+    fine = Pupil(
+        diameter=pupil.diameter, n_pix=p * spec.n_subapertures, obstruction=pupil.obstruction
+    )
+    dif = ShackHartmannWFS(
+        fine, spec.wavelength, spec.n_subapertures, model="diffractive", oversampling=2
+    )
+    frame = dif.reference_frame
+    pix = dif.pixel_values(frame)
+    ph = np.empty(dif.n_signals)
+    ro = np.empty(dif.n_signals)
+    eye = np.eye(dif.n_signals)
+    for start in range(0, dif.n_signals, _SH_BLOCK):
+        rows = eye[start : start + _SH_BLOCK]
+        j2 = dif.pixel_jacobian_product(frame, rows) ** 2
+        ph[start : start + rows.shape[0]] = j2 @ pix
+        ro[start : start + rows.shape[0]] = j2.sum(axis=1)
+    if dif.n_signals == geo.n_signals and np.array_equal(
+        dif.valid_subapertures, geo.valid_subapertures
+    ):
+        ph_s, ro_s = ph, ro
+    else:  # sampling changed the valid set at the edge: the median slope of the fine model
+        logger.info("Shack-Hartmann: valid subapertures differ; median slope noise used")
+        ph_s = np.full(geo.n_signals, np.median(ph))
+        ro_s = np.full(geo.n_signals, np.median(ro))
+    r2 = cal.recon**2
+    n_norm, f_norm = dif.normalisation
+    model = WFSCalibration(
+        imat=cal.imat,
+        recon=cal.recon,
+        photon_coeff=r2 @ ph_s,
+        read_coeff=r2 @ ro_s,
+        amplitude=_CAL_AMPLITUDE,
+        norm_pixels=n_norm,
+        norm_fraction=f_norm,
+    )
+    return model
