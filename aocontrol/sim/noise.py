@@ -138,6 +138,11 @@ BANDS["Ks"] = BANDS["K"]
 def band_zero_point(band: str) -> Band:
     """Return the :class:`Band` named ``band`` (case-sensitive names of :data:`BANDS`).
 
+    Parameters
+    ----------
+    band : str
+        Photometric band name, a key of :data:`BANDS` (e.g. ``"G"``, ``"J"``).
+
     Raises
     ------
     ValueError

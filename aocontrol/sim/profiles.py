@@ -179,6 +179,11 @@ def _arrays(layers: Sequence[Layer]) -> tuple[np.ndarray, ...]:
 def normalize_layers(layers: Sequence[Layer]) -> list[Layer]:
     """Layers with their fractions divided by their sum (so that they sum to 1).
 
+    Parameters
+    ----------
+    layers : sequence of Layer
+        Atmospheric layers (altitude [m], Cn2 fraction, wind speed [m/s], direction [rad]).
+
     Raises
     ------
     ValueError
@@ -350,7 +355,13 @@ def scale_to_tau0(layers: Sequence[Layer], r0: float, tau0: float) -> list[Layer
 
 
 def effective_altitude(layers: Sequence[Layer]) -> float:
-    """The 5/3-weighted mean altitude ``(sum f h^(5/3) / sum f)^(3/5)`` [m]."""
+    """The 5/3-weighted mean altitude ``(sum f h^(5/3) / sum f)^(3/5)`` [m].
+
+    Parameters
+    ----------
+    layers : sequence of Layer
+        Atmospheric layers (altitude [m], Cn2 fraction, wind speed [m/s], direction [rad]).
+    """
     h, f, _, _ = _arrays(layers)
     if f.sum() <= 0:
         raise ValueError(f"layer fractions must not all be zero, got {f.tolist()}")
@@ -358,7 +369,15 @@ def effective_altitude(layers: Sequence[Layer]) -> float:
 
 
 def isoplanatic_angle(layers: Sequence[Layer], r0: float) -> float:
-    """Isoplanatic angle ``theta0 = 0.314 r0 / h_bar`` [rad] at zenith (Roddier 1981)."""
+    """Isoplanatic angle ``theta0 = 0.314 r0 / h_bar`` [rad] at zenith (Roddier 1981).
+
+    Parameters
+    ----------
+    layers : sequence of Layer
+        Atmospheric layers (altitude [m], Cn2 fraction, wind speed [m/s], direction [rad]).
+    r0 : float
+        Fried parameter at 500 nm [m].
+    """
     h_bar = effective_altitude(layers)
     return math.inf if h_bar == 0 else 0.314 * check_positive("r0", r0) / h_bar
 

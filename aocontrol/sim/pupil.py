@@ -128,5 +128,13 @@ class Pupil:
 
 
 def vlt_pupil(n_pix: int = 64, *, spiders: bool = False) -> Pupil:
-    """The VLT pupil: 8 m, central obstruction 0.14, optional 4 spiders of 5 cm."""
+    """The VLT pupil: 8 m, central obstruction 0.14, optional 4 spiders of 5 cm.
+
+    Parameters
+    ----------
+    n_pix : int, default 64
+        Samples across the 8-m pupil.
+    spiders : bool, default False
+        Add the four 5-cm spiders.
+    """
     return Pupil(diameter=8.0, n_pix=n_pix, obstruction=0.14, spider_width=0.05 if spiders else 0.0)

@@ -83,6 +83,11 @@ def _fft_inplace(a: np.ndarray, axis: int, workers: int, *, forward: bool) -> No
 def default_modulation_points(modulation: float) -> int:
     """Default number of modulation points: ``4 ceil(pi r)``, i.e. ~2 points per lambda/D of
     the modulation circle's perimeter ``2 pi r`` rounded up to a multiple of 4 (1 when ``r=0``).
+
+    Parameters
+    ----------
+    modulation : float
+        Modulation radius [lambda/D], >= 0.
     """
     r = check_nonnegative("modulation", modulation)
     return 1 if r == 0 else 4 * math.ceil(math.pi * r)
