@@ -85,6 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--trivial", type=int, default=40, help="trivial runs (overhead)")
     parser.add_argument("--skip-cases", action="store_true", help="only the overhead part")
+    parser.add_argument(
+        "--serial-first",
+        action="store_true",
+        help="time the one-process runs before the cluster's (default after): run both orders "
+        "on a busy machine, whose load drifts between the two parts",
+    )
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     if args.quick:
@@ -157,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
             runner = default_runner()
             spec = _spec(cases, args.controllers, args.schemes, range(seeds), args.seconds, True)
             runs = spec.runs()
+            if args.serial_first:
+                t_serial = _serial(runner, runs, tmp / "cases-serial")
+                print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
             t_par = run_sweep(
                 spec,
                 out=tmp / "cases-cluster",
@@ -170,8 +179,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"cluster: {len(runs)} runs in {t_cluster:.1f} s", flush=True)
         finally:
             cluster.close()
-        t_serial = _serial(runner, runs, tmp / "cases-serial")
-        print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
+        if not args.serial_first:
+            t_serial = _serial(runner, runs, tmp / "cases-serial")
+            print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
         rows = {r["hash"]: r for r in t_par.table}
         print(
             f"{'case':16s}{'controller':12s}{'scheme':12s}{'seed':>5s}{'strehl':>9s}{'C(4-6)':>11s}"
