@@ -137,6 +137,7 @@ def test_table_rebuilt_from_files(quick_comparison):
     assert table_from_files(paths) == quick_comparison.table()
 
 
+@pytest.mark.slow
 def test_quick_scene_matches_the_case():
     scene = build_scene("bright1-best", quick=True)
     case = scene.case
