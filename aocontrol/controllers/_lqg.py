@@ -277,6 +277,49 @@ class LQGBank(ControllerBank):
         self._structured = not dense and _is_structured(state_space)
         self.reset()
 
+    # -- controller files (aocontrol.controllers.save_controller) -------------------------
+    _ARRAY_FIELDS = (
+        "A", "B", "C", "Q", "R", "P", "kalman_gain", "control_gain", "regulator_A",
+        "regulator_B", "regulator_H", "regulator_D", "regulator_map", "regulator_P",
+    )  # fmt: skip
+
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+        """The bank as arrays and scalars for :func:`aocontrol.controllers.save_controller`.
+
+        The disturbance model (``model``, kept for reports only) is not saved.
+        """
+        ss = self._ss
+        arrays = {name: np.asarray(getattr(ss, name)) for name in self._ARRAY_FIELDS}
+        if self._stroke is not None:
+            arrays["stroke"] = np.asarray(self._stroke)
+        attrs = {
+            "control_weight": float(ss.control_weight),
+            "nx": int(ss.nx),
+            "latency_frames": float(ss.latency_frames),
+            "dense": not self._structured and _is_structured(ss),
+        }
+        return arrays, attrs
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, attrs: dict) -> LQGBank:
+        """Inverse of :meth:`to_arrays` (``attrs`` also holds ``fs`` and ``n_modes``).
+
+        Parameters
+        ----------
+        arrays : dict of str to ndarray
+            The state-space arrays (and ``stroke`` when the bank had one).
+        attrs : dict
+            ``control_weight``, ``nx``, ``latency_frames``, ``dense``, ``fs``.
+        """
+        ss = LQGStateSpace(
+            **{name: np.asarray(arrays[name]) for name in cls._ARRAY_FIELDS},
+            control_weight=float(attrs["control_weight"]),
+            nx=int(attrs["nx"]),
+            latency_frames=float(attrs["latency_frames"]),
+            fs=float(attrs["fs"]),
+        )
+        return cls(ss, dense=bool(attrs["dense"]), stroke=arrays.get("stroke"))
+
     @property
     def n_modes(self) -> int:
         return self._ss.n_modes
