@@ -823,8 +823,10 @@ def _vibration_report(
             tf = ctrls[(scheme, name)].transfer_function(mode)
         except (NotImplementedError, ValueError, TypeError):  # e.g. a constrained MPC
             continue
-        k = frequency_response(tf, f, fs=design.fs)
-        out["sensitivity2"][name] = np.abs(1.0 / (1.0 + g * k)) ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            k = frequency_response(tf, f, fs=design.fs)
+            s2 = np.abs(1.0 / (1.0 + g * k)) ** 2
+        out["sensitivity2"][name] = np.where(np.isfinite(k), s2, 0.0)  # pole of K on |z|=1
     if "reference" in out["tilt_rms_nm"] and "datadriven" in out["tilt_rms_nm"]:
         a, b = out["tilt_rms_nm"]["reference"], out["tilt_rms_nm"]["datadriven"]
         out["relative_gain"] = (a - b) / a
