@@ -230,3 +230,19 @@ def test_parallel_fit_equals_serial():
     np.testing.assert_array_equal(parallel.vibration_frequency, serial.vibration_frequency)
     with pytest.raises(ValueError, match="n_jobs must be a nonzero integer"):
         fit_disturbance_model(f, m.psd(f), FS, n_jobs=0)
+
+
+def test_fit_on_a_grid_with_zero_frequency_raises_no_floating_point_warning():
+    # Regression: trial AR(2) poles at z = 1 divided by zero at f = 0 (RuntimeWarnings from
+    # aocontrol are errors in this suite, pyproject filterwarnings). The fit must stay finite
+    # and the LQG built on it must be stable in closed loop.
+    from aocontrol import loop_plant
+    from aocontrol.analysis import is_stable
+    from aocontrol.disturbance import synthetic_turbulence_psd
+    from aocontrol.synthesis import lqg
+
+    fs = 3000.0
+    f = np.concatenate([[0.0], np.geomspace(1e-2, fs / 2, 2000)])
+    plant = loop_plant(fs, 0.83)
+    bank = lqg(plant, f, synthetic_turbulence_psd(f, 3, fs=fs), noise_psd=2 * 4.0 / fs)
+    assert all(is_stable(plant, bank.transfer_function(i)) for i in range(3))

@@ -81,6 +81,9 @@ def ar2_variance(a1: object, a2: object, driving_variance: object) -> np.ndarray
     return s2 * (1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1 * a1))
 
 
+_TINY = np.finfo(float).tiny
+
+
 def _resonator(f0: np.ndarray, xi: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
     """Vectorised :func:`aocontrol.disturbance.resonator_ar2` (same impulse-invariant map)."""
     w0 = 2 * np.pi * f0 / fs
@@ -92,7 +95,9 @@ def _resonator(f0: np.ndarray, xi: np.ndarray, fs: float) -> tuple[np.ndarray, n
 def _ar2_psd(a1: np.ndarray, a2: np.ndarray, s2: np.ndarray, zi: np.ndarray, fs: float):
     """One-sided PSD of AR(2) components; coefficient arrays (...,), ``zi`` (n_freqs,)."""
     den = np.abs(1 - a1[..., None] * zi - a2[..., None] * zi * zi) ** 2
-    return 2 * s2[..., None] / fs / den
+    # A trial pole on the unit circle (the fit's iterates may touch z = 1 at f = 0): a huge,
+    # finite PSD instead of a division by zero.
+    return 2 * s2[..., None] / fs / np.maximum(den, _TINY)
 
 
 def _ar2_stable(a1: np.ndarray, a2: np.ndarray) -> np.ndarray:
