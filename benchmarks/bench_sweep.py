@@ -14,9 +14,11 @@ Measured in one run, on the same machine:
    table) vs called directly, after a warm-up sweep (the workers' first task imports
    aocontrol, timed apart); the difference per run is the price of the machinery.
 
-Each worker process builds (and caches in memory) the scene of each case it runs, as the one
-process does once per case: with one seed per case (the default) both sides build every scene
-once; with more seeds the cluster may build a scene on both workers.
+Each worker process builds (and caches in memory) the scenes and calibrations it needs, as the
+one process does: the cold sweep pays them once per worker (calibrations shared by the cases
+are built on both workers, once in the one process). A second, warm sweep with new seeds
+(every process holding its caches) gives the ratio of the runs themselves. The cluster's
+results are checked equal to the one process's (same settings, same numbers).
 
 ``--quick`` runs two cases, one seed, and fewer trivial runs (smoke test).
 """
@@ -102,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from distributed import LocalCluster
 
-    from aocontrol.study.sweep import SweepRunner, run_sweep
+    from aocontrol.study.sweep import SweepRunner, run_sweep, summary_table
 
     logging.basicConfig(level=logging.WARNING)
     print(
@@ -177,11 +179,33 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             t_cluster = t_par.wall_s
             print(f"cluster: {len(runs)} runs in {t_cluster:.1f} s", flush=True)
+            if not args.serial_first:
+                t_serial = _serial(runner, runs, tmp / "cases-serial")
+                print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
+            # warm: new seeds, every process now holds the scenes it built (per-process caches)
+            spec_w = _spec(
+                cases, args.controllers, args.schemes, range(seeds, 2 * seeds), args.seconds, True
+            )
+            t_cluster_warm = run_sweep(
+                spec_w,
+                out=tmp / "warm-cluster",
+                scheduler=cluster.scheduler_address,
+                runner=runner,
+            ).wall_s
+            t_serial_warm = _serial(runner, spec_w.runs(), tmp / "warm-serial")
+            print(
+                f"warm caches: cluster {t_cluster_warm:.1f} s, one process {t_serial_warm:.1f} s",
+                flush=True,
+            )
         finally:
             cluster.close()
-        if not args.serial_first:
-            t_serial = _serial(runner, runs, tmp / "cases-serial")
-            print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
+        # same settings, same numbers: the cluster's results equal the one process's
+        serial_rows = {r["hash"]: r for r in summary_table(tmp / "cases-serial", runner=runner)}
+        cluster_rows = {r["hash"]: r for r in t_par.table}
+        same = all(
+            serial_rows[h].get("strehl") == row.get("strehl") for h, row in cluster_rows.items()
+        )
+        print(f"cluster results identical to the one process's: {same}")
         rows = {r["hash"]: r for r in t_par.table}
         print(
             f"{'case':16s}{'controller':12s}{'scheme':12s}{'seed':>5s}{'strehl':>9s}{'C(4-6)':>11s}"
@@ -201,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
             f"ratio one process / cluster: {t_serial / t_cluster:.2f}x without start-up, "
             f"{t_serial / (t_cluster + t_start):.2f}x with it ({args.workers} workers, "
             f"{os.cpu_count()} cores)\n"
+            f"with warm per-process caches (new seeds): {t_serial_warm / t_cluster_warm:.2f}x\n"
             f"scheduler overhead per run: {1e3 * (per_cluster - per_direct):.1f} ms "
             f"(trivial runs, {n_trivial} of them)"
         )

@@ -31,8 +31,9 @@ cluster's workers must see ``out`` on a shared file system). The *worker* writes
 ``out/.partial/`` and renames it to ``out/<hash>.h5`` when complete, so a file with a final name
 is always complete and a killed sweep loses at most the runs in flight; run it again and it
 skips what exists. A run that raises leaves ``out/<hash>.error.json`` (settings, error,
-traceback) instead of a result, and the other runs go on. Start one sweep per folder at a time:
-a sweep clears ``out/.partial/`` (temporary files of interrupted sweeps) when it starts.
+traceback) instead of a result, and the other runs go on. The runs of one case go to one
+worker where possible (each worker process caches the scenes it builds). Start one sweep per
+folder at a time: a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
 The summary table (:func:`summary_table`, one row per file, also written to
 ``out/summary.csv``) is rebuilt from the files alone.
@@ -573,6 +574,30 @@ def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
     return stack.enter_context(client)
 
 
+def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
+    """Worker address per case, balancing the run counts (greedy, largest case first).
+
+    Workers cache the scenes and calibrations they build: runs of one case sent to one worker
+    build its scene once. Dask may still move a run elsewhere (``allow_other_workers``).
+    """
+    try:
+        workers = sorted(client.scheduler_info()["workers"])
+    except Exception:  # an older or unusual scheduler: no affinity, plain scheduling
+        return {}
+    if len(workers) < 2:
+        return {}
+    counts: dict[str, int] = {}
+    for r in todo:
+        counts[r.settings["case"]] = counts.get(r.settings["case"], 0) + 1
+    load = dict.fromkeys(workers, 0)
+    out = {}
+    for case in sorted(counts, key=lambda c: (-counts[c], c)):
+        w = min(workers, key=lambda a: (load[a], a))
+        out[case] = w
+        load[w] += counts[case]
+    return out
+
+
 def _clear_partial(out: pathlib.Path) -> None:
     partial = out / PARTIAL_DIR
     if partial.is_dir():
@@ -650,8 +675,10 @@ def run_sweep(
         with ExitStack() as stack:
             client = _connect(scheduler, n_workers, timeout, stack)
             token = uuid.uuid4().hex[:8]
+            affinity = _case_affinity(client, todo)
             futures = {}
             for r in todo:
+                where = affinity.get(r.settings["case"])
                 fut = client.submit(
                     _execute,
                     runner.run,
@@ -661,6 +688,8 @@ def run_sweep(
                     key=f"aocontrol-run-{r.hash}-{token}",
                     pure=False,
                     retries=0,
+                    workers=[where] if where else None,
+                    allow_other_workers=True,
                 )
                 futures[fut] = r
             bar = None
