@@ -289,7 +289,9 @@ class _StageRun:
             )
 
     def finish(self) -> None:
-        """After the last frame: a linearly unstable mode that never tripped a guard."""
+        """After the last frame: keep the controller's counters (the runner resets the
+        controller), then report a linearly unstable mode that never tripped a guard."""
+        self.controller_counters = controller_counters(self.ctrl)
         if self.unstable.any():
             raise LoopDivergedError(
                 self.k - 1,
@@ -325,9 +327,26 @@ class _StageRun:
                 stage=self.name,
                 latency_frames=self.stage.latency_frames,
                 controller=repr(self.ctrl),
+                controller_counters=getattr(self, "controller_counters", {}),
             ),
             actuator_saturation=st.actuator_saturation,
         )
+
+
+#: Counters a controller bank may keep, summed over modes into the result's metadata before
+#: the runner resets the controller: frames rejected for a non-finite measurement (every bank),
+#: clipped commands (IIRBank, LQGBank), QP solves and solver failures (MPCBank).
+CONTROLLER_COUNTERS = ("n_rejected", "n_saturated", "n_solves", "n_solver_failures")
+
+
+def controller_counters(ctrl: Any) -> dict[str, int]:
+    """The counters of :data:`CONTROLLER_COUNTERS` that ``ctrl`` has, summed over modes."""
+    out = {}
+    for name in CONTROLLER_COUNTERS:
+        value = getattr(ctrl, name, None)
+        if value is not None:
+            out[name] = int(np.sum(value))
+    return out
 
 
 def _check_common(
