@@ -180,6 +180,34 @@ class LQGStateSpace:
         return F, G, H, J
 
 
+_STATE_SPACE_ARRAYS = (
+    "A", "B", "C", "Q", "R", "P", "kalman_gain", "control_gain", "regulator_A",
+    "regulator_B", "regulator_H", "regulator_D", "regulator_map", "regulator_P",
+)  # fmt: skip
+
+
+def state_space_arrays(ss: LQGStateSpace) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+    """An :class:`LQGStateSpace` as arrays and scalars (controller files of LQG and MPC)."""
+    arrays = {name: np.asarray(getattr(ss, name)) for name in _STATE_SPACE_ARRAYS}
+    attrs = {
+        "control_weight": float(ss.control_weight),
+        "nx": int(ss.nx),
+        "latency_frames": float(ss.latency_frames),
+    }
+    return arrays, attrs
+
+
+def state_space_from_arrays(arrays: dict, attrs: dict) -> LQGStateSpace:
+    """Inverse of :func:`state_space_arrays` (``attrs`` also holds ``fs``)."""
+    return LQGStateSpace(
+        **{name: np.asarray(arrays[name]) for name in _STATE_SPACE_ARRAYS},
+        control_weight=float(attrs["control_weight"]),
+        nx=int(attrs["nx"]),
+        latency_frames=float(attrs["latency_frames"]),
+        fs=float(attrs["fs"]),
+    )
+
+
 def _is_structured(ss: LQGStateSpace) -> bool:
     """True if ``ss`` has the layout of ``lqg_state_space``: 2x2 companion disturbance
     blocks, a command shift register fed by ``B``, no gain on the register."""
@@ -278,26 +306,15 @@ class LQGBank(ControllerBank):
         self.reset()
 
     # -- controller files (aocontrol.controllers.save_controller) -------------------------
-    _ARRAY_FIELDS = (
-        "A", "B", "C", "Q", "R", "P", "kalman_gain", "control_gain", "regulator_A",
-        "regulator_B", "regulator_H", "regulator_D", "regulator_map", "regulator_P",
-    )  # fmt: skip
-
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, object]]:
         """The bank as arrays and scalars for :func:`aocontrol.controllers.save_controller`.
 
         The disturbance model (``model``, kept for reports only) is not saved.
         """
-        ss = self._ss
-        arrays = {name: np.asarray(getattr(ss, name)) for name in self._ARRAY_FIELDS}
+        arrays, attrs = state_space_arrays(self._ss)
         if self._stroke is not None:
             arrays["stroke"] = np.asarray(self._stroke)
-        attrs = {
-            "control_weight": float(ss.control_weight),
-            "nx": int(ss.nx),
-            "latency_frames": float(ss.latency_frames),
-            "dense": not self._structured and _is_structured(ss),
-        }
+        attrs["dense"] = not self._structured and _is_structured(self._ss)
         return arrays, attrs
 
     @classmethod
@@ -311,13 +328,7 @@ class LQGBank(ControllerBank):
         attrs : dict
             ``control_weight``, ``nx``, ``latency_frames``, ``dense``, ``fs``.
         """
-        ss = LQGStateSpace(
-            **{name: np.asarray(arrays[name]) for name in cls._ARRAY_FIELDS},
-            control_weight=float(attrs["control_weight"]),
-            nx=int(attrs["nx"]),
-            latency_frames=float(attrs["latency_frames"]),
-            fs=float(attrs["fs"]),
-        )
+        ss = state_space_from_arrays(arrays, attrs)
         return cls(ss, dense=bool(attrs["dense"]), stroke=arrays.get("stroke"))
 
     @property

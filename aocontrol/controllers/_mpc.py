@@ -32,7 +32,12 @@ import numpy as np
 
 from aocontrol._validation import check_int
 from aocontrol.controllers._base import ControllerBank
-from aocontrol.controllers._lqg import LQGBank, LQGStateSpace
+from aocontrol.controllers._lqg import (
+    LQGBank,
+    LQGStateSpace,
+    state_space_arrays,
+    state_space_from_arrays,
+)
 
 __all__ = ["MPCBank"]
 
@@ -296,6 +301,44 @@ class MPCBank(ControllerBank):
             x0=np.zeros(ng * N),
             lam_x=np.zeros(ng * N),
             lam_g=np.zeros(rate.size),
+        )
+
+    # -- controller files (aocontrol.controllers.save_controller) -------------------------
+    def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, object]]:
+        """The bank as arrays and scalars for :func:`aocontrol.controllers.save_controller`.
+
+        The LQG state space, the limits per mode (``inf`` for none), the group of each mode,
+        horizon, solver and ``skip_inactive``; the disturbance model is not saved.
+        """
+        arrays, attrs = state_space_arrays(self._ss)
+        arrays["stroke"] = np.asarray(self._stroke)
+        arrays["rate_limit"] = np.asarray(self._rate)
+        arrays["group"] = self._group_of.copy()
+        attrs.update(horizon=self._horizon, solver=self._solver_name, skip_inactive=self._skip)
+        return arrays, attrs
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, attrs: dict) -> MPCBank:
+        """Inverse of :meth:`to_arrays` (``attrs`` also holds ``fs`` and ``n_modes``).
+
+        Parameters
+        ----------
+        arrays : dict of str to ndarray
+            State-space arrays, ``stroke``, ``rate_limit`` and ``group`` per mode.
+        attrs : dict
+            State-space scalars, ``horizon``, ``solver``, ``skip_inactive``, ``fs``.
+        """
+        group = np.asarray(arrays["group"], dtype=int)
+        groups = [np.flatnonzero(group == g).tolist() for g in np.unique(group)]
+        finite = {k: np.asarray(arrays[k]) for k in ("stroke", "rate_limit")}
+        return cls(
+            state_space_from_arrays(arrays, attrs),
+            int(attrs["horizon"]),
+            stroke=finite["stroke"] if np.isfinite(finite["stroke"]).any() else None,
+            rate_limit=finite["rate_limit"] if np.isfinite(finite["rate_limit"]).any() else None,
+            groups=groups,
+            solver=str(attrs["solver"]),
+            skip_inactive=bool(attrs["skip_inactive"]),
         )
 
     # -- interface ------------------------------------------------------------------------
