@@ -18,7 +18,9 @@ Each worker process builds (and caches in memory) the scenes and calibrations it
 one process does: the cold sweep pays them once per worker (calibrations shared by the cases
 are built on both workers, once in the one process). A second, warm sweep with new seeds
 (every process holding its caches) gives the ratio of the runs themselves. The cluster's
-results are checked equal to the one process's (same settings, same numbers).
+results are checked equal to the one process's (same settings, same numbers). Scene
+calibrations use both cores inside one process already (joblib), so a cold sweep of short runs
+gains nothing from two workers; the runs themselves can.
 
 ``--quick`` runs two cases, one seed, and fewer trivial runs (smoke test).
 """

@@ -26,7 +26,7 @@ BENCHMARKS: dict[str, list[str]] = {
     "bench_loop.py": [],
     "bench_atmosphere.py": [],
     "bench_pyramid.py": ["--repeats", "3"],
-    "bench_sweep.py": [],
+    "bench_sweep.py": ["--seconds", "2"],
     "bench_lqg.py": [],
     "bench_paper_tables.py": [],
 }
