@@ -22,17 +22,16 @@ round trip must be bit-identical: same coefficients, same ``step()`` output.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
-import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import h5py
 import numpy as np
 
+from aocontrol._atomic import atomic_path
 from aocontrol.controllers._base import ControllerBank, IIRBank
 from aocontrol.controllers._integrator import Integrator
 
@@ -58,42 +57,6 @@ _RESERVED = {
     "n_modes",
     "software_version",
 }
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[str]:
-    """Yield a temporary file name next to ``path``; rename it to ``path`` on success.
-
-    The caller writes and closes the temporary file inside the ``with`` block. On success the
-    file is flushed to disk (``fsync``) and renamed with :func:`os.replace` (atomic on POSIX),
-    so a file with the final name is always complete. On any error the temporary file is
-    removed and the exception propagates; ``path`` is never created or touched.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        Final file name.
-    suffix : str
-        Suffix of the temporary file.
-    """
-    final = os.path.abspath(os.fspath(path))
-    directory = os.path.dirname(final)
-    fd, tmp = tempfile.mkstemp(
-        dir=directory, prefix="." + os.path.basename(final) + ".", suffix=suffix
-    )
-    os.close(fd)
-    try:
-        yield tmp
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, final)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
 
 
 def register_controller_format(cls: type, to_arrays: ToArrays, from_arrays: FromArrays) -> None:

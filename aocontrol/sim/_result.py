@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from aocontrol._atomic import atomic_path
 from aocontrol.analysis import welch_psd
 
 __all__ = ["TELEMETRY", "LoopDivergedError", "LoopResult", "CascadeResult"]
@@ -64,18 +64,9 @@ def _json_default(obj: Any) -> Any:
 
 
 def _atomic_savez(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
-    """Write ``arrays`` to ``path`` (.npz) through a temporary file and ``os.replace``."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=directory, suffix=".npz.tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``arrays`` to ``path`` (.npz) atomically (:func:`aocontrol._atomic.atomic_path`)."""
+    with atomic_path(path, suffix=".npz.tmp") as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
 
 
 @dataclass(frozen=True)

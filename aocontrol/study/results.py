@@ -43,7 +43,7 @@ import h5netcdf
 import h5py
 import numpy as np
 
-from aocontrol.controllers._io import atomic_path
+from aocontrol._atomic import atomic_path
 from aocontrol.sim import CascadeResult, LoopResult, ScienceResult
 
 __all__ = [
