@@ -118,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-sweep-") as tmp:
         tmp = pathlib.Path(tmp)
         t0 = time.perf_counter()
+        import dask
+
+        # as run_sweep's own local cluster: no work stealing (runs stay with their case's scene)
+        dask.config.set({"distributed.scheduler.work-stealing": False})
         cluster = LocalCluster(
             n_workers=args.workers,
             threads_per_worker=1,

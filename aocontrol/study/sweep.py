@@ -547,6 +547,10 @@ def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
     from distributed import Client, LocalCluster
 
     if scheduler is None:
+        import dask
+
+        # no work stealing: a run stays on the worker holding its case's scene (_case_affinity)
+        stack.enter_context(dask.config.set({"distributed.scheduler.work-stealing": False}))
         cluster = stack.enter_context(
             LocalCluster(
                 n_workers=n_workers,
@@ -578,7 +582,9 @@ def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
     """Worker address per case, balancing the run counts (greedy, largest case first).
 
     Workers cache the scenes and calibrations they build: runs of one case sent to one worker
-    build its scene once. Dask may still move a run elsewhere (``allow_other_workers``).
+    build its scene once. The restriction is loose (``allow_other_workers``: a lost worker never
+    blocks a sweep); the local cluster runs without work stealing so that runs stay put, a
+    remote scheduler may move them (then a worker builds a scene again).
     """
     try:
         workers = sorted(client.scheduler_info()["workers"])
