@@ -59,6 +59,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from aocontrol._atomic import atomic_path
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
@@ -472,12 +474,8 @@ def _validated_runs(spec: SweepSpec, runner: SweepRunner) -> tuple[SweepRun, ...
 
 # ------------------------------------------------------------------------------------ execution
 def _write_json_atomic(path: pathlib.Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    with open(tmp, "w") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
         json.dump(data, fh, indent=1, sort_keys=True, default=str)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
 
 
 def _error_record(settings: Mapping, hash_: str, exc: BaseException, where: str) -> dict:
@@ -809,7 +807,6 @@ def summary_table(
         writer = csv.DictWriter(buf, fieldnames=keys, lineterminator="\n")
         writer.writeheader()
         writer.writerows(rows)
-        tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
-        tmp.write_text(buf.getvalue())
-        os.replace(tmp, target)
+        with atomic_path(target) as tmp:
+            pathlib.Path(tmp).write_text(buf.getvalue())
     return rows
