@@ -68,7 +68,7 @@ def quick_comparison(tmp_path_factory):
     out = tmp_path_factory.mktemp("runs")
     comp = compare_case(
         "bright1-best",
-        controllers=("reference", "omgi", "datadriven", "half-gain"),
+        controllers=("reference", "omgi", "datadriven", "half-gain", "lqg"),
         quick=True,
         results_dir=out,
     )
@@ -78,11 +78,11 @@ def quick_comparison(tmp_path_factory):
 @pytest.mark.slow
 def test_quick_case_table_cells(quick_comparison):
     comp = quick_comparison
-    assert len(comp.cells) == 8
+    assert len(comp.cells) == 10
     for c in comp.cells:
         assert 0 < c.strehl <= 1 and math.isfinite(c.mean_contrast_4_6) and c.mean_contrast_4_6 > 0
     text = comp.table()
-    assert text.count("e-") >= 8 and "dcao datadriven" in text
+    assert text.count("e-") >= 10 and "dcao datadriven" in text and "dcao lqg" in text
     # The scanned gain is the grid point of the best contrast.
     for scheme, scan in comp.scan.items():
         assert comp.reference_gains[scheme] == min(scan, key=lambda x: x[1])[0]
@@ -104,6 +104,11 @@ def test_quick_case_designs_stable_with_margin(quick_comparison):
             assert mm >= MODULUS_MARGIN * (1 - MARGIN_RTOL), (c.scheme, c.controller, mode, mm)
             checked += 1
     assert checked == 16
+    # LQG promises no margin: it must be stable, and its margins are only reported.
+    lqg_cells = [c for c in quick_comparison.cells if c.controller == "lqg"]
+    assert len(lqg_cells) == 2
+    for c in lqg_cells:
+        assert all(is_stable(plant, c.bank.transfer_function(m)) for m in range(c.bank.n_modes))
 
 
 @pytest.mark.slow

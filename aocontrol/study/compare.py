@@ -9,7 +9,11 @@ runs each registered controller (:data:`CONTROLLERS`):
 * ``"omgi"``: the optimised modal gain integrator (:func:`aocontrol.synthesis.
   optimal_modal_gain`, modulus margin 0.5);
 * ``"datadriven"``: the 5th-order data-driven controller (:func:`aocontrol.synthesis.
-  datadriven`, with the noise term, modulus margin 0.5).
+  datadriven`, with the noise term, modulus margin 0.5);
+* ``"lqg"`` and ``"mpc"`` (not in the paper's table, run on request): the LQG of
+  :func:`aocontrol.synthesis.lqg` (AR(2) turbulence and resonances fitted to the telemetry
+  PSD) and the MPC of :func:`aocontrol.synthesis.mpc` on the same model, command limited to
+  the DM stroke.
 
 The last two are designed from the simulator's own telemetry: a calibration run with the
 reference integrator, whose pseudo-open loop goes through
@@ -53,6 +57,8 @@ from aocontrol.synthesis import (
     datadriven,
     disturbance_from_telemetry,
     integrator_gain_limit,
+    lqg,
+    mpc,
     optimal_modal_gain,
 )
 
@@ -113,6 +119,8 @@ class DesignInputs:
         Gain of the reference integrator (scanned, or the case's).
     telemetry : TelemetryPSD or None
         The full estimate (pseudo-open loop included).
+    stroke : float or None
+        Stage-2 DM actuator stroke [nm] (``None``: unlimited); the MPC's command limit.
     """
 
     plant: Any
@@ -123,6 +131,7 @@ class DesignInputs:
     n_modes: int
     reference_gain: float
     telemetry: TelemetryPSD | None = None
+    stroke: float | None = None
 
 
 @dataclass(frozen=True)
@@ -177,6 +186,31 @@ def _datadriven(inp: DesignInputs) -> ControllerBank:
     return res.controller
 
 
+def _lqg(inp: DesignInputs) -> ControllerBank:
+    # AR(2) turbulence + up to 2 resonances per mode fitted to the telemetry PSD, minimum
+    # variance (no control weight: the fractional latencies of the cases are not 0.5 frame).
+    return lqg(inp.plant, inp.freqs, inp.psd, noise_psd=inp.noise_psd, n_vibrations=2)
+
+
+def _mpc(inp: DesignInputs) -> ControllerBank:
+    # The LQG's model and estimator, horizon 10 frames, the command limited to the DM stroke
+    # taken as a modal bound (a unit modal coefficient is 1 nm RMS over the pupil, so a mode
+    # at the stroke already exceeds it at some actuator: a loose limit; the DM still clips
+    # its actuators).
+    return mpc(
+        inp.plant,
+        inp.freqs,
+        inp.psd,
+        noise_psd=inp.noise_psd,
+        horizon=MPC_HORIZON,
+        stroke=inp.stroke,
+        n_vibrations=2,
+    )
+
+
+#: MPC prediction horizon [frames] in the comparison.
+MPC_HORIZON = 10
+
 #: Registered controllers (name -> spec); see :func:`register_controller`.
 CONTROLLERS: dict[str, ControllerSpec] = {}
 
@@ -211,6 +245,16 @@ register_controller(
         "datadriven",
         _datadriven,
         parameters={"order": 5, "noise_term": True, "modulus_margin": MODULUS_MARGIN},
+    )
+)
+register_controller(
+    ControllerSpec("lqg", _lqg, parameters={"turbulence": "AR(2)", "n_vibrations": 2})
+)
+register_controller(
+    ControllerSpec(
+        "mpc",
+        _mpc,
+        parameters={"turbulence": "AR(2)", "n_vibrations": 2, "horizon": MPC_HORIZON},
     )
 )
 
@@ -450,6 +494,7 @@ def design_inputs(
         n_modes=st.n_modes,
         reference_gain=float(gain),
         telemetry=tel,
+        stroke=None if st.spec.dm_stroke is None else float(st.spec.dm_stroke) * 1e9,
     )
 
 
