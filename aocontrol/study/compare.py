@@ -29,12 +29,11 @@ exposure (5 s) at 1.65 um.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,16 +49,19 @@ from aocontrol.sim.loop import (
     run_cascade,
     run_loop,
 )
+from aocontrol.study._registry import (
+    CONTROLLERS,
+    MODULUS_MARGIN,
+    ControllerSpec,
+    DesignInputs,
+    register_controller,
+)
 from aocontrol.study.cases import Case, apply_overrides, load_case
 from aocontrol.study.scene import Scene, StageScene, build_scene
 from aocontrol.synthesis import (
     TelemetryPSD,
-    datadriven,
     disturbance_from_telemetry,
     integrator_gain_limit,
-    lqg,
-    mpc,
-    optimal_modal_gain,
 )
 
 __all__ = [
@@ -86,8 +88,6 @@ SCHEMES = ("single", "standalone", "dcao")
 GAIN_GRID = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
 #: Quick mode: fewer scan points.
 QUICK_GAIN_GRID = (0.3, 0.5)
-#: Modulus margin of the designed controllers (the paper's robustness constraint).
-MODULUS_MARGIN = 0.5
 # Lengths of the auxiliary runs [s]: gain-scan runs and calibration run, and their quick
 # versions. The calibration run lasts at least _CAL_FRAMES (_QUICK_CAL_FRAMES) stage-2 frames
 # (27 s at 300 Hz, cheap since the cost goes with frames) so that its Welch PSDs average at
@@ -96,167 +96,6 @@ MODULUS_MARGIN = 0.5
 _SCAN_SECONDS, _CAL_SECONDS, _CAL_FRAMES = 0.5, 2.0, 8192
 _QUICK_SCAN_SECONDS, _QUICK_CAL_SECONDS, _QUICK_CAL_FRAMES = 0.2, 0.5, 4096
 _MIN_SEGMENTS, _MAX_NPERSEG, _MIN_NPERSEG = 8, 1024, 64
-
-
-@dataclass(frozen=True, eq=False)
-class DesignInputs:
-    """What a controller factory receives (all from telemetry, none from the simulator).
-
-    Parameters
-    ----------
-    plant : control.TransferFunction
-        Stage-2 loop plant.
-    freqs : ndarray, shape (n_f,)
-        Frequencies [Hz] of the PSDs.
-    psd : ndarray, shape (n_modes, n_f)
-        Pseudo-open-loop disturbance PSD, one-sided [nm^2/Hz].
-    noise_psd : ndarray, shape (n_modes,)
-        White noise level, one-sided [nm^2/Hz].
-    fs : float
-        Stage-2 rate [Hz].
-    n_modes : int
-    reference_gain : float
-        Gain of the reference integrator (scanned, or the case's).
-    telemetry : TelemetryPSD or None
-        The full estimate (pseudo-open loop included).
-    stroke : float or None
-        Stage-2 DM actuator stroke [nm] (``None``: unlimited); the MPC's command limit.
-    """
-
-    plant: Any
-    freqs: np.ndarray
-    psd: np.ndarray
-    noise_psd: np.ndarray
-    fs: float
-    n_modes: int
-    reference_gain: float
-    telemetry: TelemetryPSD | None = None
-    stroke: float | None = None
-
-
-@dataclass(frozen=True)
-class ControllerSpec:
-    """A controller of the comparison: a name and a factory.
-
-    Parameters
-    ----------
-    name : str
-        Registry name.
-    design : callable
-        ``design(inputs: DesignInputs) -> ControllerBank`` with ``inputs.n_modes`` modes at
-        ``inputs.fs``.
-    needs_telemetry : bool
-        Whether the design needs the calibration run (False for the reference).
-    parameters : dict
-        JSON-serialisable design parameters (recorded in the settings).
-    """
-
-    name: str
-    design: Callable[[DesignInputs], ControllerBank]
-    needs_telemetry: bool = True
-    parameters: dict = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.name, str) or not self.name:
-            raise ValueError(f"name must be a non-empty str, got {self.name!r}")
-        if not callable(self.design):
-            raise TypeError(f"design must be callable, got {type(self.design).__name__}")
-
-
-def _reference(inp: DesignInputs) -> ControllerBank:
-    return Integrator(inp.reference_gain, fs=inp.fs, n_modes=inp.n_modes)
-
-
-def _omgi(inp: DesignInputs) -> ControllerBank:
-    return optimal_modal_gain(
-        inp.plant, inp.freqs, inp.psd, inp.noise_psd, modulus_margin=MODULUS_MARGIN
-    )
-
-
-def _datadriven(inp: DesignInputs) -> ControllerBank:
-    res = datadriven(
-        inp.plant,
-        inp.freqs,
-        inp.psd,
-        order=5,
-        noise_psd=inp.noise_psd,
-        modulus_margin=MODULUS_MARGIN,
-        progress=False,
-    )
-    return res.controller
-
-
-def _lqg(inp: DesignInputs) -> ControllerBank:
-    # AR(2) turbulence + up to 2 resonances per mode fitted to the telemetry PSD, minimum
-    # variance (no control weight: the fractional latencies of the cases are not 0.5 frame).
-    return lqg(inp.plant, inp.freqs, inp.psd, noise_psd=inp.noise_psd, n_vibrations=2)
-
-
-def _mpc(inp: DesignInputs) -> ControllerBank:
-    # The LQG's model and estimator, horizon 10 frames, the command limited to the DM stroke
-    # taken as a modal bound (a unit modal coefficient is 1 nm RMS over the pupil, so a mode
-    # at the stroke already exceeds it at some actuator: a loose limit; the DM still clips
-    # its actuators).
-    return mpc(
-        inp.plant,
-        inp.freqs,
-        inp.psd,
-        noise_psd=inp.noise_psd,
-        horizon=MPC_HORIZON,
-        stroke=inp.stroke,
-        n_vibrations=2,
-    )
-
-
-#: MPC prediction horizon [frames] in the comparison.
-MPC_HORIZON = 10
-
-#: Registered controllers (name -> spec); see :func:`register_controller`.
-CONTROLLERS: dict[str, ControllerSpec] = {}
-
-
-def register_controller(spec: ControllerSpec, *, replace: bool = False) -> None:
-    """Add a controller to :data:`CONTROLLERS`.
-
-    Parameters
-    ----------
-    spec : ControllerSpec
-    replace : bool
-        Allow replacing an existing name.
-
-    Raises
-    ------
-    ValueError
-        The name is taken and ``replace`` is False.
-    """
-    if not isinstance(spec, ControllerSpec):
-        raise TypeError(f"spec must be a ControllerSpec, got {type(spec).__name__}")
-    if spec.name in CONTROLLERS and not replace:
-        raise ValueError(f"controller {spec.name!r} is already registered")
-    CONTROLLERS[spec.name] = spec
-
-
-_REF = ControllerSpec("reference", _reference, needs_telemetry=False, parameters={"scan": True})
-register_controller(_REF)
-register_controller(dataclasses.replace(_REF, name="integrator"))
-register_controller(ControllerSpec("omgi", _omgi, parameters={"modulus_margin": MODULUS_MARGIN}))
-register_controller(
-    ControllerSpec(
-        "datadriven",
-        _datadriven,
-        parameters={"order": 5, "noise_term": True, "modulus_margin": MODULUS_MARGIN},
-    )
-)
-register_controller(
-    ControllerSpec("lqg", _lqg, parameters={"turbulence": "AR(2)", "n_vibrations": 2})
-)
-register_controller(
-    ControllerSpec(
-        "mpc",
-        _mpc,
-        parameters={"turbulence": "AR(2)", "n_vibrations": 2, "horizon": MPC_HORIZON},
-    )
-)
 
 
 @dataclass(frozen=True, eq=False)
