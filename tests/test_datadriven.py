@@ -293,3 +293,56 @@ def test_bad_inputs_are_named(plant, kwargs, match):
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         datadriven(plant, **args)
+
+
+def test_design_grid_is_bounded_whatever_the_modes_and_keeps_the_strongest_line():
+    # Regression (telemetry PSDs): a noise-subtracted Welch PSD clipped to a floor has a
+    # "peak" at every bin that rises above the floor; with each row's peaks joining one shared
+    # grid, 400 such modes made the 64-point design grid the whole 513-bin Welch grid (5x the
+    # design cost). Oracles: the grid size bound of the docstring, and the one real line.
+    from aocontrol.synthesis._dd_grids import _design_indices
+
+    rng = np.random.default_rng(3)
+    f = _grid(513)
+    n_modes, n_grid, f_vib = 200, 64, 60.0
+    noise = 1e-3
+    # Welch estimate of disturbance + noise (chi-square scatter), minus the noise level.
+    scatter = rng.chisquare(8, (n_modes, f.size)) / 8
+    psd = (_lowpass_psd(f)[None, :] + noise) * scatter - noise
+    psd = np.maximum(psd, 1e-6 * noise)  # the floor of the noise-subtracted estimate
+    k_vib = int(np.argmin(np.abs(f - f_vib)))
+    psd[7, k_vib] += 1e3
+    for total in (psd, psd + noise):
+        idx = _design_indices(f, total, n_grid)
+        assert idx.size <= 2 * n_grid + 2
+        assert k_vib in idx
+
+
+def test_design_grid_ignores_lines_below_the_noise_floor(plant):
+    # Oracle: the objective weighs disturbance + noise, so a line 100x below the noise PSD is
+    # not a feature of the problem and leaves the design grid as it is; the same line above
+    # the noise joins it (the grid points of the synthesis, as datadriven builds them).
+    from aocontrol.synthesis._datadriven import _prepare
+
+    f = _grid(401)
+    noise = 1e-2
+    base = _lowpass_psd(f, fc=5.0)
+    line = 1.0 / (1.0 + ((f - 60.0) / 0.8) ** 2)
+    kw = dict(
+        order=5,
+        modulus_margin=0.5,
+        stroke_weight=0.0,
+        fixed_denominator=None,
+        initial=None,
+        max_iter=60,
+        tol=1e-3,
+        n_grid=64,
+        fs=None,
+    )
+
+    def grid(psd):
+        return _prepare(plant, f, psd, noise_psd=noise, **kw).ctx.f_design
+
+    assert np.array_equal(grid(base + 1e-4 * line), grid(base))
+    strong = grid(base + 1.0 * line)
+    assert strong.size > grid(base).size and np.min(np.abs(strong - 60.0)) < f[1]

@@ -604,7 +604,7 @@ def _prepare(
 
     # Design grid: the input grid (subsampled) plus margin-only points covering [0, fs/2]
     # beyond it (a TF plant, or an FRD that covers [0, fs/2]: checked above).
-    idx = _design_indices(freqs, psd2, n_grid)
+    idx = _design_indices(freqs, psd2 + noise2, n_grid)
     f_h2 = freqs[idx]
     lo, hi = 0.0, fs_ / 2
     step = (f_h2[-1] - f_h2[0]) / max(f_h2.size - 1, 1)

@@ -24,7 +24,15 @@ def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
 
 
 def _design_indices(freqs: np.ndarray, psd: np.ndarray, n_grid: int) -> np.ndarray:
-    """Indices of the input grid used for design: log + linear spread and the PSD peaks."""
+    """Indices of the input grid used for design: log + linear spread and the PSD peaks.
+
+    ``psd`` is what the objective weighs, disturbance plus noise: a peak of the disturbance
+    below the noise floor is not one the design needs to resolve (and a noise-subtracted PSD
+    clipped to a floor has a spurious "peak" at every bin that rises above the floor). The
+    peaks of every row compete for one budget of ``n_grid // 5`` peaks (5 points each), the
+    most prominent first, so that the grid has at most ``2 n_grid + 2`` points whatever the
+    number of modes.
+    """
     n = freqs.size
     if n <= n_grid:
         return np.arange(n)
@@ -38,11 +46,19 @@ def _design_indices(freqs: np.ndarray, psd: np.ndarray, n_grid: int) -> np.ndarr
     idx.append(np.array([0, n - 1]))
     # Resonances (vibrations): the local maxima that stand out of the smoothed log-PSD.
     logp = np.log10(np.maximum(psd, 1e-300 + psd.max(axis=-1, keepdims=True) * 1e-30))
+    where, prominence = [], []
     for row in np.atleast_2d(logp):
         peaks, props = find_peaks(row, prominence=_PEAK_PROMINENCE_DECADES)
         if peaks.size:
-            keep = peaks[np.argsort(props["prominences"])[::-1][:_MAX_PEAKS]]
-            idx.append(np.clip((keep[:, None] + np.arange(-2, 3)).ravel(), 0, n - 1))
+            top = np.argsort(props["prominences"])[::-1][:_MAX_PEAKS]
+            where.append(peaks[top])
+            prominence.append(props["prominences"][top])
+    if where:
+        where, prominence = np.concatenate(where), np.concatenate(prominence)
+        order = np.argsort(prominence, kind="stable")[::-1]
+        _, first = np.unique(where[order], return_index=True)
+        keep = where[order][np.sort(first)][: max(n_grid // 5, 1)]
+        idx.append(np.clip((keep[:, None] + np.arange(-2, 3)).ravel(), 0, n - 1))
     return np.unique(np.concatenate(idx))
 
 
