@@ -5,7 +5,8 @@ Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.stud
 PSDs are one-sided [units^2/Hz]; telemetry is shaped ``(n_frames, n_modes)``.
 """
 
-from aocontrol.synthesis._armodel import DisturbanceModel, ar2_variance, fit_disturbance_model
+from aocontrol.synthesis._arfit import fit_disturbance_model
+from aocontrol.synthesis._armodel import DisturbanceModel, ar2_variance
 from aocontrol.synthesis._datadriven import (
     DataDrivenError,
     DataDrivenResult,

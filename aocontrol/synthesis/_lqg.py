@@ -38,7 +38,8 @@ from aocontrol._validation import (
 )
 from aocontrol.controllers._lqg import LQGBank, LQGStateSpace
 from aocontrol.plant import plant_fs, split_latency, z_inverse_coefficients
-from aocontrol.synthesis._armodel import DisturbanceModel, fit_disturbance_model
+from aocontrol.synthesis._arfit import fit_disturbance_model
+from aocontrol.synthesis._armodel import DisturbanceModel
 from aocontrol.synthesis._telemetry import disturbance_from_telemetry
 
 __all__ = ["lqg", "lqg_from_telemetry", "lqg_state_space", "plant_latency"]
