@@ -246,3 +246,31 @@ def test_fit_on_a_grid_with_zero_frequency_raises_no_floating_point_warning():
     plant = loop_plant(fs, 0.83)
     bank = lqg(plant, f, synthetic_turbulence_psd(f, 3, fs=fs), noise_psd=2 * 4.0 / fs)
     assert all(is_stable(plant, bank.transfer_function(i)) for i in range(3))
+
+
+def test_unresolved_low_frequency_turbulence_is_not_a_resonance():
+    # Regression (LQG of the case comparison from a 0.5-s calibration): on a coarse Welch grid
+    # the turbulence of a low-order mode sits in the first bins, the variance below the first
+    # bin added at 0 Hz (what aocontrol.study.compare.prewhitened_disturbance does), the
+    # noise-subtracted bins clipped to a floor. The excess at the grid's lower edge was fitted
+    # as an undamped resonance next to the first bin holding 250x the mode's variance (the
+    # LQG then had no integral action and its loop 2x the predicted residual). Oracle: the
+    # spectrum falls monotonically from 0 Hz: no peak, so no resonance.
+    fs, noise = 3000.0, 7e-3
+    f = np.linspace(0, fs / 2, 257)
+    fine = np.linspace(0, fs / 2, 2_000_001)
+    rng = np.random.default_rng(1)
+    rows = []
+    for fc in (0.3, 1.0, 3.0):
+
+        def shape(x, fc=fc):
+            return 1e3 / (1 + (x / fc) ** 2) ** (17 / 6)
+
+        p = shape(f)
+        deficit = np.trapezoid(shape(fine), fine) - np.trapezoid(p, f)
+        est = np.maximum((p + noise) * rng.chisquare(16, f.size) / 16 - noise, 1e-6 * noise)
+        est[0] = p[0] + deficit * 2 / f[1]
+        rows.append(est)
+    with pytest.warns(UserWarning, match="keeps rising"):
+        model = fit_disturbance_model(f, np.vstack(rows), fs, noise_psd=noise, n_vibrations=2)
+    assert np.all(model.vibration_variance == 0)

@@ -113,8 +113,10 @@ def test_quick_case_designs_stable_with_margin(quick_comparison):
 
 @pytest.mark.slow
 def test_quick_case_predictions_match_measurements(quick_comparison):
+    # The LQG too: its loop measured 2x its prediction when the fit of its disturbance model
+    # took the turbulence unresolved below the first Welch bin for an undamped resonance.
     for c in quick_comparison.cells:
-        if c.controller in ("omgi", "datadriven"):
+        if c.controller in ("omgi", "datadriven", "lqg"):
             assert c.predicted_rms_nm == pytest.approx(c.residual_rms_nm, rel=PREDICTION_RTOL), (
                 c.scheme,
                 c.controller,

@@ -229,12 +229,18 @@ def _fit_mode(
     model = _ar2_psd(*(np.asarray(v) for v in turb), zi, fs)
     excess = np.maximum(p - model, 0.0)
     # 2. Resonance candidates: the flagged runs, strongest excess variance first.
+    first_pos = int(np.flatnonzero(freqs > 0)[0])
     cands = []
     for i0, i1 in _runs(mask):
         seg = slice(max(i0 - 1, 0), min(i1 + 1, freqs.size))
         var = float(np.trapezoid(excess[seg], freqs[seg])) if i1 - i0 >= 1 else 0.0
         ipk = i0 + int(np.argmax(excess[i0:i1]))
         f0 = freqs[ipk]
+        if ipk <= first_pos or p[ipk - 1] >= p[ipk]:
+            # Not a peak: the spectrum does not fall on its low-frequency side (an excess at
+            # the grid's lowest bins is turbulence the grid does not resolve, e.g. the
+            # variance a Welch estimate puts at 0 Hz, not a resonance).
+            continue
         above = freqs >= f0 / 2
         ref = float(np.trapezoid(model[above] + noise, freqs[above])) if above.sum() > 1 else 0.0
         if not (0 < f0 < fs / 2) or var <= s.min_vibration_fraction * ref:
