@@ -271,6 +271,10 @@ def test_unresolved_low_frequency_turbulence_is_not_a_resonance():
         est = np.maximum((p + noise) * rng.chisquare(16, f.size) / 16 - noise, 1e-6 * noise)
         est[0] = p[0] + deficit * 2 / f[1]
         rows.append(est)
+    psd = np.vstack(rows)
     with pytest.warns(UserWarning, match="keeps rising"):
-        model = fit_disturbance_model(f, np.vstack(rows), fs, noise_psd=noise, n_vibrations=2)
+        model = fit_disturbance_model(f, psd, fs, noise_psd=noise, n_vibrations=2)
     assert np.all(model.vibration_variance == 0)
+    # Unresolved below the grid, the model keeps the data's variance (its 0-Hz bin included);
+    # the variance of the unshrunk fit was 0.02-0.15x or up to 1e5x the data's.
+    np.testing.assert_allclose(model.turbulence_variance, np.trapezoid(psd, f, axis=1), rtol=1e-9)

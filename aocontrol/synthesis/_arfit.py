@@ -306,6 +306,10 @@ def _fit_mode(
     if clipped:
         poles = np.where(np.abs(poles) > r_max, poles / np.abs(poles) * r_max, poles)
         a1, a2 = float(np.real(poles.sum())), float(-np.real(np.prod(poles)))
+        # The model's shape below the grid is not the data's: only its variance is known
+        # (the PSD's integral, a Welch estimate's 0-Hz bin included). Match it (the
+        # variance of the unshrunk fit is unrelated, orders of magnitude off either way).
+        tv = max(total_var - float(np.sum(var)), 1e-6 * total_var)
     if not (np.isfinite(tv) and tv >= 0 and np.all(np.isfinite([a1, a2]))):
         raise ValueError(f"psd of mode {mode}: no stable AR model can be fitted (fit diverged)")
     vibs = [(float(a), float(b), float(c)) for a, b, c in zip(f0, xi, var, strict=True)]
@@ -367,7 +371,9 @@ def fit_disturbance_model(
     4. Resolution: a turbulence pole closer to the unit circle than the grid resolves
        (modulus above ``1 - pi f_lo / fs``, ``f_lo`` the lowest positive grid frequency: a
        spectrum still rising at ``f_lo``, e.g. tip/tilt on a Welch grid) is shrunk to that
-       radius, with a ``UserWarning`` naming the modes.
+       radius, with a ``UserWarning`` naming the modes; the turbulence variance is then the
+       PSD's integral minus the resonances' (moment matching: the data give the variance
+       below ``f_lo``, not its shape).
 
     Parameters
     ----------
