@@ -105,9 +105,7 @@ def _cheb_of_abs2(c: np.ndarray) -> np.ndarray:
     return out
 
 
-def rational_modulus_minima(
-    num: np.ndarray, den: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Local minima over ``theta in [0, pi]`` of ``|num(w)| / |den(w)|``, ``w = exp(-j theta)``.
 
     Parameters
@@ -251,8 +249,6 @@ def _frd_certificate(
     with np.errstate(divide="ignore", invalid="ignore"):
         d = np.abs(1.0 + _response(plant, f, fs) * _response(K, f, fs))
     d = np.where(np.isnan(d), np.inf, d)
-    interior = np.flatnonzero(
-        np.r_[True, d[1:] <= d[:-1]] & np.r_[d[:-1] <= d[1:], True]
-    )
+    interior = np.flatnonzero(np.r_[True, d[1:] <= d[:-1]] & np.r_[d[:-1] <= d[1:], True])
     i = int(np.argmin(d))
     return ModulusCertificate(float(d[i]), float(f[i]), False, FRD, f[interior], d[interior])

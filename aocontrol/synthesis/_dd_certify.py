@@ -25,9 +25,10 @@ from aocontrol.analysis import (
 from aocontrol.analysis._margins import _winding_zeros
 from aocontrol.plant import frequency_response, tf_from_z_inverse
 from aocontrol.synthesis._dd_grids import _interp_matrix
-from aocontrol.synthesis._socp import Certifier, Check, GridData
+from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, Certifier, Check, GridData
 
 logger = logging.getLogger(__name__)
+
 
 # ---------------------------------------------------------------------------------------------
 # Per-mode design (runs in worker processes)
@@ -143,6 +144,7 @@ class _ModeCertifier(Certifier):
         self.b0, self.a0, self.dense, self.mu_d = b0, a0, dense, mu_d
         self.wind = dense.take(ctx.wind_index)
         self.h2_f = ctx.f_h2
+        self.h2_extra = np.empty(0)
 
     # -- grid ---------------------------------------------------------------------------
     def rows(self, f: np.ndarray) -> GridData:
@@ -156,13 +158,12 @@ class _ModeCertifier(Certifier):
     def weights(self, f: np.ndarray) -> tuple:
         """``(r1, rn, h)`` on the grid ``f``: the H2 quadrature on its H2 points.
 
-        The H2 points are the design grid's and every cut point inside the input grid's range;
+        The H2 points are the design grid's and the ``|S|`` peaks added as cuts ("peaks");
         ``|S|^2`` and ``|T|^2`` are interpolated linearly between them at the input points
         (trapezoid rule on the input grid). Other points constrain the margin only.
         """
         ctx = self.ctx
-        lo, hi = ctx.freqs[0], ctx.freqs[-1]
-        is_h2 = np.isin(f, ctx.f_h2) | (~np.isin(f, ctx.f_design) & (f > lo) & (f < hi))
+        is_h2 = np.isin(f, ctx.f_h2) | np.isin(f, self.h2_extra)
         h2 = np.unique(f[is_h2])
         self.h2_f = h2
         H = _interp_matrix(h2, ctx.freqs)
@@ -184,11 +185,11 @@ class _ModeCertifier(Certifier):
             Pw = _p_of(ctx, ctx.f_dense[ctx.wind_index], self.wind_g, self.b0, self.a0)[1]
         else:
             Pw = self.wind.A @ v + self.wind.F
-        blocks = [(self.wind.A, self.wind.F, Pw)]
+        blocks = [(self.wind.A, self.wind.F, Pw, _P_FLOOR)]
         if ctx.pole_radius is not None:
             A = self._pole_rows(v)
             Ys = A @ v + 1.0 if v is not None else np.ones(A.shape[0], complex)
-            blocks.append((A, np.ones(A.shape[0], complex), Ys))
+            blocks.append((A, np.ones(A.shape[0], complex), Ys, POLE_FLOOR))
         return blocks
 
     @property
@@ -203,7 +204,9 @@ class _ModeCertifier(Certifier):
         poles = poles[np.argsort(-np.abs(poles))][:_POLE_FOCUS_POLES]
         for i in range(_POLE_FOCUS_POLES):
             if i < poles.size:
-                th0, width = abs(np.angle(poles[i])), max(rho - abs(poles[i]), 1e-6)
+                # The root of Ys lies 1 - |p| / rho from the circle: its phase turns over
+                # an arc of about that width around the pole's angle.
+                th0, width = abs(np.angle(poles[i])), max(1.0 - abs(poles[i]) / rho, 1e-12)
             else:
                 th0, width = 0.0, 1e-3
             theta.append(np.clip(th0 + width * np.linspace(-4, 4, _N_POLE_FOCUS), 0.0, np.pi))
@@ -253,6 +256,8 @@ class _ModeCertifier(Certifier):
             return Check(False, ctx.f_dense[np.argsort(cos)[:16]], "stability")
         peaks = self._misrepresented_peaks(cert, K)
         if peaks.size:
+            # They join the grid as H2 points (margin cuts only constrain).
+            self.h2_extra = np.union1d(self.h2_extra, peaks[:4])
             return Check(False, peaks, "peaks")
         return Check(True, empty)
 
@@ -308,5 +313,3 @@ class _ModeCertifier(Certifier):
         worse = s2 > _PEAK_FACTOR * interp
         order = np.argsort(-(s2 / interp)[worse])
         return f[worse][order]
-
-

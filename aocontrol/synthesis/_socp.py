@@ -75,6 +75,8 @@ _WIND_MIN = 0.05
 # ... and |P| >= min(_P_FLOOR, |Pc|): X and Y cannot grow a common factor whose root reaches the
 # circle (K unchanged, but a hidden closed-loop mode on the circle). Y is monic: |P| ~ 1.
 _P_FLOOR = 1e-2
+# Floor of the scaled free denominator: a free pole stays about this fraction inside the radius.
+POLE_FLOOR = 1e-4
 # Worker-local cache of compiled problems, keyed by (slots, nv, stroke term).
 _PROBLEMS: OrderedDict[tuple, ConvexifiedProblem] = OrderedDict()
 _MAX_CACHED = 6
@@ -99,8 +101,9 @@ class GridData:
         ``Y = AY v + F`` and ``G X = AX v`` on the grid.
     F : ndarray of complex, shape (N,)
         Fixed denominator factor on the grid (ones when there is none).
-    mu : float
-        Modulus margin enforced on the grid.
+    mu : float or ndarray of shape (N,)
+        Modulus margin enforced on the grid (one per point allowed: a cut point's margin
+        never exceeds what the previous controller meets there, so that it stays feasible).
     stroke_weight : float
         Weight of ``||T||_inf^2`` (0 drops the term).
     """
@@ -108,8 +111,12 @@ class GridData:
     AY: np.ndarray
     AX: np.ndarray
     F: np.ndarray
-    mu: float
+    mu: float | np.ndarray
     stroke_weight: float
+
+    def mu_rows(self) -> np.ndarray:
+        """The margin of every point, shape (N,)."""
+        return np.broadcast_to(np.asarray(self.mu, dtype=float), self.F.shape)
 
     @property
     def A(self) -> np.ndarray:
@@ -117,7 +124,8 @@ class GridData:
 
     def take(self, idx: np.ndarray) -> GridData:
         """The rows ``idx`` as a new grid."""
-        return GridData(self.AY[idx], self.AX[idx], self.F[idx], self.mu, self.stroke_weight)
+        mu = self.mu if np.ndim(self.mu) == 0 else np.asarray(self.mu)[idx]
+        return GridData(self.AY[idx], self.AX[idx], self.F[idx], mu, self.stroke_weight)
 
     def join(self, other: GridData) -> GridData:
         """This grid followed by the rows of ``other``."""
@@ -125,7 +133,7 @@ class GridData:
             np.vstack([self.AY, other.AY]),
             np.vstack([self.AX, other.AX]),
             np.concatenate([self.F, other.F]),
-            self.mu,
+            np.concatenate([self.mu_rows(), other.mu_rows()]),
             self.stroke_weight,
         )
 
@@ -229,8 +237,8 @@ class ConvexifiedProblem:
             "h_yi": r1 * AY.imag,
             "h_xr": rn * AX.real,
             "h_xi": rn * AX.imag,
-            "m_yr": 2 * data.mu * AY.real,
-            "m_yi": 2 * data.mu * AY.imag,
+            "m_yr": 2 * data.mu_rows()[:, None] * AY.real,
+            "m_yi": 2 * data.mu_rows()[:, None] * AY.imag,
         }
         if self.stroke:
             sw = 2 * np.sqrt(data.stroke_weight)
@@ -241,26 +249,29 @@ class ConvexifiedProblem:
         off = self._offsets
         off["o_yr"].value = full(r1[:, 0] * data.F.real)
         off["o_yi"].value = full(r1[:, 0] * data.F.imag)
-        off["o_mr"].value = full(2 * data.mu * data.F.real)
-        off["o_mi"].value = full(2 * data.mu * data.F.imag)
+        off["o_mr"].value = full(2 * data.mu_rows() * data.F.real)
+        off["o_mi"].value = full(2 * data.mu_rows() * data.F.imag)
 
-    def set_winding(self, blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> None:
+    def set_winding(self, blocks: list[tuple]) -> None:
         """Linear "same winding" constraints, one block per polynomial kept zero-free.
 
-        Each block ``(A, F, Pw)`` is a polynomial ``Q = A v + F`` on a grid of the circle and
-        its value ``Pw`` at the previous controller. Rows:
-        ``Re(Q conj Pw) / |Pw| >= max(_WIND_MIN |Pw|, min(_P_FLOOR, |Pw|))``: the phase of
-        ``Q`` stays within ~87 deg of ``Pw`` (same winding number, so the step keeps the zeros
-        of ``Q`` on the same side of the circle) and, as ``Re(Q conj Pw) / |Pw| <= |Q|``,
-        ``|Q|`` stays above a floor. The previous controller (``Q = Pw``) satisfies both. The
-        blocks are ``P = Y + G X`` (closed-loop stability) and, with a pole radius, the
-        scaled free denominator (controller poles inside the radius).
+        Each block ``(A, F, Pw, floor)`` is a polynomial ``Q = A v + F`` on a grid of the
+        circle, its value ``Pw`` at the previous controller and an absolute floor of ``|Q|``.
+        Rows: ``Re(Q conj Pw) / |Pw| >= max(_WIND_MIN |Pw|, min(floor, |Pw|))``: the phase
+        of ``Q`` stays
+        within ~87 deg of ``Pw`` (same winding number, so the step keeps the zeros of ``Q`` on
+        the same side of the circle) and, as ``Re(Q conj Pw) / |Pw| <= |Q|``, ``|Q|`` stays
+        above a floor. The previous controller (``Q = Pw``) satisfies both. The blocks are
+        ``P = Y + G X`` (closed-loop stability; floor ``_P_FLOOR`` keeps ``|P|`` away from 0,
+        no hidden cancellation on the circle) and, with a pole radius, the scaled free
+        denominator (controller poles inside the radius; floor ``POLE_FLOOR``, far above the
+        solver's feasibility tolerance, so a pole at the radius cannot slip out by it).
         """
         rows_A, rows_b = [], []
-        for A, F, Pw in blocks:
+        for A, F, Pw, absolute in blocks:
             scale = 1.0 / np.abs(Pw)  # row scaling: each row has unit size
             rows_A.append((Pw.real[:, None] * A.real + Pw.imag[:, None] * A.imag) * scale[:, None])
-            floor = np.maximum(_WIND_MIN * np.abs(Pw), np.minimum(_P_FLOOR, np.abs(Pw)))
+            floor = np.maximum(_WIND_MIN * np.abs(Pw), np.minimum(absolute, np.abs(Pw)))
             rows_b.append((Pw.real * F.real + Pw.imag * F.imag) * scale - floor)
         A_all, b_all = np.vstack(rows_A), np.concatenate(rows_b)
         if A_all.shape[0] != self.n_wind:  # pragma: no cover - construction bug
@@ -502,7 +513,7 @@ def ccp(
                 converged = True
                 break
         if not chk.ok:
-            new = chk.cut[~np.isin(chk.cut, grid_f)][: _ADD_PER_CHECK]
+            new = chk.cut[~np.isin(chk.cut, grid_f)][:_ADD_PER_CHECK]
             room = problem.slots - grid_f.size
             if new.size == 0 or room <= 0:
                 logger.debug("check failed (%s) and no grid slot or point left", chk.reason)
@@ -511,12 +522,27 @@ def ccp(
                 converged = True
                 break
             new = new[:room]
-            logger.debug("%s check failed at iteration %d: %s Hz join the grid", chk.reason, it,
-                         new)
+            logger.debug(
+                "%s check failed at iteration %d: %s Hz join the grid", chk.reason, it, new
+            )
             rows = cert.rows(new)
+            Pb = p_prev(new, rows)
+            if v_best is not None:
+                # The previous controller stays feasible: a cut point's margin is at most
+                # what it meets there (it passed the certificate, so at least mu).
+                Yb = rows.AY @ v_best + rows.F
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    met = np.where(np.abs(Yb) > 0, np.abs(Pb) / np.abs(Yb), np.inf)
+                rows = GridData(
+                    rows.AY,
+                    rows.AX,
+                    rows.F,
+                    np.minimum(rows.mu_rows(), met * (1 - 1e-9)),
+                    rows.stroke_weight,
+                )
             grid_f = np.concatenate([grid_f, new])
             grid = grid.join(rows)
-            Pc = np.concatenate([Pc, p_prev(new, rows)])
+            Pc = np.concatenate([Pc, Pb])
             added += new.size
             w_grid = cert.weights(grid_f)
             problem.set_grid(grid, *w_grid)
@@ -531,13 +557,23 @@ def ccp(
             converged = True
             break
         if not free and J > J_best * (1 + 1e-9) + 1e-12:
-            # The previous controller is feasible: a higher value means the iteration has
-            # stalled at the solver's accuracy.
-            logger.debug(
-                "objective rose from %.8g to %.8g at iteration %d; stopping", J_best, J, it
-            )
-            converged = True
-            break
+            # The convex step is a descent direction of the convexified model, tangent to the
+            # true objective at the previous controller; where the solver's feasibility
+            # tolerance spoils the full step (rows near a dip of |P|), a shorter one may
+            # still descend. Otherwise the iteration has stalled at the solver's accuracy.
+            for t in _DAMPING:
+                vt = v_best + t * (v - v_best)
+                Jt, Pt = true_objective(grid, vt, *w_grid)
+                if Jt < J_best * (1 - 1e-9) and cert.check(vt, v_best).ok:
+                    v, J, P = vt, Jt, Pt
+                    damped += 1
+                    break
+            else:
+                logger.debug(
+                    "objective rose from %.8g to %.8g at iteration %d; stopping", J_best, J, it
+                )
+                converged = True
+                break
         if extrapolate and not free:
             step = v - v_best
             for t in _EXTRAPOLATION:
@@ -547,7 +583,7 @@ def ccp(
                 # then starts from a feasible point) and the certificates.
                 if (
                     not Je < J
-                    or np.any(grid.mu * np.abs(grid.AY @ ve + grid.F) > np.abs(Pe))
+                    or np.any(grid.mu_rows() * np.abs(grid.AY @ ve + grid.F) > np.abs(Pe))
                     or not cert.check(ve, v_best).ok
                 ):
                     break
