@@ -185,7 +185,7 @@ def resonant_part(plant, noise: float, n_modes: int = 6) -> None:
             psd[i] += peak / (
                 1 + ((freqs**2 - f0**2) / (2 * zeta * f0 * np.maximum(freqs, 1e-9))) ** 2
             )
-    bound = constrained_bound(plant, freqs, psd, noise, 0.5, n_taps=256).residual_variance
+    bound = constrained_bound(plant, freqs, psd, noise, 0.5, n_taps=256).variance
     for order in (ORDER, "auto"):
         t0 = time.perf_counter()
         r = dd.datadriven(plant, freqs, psd, order=order, noise_psd=noise, progress=False)
