@@ -45,6 +45,8 @@ _DB_AXIS_FLOOR = -80.0
 # Contrast axis: its bottom is this factor times the lowest contrast beyond the inner radius
 # [lambda/D] (inside it the perfect coronagraph leaves ~1e-14, which would flatten the halo).
 _CONTRAST_INNER_LD = 1.0
+# Disturbance-PSD axis of the rejection plot: at most this far below the PSD's peak.
+_PSD_AXIS_RANGE = 1e-7
 _CONTRAST_AXIS_MARGIN = 0.3
 
 
@@ -129,6 +131,11 @@ def plot_rejection(
         )
         ax2.set_ylabel(r"disturbance PSD [nm$^2$/Hz]")
         ax2.legend(loc="lower right", fontsize="small")
+        peak = float(np.nanmax(np.asarray(psd)[keep], initial=0.0))
+        if peak > 0 and ax2.get_ylim()[0] < peak * _PSD_AXIS_RANGE:
+            # An estimate floored where it fell below the noise dives by decades: keep the
+            # axis on the part that the rejection acts on.
+            ax2.set_ylim(bottom=peak * _PSD_AXIS_RANGE)
     ax.legend(loc="upper left", fontsize="small")
     if title:
         ax.set_title(title)
@@ -546,11 +553,15 @@ def plot_rejection_modes(
     if not sensitivities:
         raise ValueError("sensitivities must hold at least one mode")
     n = len(sensitivities)
+    cols = 1 if n == 1 else 2
+    rows = -(-n // cols)
     fig, axes = plt.subplots(
-        n, 1, figsize=(8.0, 3.6 * n), constrained_layout=True, squeeze=False
+        rows, cols, figsize=(7.0 * cols, 4.0 * rows), constrained_layout=True, squeeze=False
     )
-    for ax, (label, sens) in zip(axes[:, 0], sensitivities.items(), strict=True):
+    for ax, (label, sens) in zip(axes.flat, sensitivities.items()):
         plot_rejection(freqs, sens, psd=psds.get(label), ax=ax, title=label)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
     if title:
         fig.suptitle(title)
     return _finish(fig, path)
