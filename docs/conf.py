@@ -92,7 +92,7 @@ def _cases_table() -> None:
         s1, s2 = c.stage1, c.stage2
         vib = ", ".join(f"{f:g} Hz" for f in c.vibration.frequencies) if c.vibration else ""
         rows.append(
-            f"| `{c.name}` | {c.title} | {c.atmosphere.seeing:g}\" | "
+            f'| `{c.name}` | {c.title} | {c.atmosphere.seeing:g}" | '
             f"{c.atmosphere.tau0 * 1e3:g} ms | {c.star.G:g} | {c.star.J:g} | "
             f"{s1.fs:g} Hz, {s1.n_modes} modes, {s1.wfs}, {s1.wavelength * 1e6:g} um, "
             f"{s1.latency_frames:g} frame | "

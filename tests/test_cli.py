@@ -345,6 +345,10 @@ def test_write_comparison_saves_table_csv_and_plots(tmp_path):
     for png in pngs:
         assert (tmp_path / png).stat().st_size > 10_000, png
         assert f"plot: {tmp_path / png}" in lines
+    # and the HTML report (its content: tests/test_report.py)
+    report = tmp_path / "bright1-best_report.html"
+    assert f"report: {report}" in lines
+    assert "data:image/png;base64," in report.read_text()
 
 
 def test_sweep_unreachable_scheduler_is_a_clear_error(tmp_path, capsys):

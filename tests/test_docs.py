@@ -17,8 +17,19 @@ NOTEBOOKS = sorted(p.stem for p in (ROOT / "notebooks").glob("*.ipynb"))
 @pytest.fixture(scope="module")
 def site(tmp_path_factory):
     out = tmp_path_factory.mktemp("docs")
-    cmd = [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html", "-d",
-           str(out / "doctrees"), str(ROOT / "docs"), str(out / "html")]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "sphinx",
+        "-W",
+        "--keep-going",
+        "-b",
+        "html",
+        "-d",
+        str(out / "doctrees"),
+        str(ROOT / "docs"),
+        str(out / "html"),
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=1800)
     assert run.returncode == 0, run.stderr[-4000:]
     return out / "html"
@@ -34,7 +45,7 @@ def test_docs_build_with_api_cases_and_notes(site):
     assert "aocontrol.study.report.comparison_report" in (site / "api" / "study.html").read_text()
     cases = (site / "cases.html").read_text()
     for name in list_cases():
-        assert f"<code class=\"docutils literal notranslate\"><span class=\"pre\">{name}" in cases
+        assert f'<code class="docutils literal notranslate"><span class="pre">{name}' in cases
     assert "stability_margins" in (site / "design_notes.html").read_text()
     assert "A five-minute tour" in (site / "tour.html").read_text()
 

@@ -129,9 +129,19 @@ def compared(loop, tmp_path_factory):
         for k, (name, bank) in enumerate(banks.items()):
             pred = math.sqrt(np.sum(residual_variance(plant, bank, f, psd, noise)))
             cells.append(
-                Cell(name, scheme, 0.8 + 0.01 * k, 1e-4 / (k + 1), pred * 1.1, pred, radii,
-                     1e-3 * np.exp(-radii / (k + 2)), {"seconds": 0.5, "quick": True},
-                     None, bank)  # fmt: skip
+                Cell(
+                    name,
+                    scheme,
+                    0.8 + 0.01 * k,
+                    1e-4 / (k + 1),
+                    pred * 1.1,
+                    pred,
+                    radii,
+                    1e-3 * np.exp(-radii / (k + 2)),
+                    {"seconds": 0.5, "quick": True},
+                    None,
+                    bank,
+                )
             )
     psds = {s: (f, {"input": psd, **{c: psd * 0.1 for c in banks}}) for s in ("standalone", "dcao")}
     vibration = {
@@ -142,9 +152,14 @@ def compared(loop, tmp_path_factory):
         "psd": {k: (f, psd[1] * 0.1) for k in banks},
     }
     comparison = CaseComparison(
-        "demo-case", tuple(cells), {"standalone": 0.4, "dcao": 0.4}, {}, vibration,
-        {"scan": 1.0}, {"standalone": design, "dcao": design},
-    )  # fmt: skip
+        "demo-case",
+        tuple(cells),
+        {"standalone": 0.4, "dcao": 0.4},
+        {},
+        vibration,
+        {"scan": 1.0},
+        {"standalone": design, "dcao": design},
+    )
     path = comparison_report(comparison, tmp_path / "report.html", residual_psds=psds)
     return comparison, path
 
@@ -189,9 +204,16 @@ def test_design_report_rows_bounds_and_ratios(loop, tmp_path):
     }
     wiener = np.sqrt(np.atleast_1d(wiener_bound(plant, f, psd, noise)))
     data = DesignReportData(
-        plant, f, psd, noise, banks, bounds={"Wiener bound": wiener}, modulus_margin=0.5,
-        title="design test", info={"telemetry": "synthetic"},
-    )  # fmt: skip
+        plant,
+        f,
+        psd,
+        noise,
+        banks,
+        bounds={"Wiener bound": wiener},
+        modulus_margin=0.5,
+        title="design test",
+        info={"telemetry": "synthetic"},
+    )
     page = _read(design_report(data, tmp_path / "design.html"))
     assert page.external == [] and _broken_images(page) == []
     assert len(page.images) == 4  # residual per mode, margins, rejection, residual PSDs
@@ -220,3 +242,22 @@ def test_design_report_data_names_the_bad_argument(loop):
         DesignReportData(plant, f, psd, noise, {"k": bank}, bounds={"w": np.ones(5)})
     with pytest.raises(ValueError, match=r"controllers\['k'\] has 2 modes"):
         DesignReportData(plant, f, psd, noise, {"k": Integrator(0.3, fs=1000.0, n_modes=2)})
+
+
+@pytest.mark.slow
+def test_demo_comparison_shows_the_papers_ordering(tmp_path):
+    # The demo's point (issue 16): on red 1 fast with enough stage-2 modes the controllers
+    # differ as in the paper's table (the paper's contrasts: reference 1.00e-4, modal gains
+    # 9.44e-5, data-driven 7.87e-5; the demo: 1.63e-4, 1.60e-4, 1.15e-4), and the report
+    # carries every row.
+    from aocontrol.study.demo import DEMO_STAGE2_MODES, demo_comparison
+
+    comparison = demo_comparison(str(tmp_path))
+    contrast = {c.controller: c.mean_contrast_4_6 for c in comparison.cells}
+    # Modal gains and reference are 2 % apart here (within an exposure's noise): only the
+    # data-driven margin is asserted.
+    assert contrast["datadriven"] < 0.9 * min(contrast["omgi"], contrast["reference"])
+    assert comparison.designs["standalone"].n_modes == DEMO_STAGE2_MODES
+    page = _read(comparison_report(comparison, tmp_path / "demo.html"))
+    assert _broken_images(page) == []
+    assert [r[1] for r in _rows(page, "results")] == ["reference", "omgi", "datadriven"]

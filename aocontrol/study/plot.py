@@ -558,7 +558,7 @@ def plot_rejection_modes(
     fig, axes = plt.subplots(
         rows, cols, figsize=(7.0 * cols, 4.0 * rows), constrained_layout=True, squeeze=False
     )
-    for ax, (label, sens) in zip(axes.flat, sensitivities.items()):
+    for ax, (label, sens) in zip(axes.flat[:n], sensitivities.items(), strict=True):
         plot_rejection(freqs, sens, psd=psds.get(label), ax=ax, title=label)
     for ax in axes.flat[n:]:
         ax.set_visible(False)

@@ -195,8 +195,14 @@ def _gm_db(m: Margins) -> float:
 def _margin_summary(mar: Sequence[Margins] | None) -> dict:
     """Stable modes and the worst margins over the modes (NaN when unknown)."""
     if not mar:
-        return {"stable": "n/a", "gm": math.nan, "pm": math.nan, "mm": math.nan,
-                "mm_med": math.nan, "dm": math.nan}  # fmt: skip
+        return {
+            "stable": "n/a",
+            "gm": math.nan,
+            "pm": math.nan,
+            "mm": math.nan,
+            "mm_med": math.nan,
+            "dm": math.nan,
+        }
     mm = np.array([m.modulus_margin for m in mar])
     return {
         "stable": f"{sum(bool(m.stable) for m in mar)}/{len(mar)}",
@@ -258,9 +264,12 @@ def _sensitivities(plant: Any, banks: Mapping[str, Any], freqs: np.ndarray) -> d
 
 
 def _rejection_figure(
-    freqs: np.ndarray, psd: np.ndarray, sens: Mapping[str, np.ndarray], modes: Sequence[int],
+    freqs: np.ndarray,
+    psd: np.ndarray,
+    sens: Mapping[str, np.ndarray],
+    modes: Sequence[int],
     title: str,
-) -> str:  # fmt: skip
+) -> str:
     from aocontrol.study import plot
 
     panels = {f"mode {i}": {k: s[i] for k, s in sens.items()} for i in modes}
@@ -375,7 +384,7 @@ def comparison_report(
         ),
     ]
     vib = comparison.vibration
-    if vib:
+    if vib and vib.get("tilt_rms_nm"):
         vrows = [{"controller": k, "tilt": v} for k, v in vib["tilt_rms_nm"].items()]
         body.append(
             _table(
@@ -401,8 +410,11 @@ def comparison_report(
             modal[f"{c.scheme} {c.controller}"] = mar
         mrows.append({"scheme": c.scheme, "controller": c.controller, **_margin_summary(mar)})
     body = [
-        _table(mrows, [("scheme", "scheme", ""), ("controller", "controller", ""),
-                       *_MARGIN_COLUMNS], "margins"),  # fmt: skip
+        _table(
+            mrows,
+            [("scheme", "scheme", ""), ("controller", "controller", ""), *_MARGIN_COLUMNS],
+            "margins",
+        ),
         _p(
             "Margins of each stage-2 bank over its modes, on the design plant (gain, phase, "
             "modulus and delay margins from aocontrol.analysis.margins; n/a: no design data or "
@@ -426,7 +438,7 @@ def comparison_report(
         banks = {c.controller: c.bank for c in cells if c.scheme == scheme and c.bank is not None}
         sens = _sensitivities(d.plant, banks, d.freqs)
         if sens:
-            extra = [vib["mode"]] if vib else []
+            extra = [vib["mode"]] if vib and "mode" in vib else []
             modes = representative_modes(d.n_modes, extra)
             body.append(_rejection_figure(d.freqs, d.psd, sens, modes, f"{name} {scheme}"))
     if not body:
@@ -444,13 +456,13 @@ def comparison_report(
                 f"{scheme}: stage-2 residual PSD of each controller, one-sided [nm^2/Hz]",
             )
         )
-    if vib:
+    if vib and vib.get("psd"):
         tilt = {k: v[1] for k, v in vib["psd"].items()}
         fv = next(iter(vib["psd"].values()))[0]
         body.append(
             _figure(
                 lambda: plot.plot_vibration(fv, tilt, title=f"{name}: tilt residual"),
-                f"tilt (mode {vib['mode']}) residual PSD and reverse cumulative RMS",
+                f"tilt (mode {vib.get('mode', '?')}) residual PSD and reverse cumulative RMS",
             )
         )
     if not body:
@@ -607,7 +619,7 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
     for label in labels:
         total = float(np.sqrt(np.sum(np.square(rms[label]))))
         row = {"controller": label, "rms": total, **_margin_summary(mar[label])}
-        for i, (b, t) in enumerate(totals.items()):
+        for i, t in enumerate(totals.values()):
             row[f"ratio{i}"] = total / t if t > 0 else math.nan
         srows.append(row)
     for b, t in totals.items():
@@ -634,8 +646,13 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
         m = mar[first][i] if mar[first] is not None else None
         row: dict[str, Any] = {"mode": i}
         if m is not None:
-            row.update(stable=bool(m.stable), gm=_gm_db(m), pm=m.phase_margin,
-                       mm=m.modulus_margin, dm=m.delay_margin)  # fmt: skip
+            row.update(
+                stable=bool(m.stable),
+                gm=_gm_db(m),
+                pm=m.phase_margin,
+                mm=m.modulus_margin,
+                dm=m.delay_margin,
+            )
         for j, label in enumerate(labels):
             row[f"rms{j}"] = float(rms[label][i])
         for j, b in enumerate(bounds.values()):
@@ -664,9 +681,7 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
     if known:
         body.append(
             _figure(
-                lambda: plot.plot_modal_margins(
-                    known, required_modulus_margin=data.modulus_margin
-                ),
+                lambda: plot.plot_modal_margins(known, required_modulus_margin=data.modulus_margin),
                 "modulus and delay margins per mode (red crosses: unstable modes)",
             )
         )
