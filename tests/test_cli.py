@@ -179,6 +179,7 @@ def test_design_from_npz_writes_a_reloadable_controller(tmp_path, capsys):
     assert ratio <= 1.0 + 1e-6
     assert (tmp_path / "ctrl" / "dd_sensitivity.png").stat().st_size > 10_000
     assert (tmp_path / "ctrl" / "dd_margins.png").stat().st_size > 10_000
+    assert f"report: {tmp_path / 'ctrl' / 'dd_report.html'}" in text  # content: test_report.py
 
 
 def test_design_reads_a_results_file_with_telemetry(tmp_path, capsys):

@@ -16,7 +16,12 @@ from aocontrol.controllers import Integrator
 from aocontrol.disturbance import synthetic_turbulence_psd
 from aocontrol.plant import loop_plant
 from aocontrol.study.compare import CaseComparison, Cell, DesignInputs
-from aocontrol.study.report import DesignReportData, comparison_report, design_report
+from aocontrol.study.report import (
+    DesignReportData,
+    comparison_report,
+    design_report,
+    design_report_data,
+)
 from aocontrol.synthesis import optimal_modal_gain
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -261,3 +266,36 @@ def test_demo_comparison_shows_the_papers_ordering(tmp_path):
     page = _read(comparison_report(comparison, tmp_path / "demo.html"))
     assert _broken_images(page) == []
     assert [r[1] for r in _rows(page, "results")] == ["reference", "omgi", "datadriven"]
+
+
+def test_design_report_data_from_a_telemetry_design(loop):
+    # The attributes of synthesis.design_from_telemetry's result, by name (duck typed, so the
+    # report does not depend on that class): the report's rows come from them unchanged.
+    from types import SimpleNamespace
+
+    plant, f, psd, noise = loop
+    bank = optimal_modal_gain(plant, f, psd, noise, modulus_margin=0.5)
+    ref = Integrator(0.3, fs=1000.0, n_modes=6)
+    var = np.atleast_1d(residual_variance(plant, bank, f, psd, noise))
+    design = SimpleNamespace(
+        controller_name="omgi",
+        controller=bank,
+        reference=ref,
+        plant=plant,
+        fs=1000.0,
+        latency_frames=0.5,
+        estimate=SimpleNamespace(freqs=f, psd=psd, noise_psd=noise, method="prewhitened"),
+        modulus_margin=0.5,
+        margins=tuple(margins(plant, bank, mode=i) for i in range(6)),
+        reference_margins=tuple(margins(plant, ref, mode=i) for i in range(6)),
+        residual_variance=var,
+        reference_residual_variance=np.atleast_1d(residual_variance(plant, ref, f, psd, noise)),
+        wiener_variance=np.atleast_1d(wiener_bound(plant, f, psd, noise)),
+        constrained_variance=np.full(6, np.nan),  # not computed: left out
+    )
+    data = design_report_data(design, info={"telemetry": "x.fits"})
+    assert list(data.bounds) == ["Wiener bound"]
+    assert list(data.controllers) == ["omgi", "starting integrator (optimal gain)"]
+    assert data.info["estimator"] == "prewhitened" and data.info["telemetry"] == "x.fits"
+    assert data.predicted_rms["omgi"] == pytest.approx(np.sqrt(var), rel=1e-12)
+    assert data.margins["omgi"] is design.margins

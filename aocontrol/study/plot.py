@@ -20,6 +20,7 @@ from typing import Any
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 __all__ = [
     "plot_rejection",
@@ -602,7 +603,7 @@ def plot_modal_margins(
         dm = np.array([m.delay_margin for m in mar], dtype=float)
         bad = ~np.array([m.stable for m in mar], dtype=bool)
         ax_m.plot(modes, mm, ".-", ms=3, lw=0.8, label=label)
-        ax_d.semilogy(modes, np.where(np.isfinite(dm), dm, np.nan), ".-", ms=3, lw=0.8)
+        ax_d.plot(modes, np.where(np.isfinite(dm), dm, np.nan), ".-", ms=3, lw=0.8)
         if bad.any():
             for ax, y in ((ax_m, mm), (ax_d, dm)):
                 ax.plot(modes[bad], np.nan_to_num(y[bad], posinf=1.0), "x", color="r", ms=7)
@@ -611,6 +612,7 @@ def plot_modal_margins(
     ax_m.set_ylabel("modulus margin [1]")
     ax_d.set_ylabel("delay margin [frames]")
     for ax in (ax_m, ax_d):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_xlabel("mode")
         ax.grid(True, which="both", alpha=0.3)
     ax_m.legend(fontsize="small")
@@ -650,6 +652,7 @@ def plot_modal_residuals(
     for label, b in (bounds or {}).items():
         b = np.asarray(b, dtype=float)
         ax.semilogy(np.arange(b.size), b, ls="--", lw=1.0, color="0.4", label=label)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("mode")
     ax.set_ylabel("residual [nm RMS]")
     ax.grid(True, which="both", alpha=0.3)

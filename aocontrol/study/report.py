@@ -41,6 +41,7 @@ __all__ = [
     "DesignReportData",
     "comparison_report",
     "design_report",
+    "design_report_data",
     "modal_margins",
     "representative_modes",
 ]
@@ -579,6 +580,67 @@ class DesignReportData:
         return self.psd.shape[0]
 
 
+def design_report_data(
+    design: Any, *, title: str | None = None, info: Mapping[str, Any] | None = None
+) -> DesignReportData:
+    """The report's input from a telemetry design (``synthesis.design_from_telemetry``).
+
+    Reads the attributes of that function's result by name (``controller_name``,
+    ``controller``, ``reference``, ``plant``, ``fs``, ``latency_frames``, ``estimate`` with
+    ``freqs``, ``psd``, ``noise_psd`` and ``method``, ``modulus_margin``, ``margins``,
+    ``reference_margins``, ``residual_variance``, ``reference_residual_variance``,
+    ``wiener_variance``, ``constrained_variance``); bounds that are all NaN (not computed)
+    are left out.
+
+    Parameters
+    ----------
+    design : TelemetryDesign
+        Result of :func:`aocontrol.synthesis.design_from_telemetry`.
+    title : str, optional
+        Page title (default ``"aocontrol design: <controller>"``).
+    info : mapping, optional
+        Extra header lines (e.g. the telemetry file).
+
+    Returns
+    -------
+    DesignReportData
+    """
+    est = design.estimate
+    name = design.controller_name
+    ref = "starting integrator (optimal gain)"
+    bounds = {}
+    for label, attr in (
+        ("Wiener bound", "wiener_variance"),
+        (f"constrained bound (MM {design.modulus_margin:g})", "constrained_variance"),
+    ):
+        var = np.asarray(getattr(design, attr), dtype=float)
+        if np.isfinite(var).any():
+            bounds[label] = np.sqrt(var)
+    header = {
+        "fs": f"{design.fs:g} Hz",
+        "latency": f"{design.latency_frames:g} frame (beyond the WFS frame)",
+        "estimator": getattr(est, "method", ""),
+        "required modulus margin": f"{design.modulus_margin:g}",
+        **(info or {}),
+    }
+    return DesignReportData(
+        design.plant,
+        est.freqs,
+        est.psd,
+        est.noise_psd,
+        {name: design.controller, ref: design.reference},
+        predicted_rms={
+            name: np.sqrt(design.residual_variance),
+            ref: np.sqrt(design.reference_residual_variance),
+        },
+        margins={name: design.margins, ref: design.reference_margins},
+        bounds=bounds,
+        modulus_margin=design.modulus_margin,
+        title=title or f"aocontrol design: {name}",
+        info=header,
+    )
+
+
 def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
     """Write the HTML report of a controller design.
 
@@ -693,7 +755,9 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
         body.append(
             _rejection_figure(data.freqs, data.psd, sens, representative_modes(n), "design")
         )
-        series = {"disturbance": data.psd.sum(axis=0)}
+        # The pseudo-open loop (disturbance + noise): what a loop without control would see,
+        # and smooth where a noise-subtracted estimate is floored.
+        series = {"open loop (disturbance + noise)": (data.psd + data.noise_psd[:, None]).sum(0)}
         for label in sens:
             lr = loop_response(data.plant, data.controllers[label], data.freqs)
             s2 = np.abs(np.atleast_2d(lr.sensitivity)) ** 2
