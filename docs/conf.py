@@ -66,7 +66,12 @@ myst_heading_anchors = 3
 html_theme = "alabaster"
 html_title = f"aocontrol {release}"
 html_static_path: list[str] = []
-html_theme_options = {"description": "Adaptive-optics control toolbox", "fixed_sidebar": True}
+html_theme_options = {
+    "description": "Adaptive-optics control toolbox",
+    "fixed_sidebar": True,
+    "page_width": "1200px",  # the cases table and the code cells need the room
+    "body_max_width": "none",
+}
 
 
 def _copy_notebooks() -> None:
@@ -84,20 +89,20 @@ def _cases_table() -> None:
     from aocontrol.study.cases import list_cases, load_case
 
     rows = [
-        "| case | title | seeing | tau0 | G | J | stage 1 | stage 2 | vibration |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| case | seeing | tau0 | G | J | stage 1: Hz / modes / latency [frame] "
+        "| stage 2: Hz / modes / latency [frame] / WFS wavelength | vibration |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name in list_cases():
         c = load_case(name)
         s1, s2 = c.stage1, c.stage2
         vib = ", ".join(f"{f:g} Hz" for f in c.vibration.frequencies) if c.vibration else ""
         rows.append(
-            f'| `{c.name}` | {c.title} | {c.atmosphere.seeing:g}" | '
+            f'| `{c.name}` ({c.title}) | {c.atmosphere.seeing:g}" | '
             f"{c.atmosphere.tau0 * 1e3:g} ms | {c.star.G:g} | {c.star.J:g} | "
-            f"{s1.fs:g} Hz, {s1.n_modes} modes, {s1.wfs}, {s1.wavelength * 1e6:g} um, "
-            f"{s1.latency_frames:g} frame | "
-            f"{s2.fs:g} Hz, {s2.n_modes} modes, {s2.wfs}, {s2.wavelength * 1e6:g} um, "
-            f"{s2.latency_frames:g} frame | {vib} |"
+            f"{s1.fs:g} / {s1.n_modes} / {s1.latency_frames:g} | "
+            f"{s2.fs:g} / {s2.n_modes} / {s2.latency_frames:g} / {s2.wavelength * 1e6:g} um | "
+            f"{vib} |"
         )
     out = HERE / "_generated"
     out.mkdir(exist_ok=True)
