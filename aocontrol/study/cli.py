@@ -320,12 +320,19 @@ def _comparison_report(comparison: Any, out: str) -> str:
     return comparison_report(comparison, os.path.join(out, f"{comparison.case}_report.html"))
 
 
-def _design_report(data: Any, path: str) -> str:
-    """The design's self-contained HTML report (``data``: a ``report.DesignReportData``)."""
-    from aocontrol.study.report import design_report
+def _design_report(design: Any, path: str, info: dict | None = None) -> str:
+    """The design's self-contained HTML report at ``path``.
+
+    ``design``: a ``report.DesignReportData``, or the result of
+    ``synthesis.design_from_telemetry`` (converted by ``report.design_report_data`` with the
+    header lines ``info``).
+    """
+    from aocontrol.study.report import DesignReportData, design_report, design_report_data
 
     _plot_module()  # selects the file backend
-    return design_report(data, path)
+    if not isinstance(design, DesignReportData):
+        design = design_report_data(design, info=info)
+    return design_report(design, path)
 
 
 def _comparison_plots(comparison: Any, out: str) -> list[str]:
@@ -719,7 +726,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--telemetry", action="store_true", help="also store the telemetry")
     no_progress(p)
 
-    p = add("compare", _compare, "the paper's comparison table of one case, with its plots")
+    p = add("compare", _compare, "the paper's comparison of one case: table, plots, HTML report")
     p.add_argument("case", help="science case name (see 'aocontrol cases')")
     p.add_argument("--quick", action="store_true", help="short, reduced runs")
     p.add_argument("--out", default="compare-output", help="folder of the table and plots")
