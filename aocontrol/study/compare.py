@@ -488,6 +488,9 @@ class CaseComparison:
         of the calibration telemetry) at the stage-2 input.
     seconds : dict
         Wall time per part [s].
+    designs : dict
+        ``{scheme: DesignInputs}``: the stage-2 plant and the calibration telemetry's PSDs
+        each scheme's controllers were designed from (margins and rejection of the report).
     """
 
     case: str
@@ -496,6 +499,7 @@ class CaseComparison:
     scan: dict
     vibration: dict | None = None
     seconds: dict = field(default_factory=dict)
+    designs: dict = field(default_factory=dict, repr=False)
 
     def cell(self, controller: str, scheme: str) -> Cell:
         """The cell of ``controller`` in ``scheme``."""
@@ -676,7 +680,7 @@ def compare_case(
     vib = None
     if c.vibration is not None:
         vib = _vibration_report(scene, schemes[0], controllers, designs, ctrls, results)
-    return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing)
+    return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing, designs)
 
 
 def _vibration_report(
