@@ -33,6 +33,11 @@ controller's design alone; its cost is the dither's own residual (``a^2`` per mo
 ``a`` a fraction of the residual) and a convergence time ``~ (sigma_m / (a g))^2`` frames for a
 relative accuracy of 1.
 
+Dithering every mode costs ``n_modes a^2`` of residual variance; ``modes`` dithers a subset
+(e.g. a few dozen modes spaced logarithmically in order, where the gains vary fastest at low
+orders) and the gains of the other modes are interpolated linearly in mode index (constant
+beyond the ends), as the optical gains vary smoothly with the spatial frequency.
+
 The estimate is refreshed every ``update_every`` frames from sums with exponential forgetting
 (``memory`` windows) and divides the sensor's output before the controller (modal gain
 compensation). An estimate that is not finite or outside ``bounds`` (a diverging tracker) is
@@ -70,6 +75,11 @@ class DitherGainTracker:
         A large value averages a stationary run; a small one follows a drift.
     bounds : tuple of float
         Accepted range ``(low, high)`` of an estimate; outside it the estimate is rejected.
+    modes : array_like of int, optional
+        Modes dithered (increasing indices); default every mode. The others' gains are
+        interpolated.
+    initial : float or array_like (n_modes,)
+        Gains assumed before the first estimate (e.g. calibrated ones), in ``bounds``.
 
     Raises
     ------
@@ -81,6 +91,8 @@ class DitherGainTracker:
     update_every: int = 500
     memory: float = 4.0
     bounds: tuple = (0.05, 3.0)
+    modes: Any = None
+    initial: Any = 1.0
 
     def __post_init__(self) -> None:
         a = check_finite_array("amplitude", self.amplitude, ndim=(0, 1))
@@ -94,32 +106,63 @@ class DitherGainTracker:
         check_positive("bounds[0]", lo)
         if not hi > lo:
             raise ValueError(f"bounds must be (low, high) with 0 < low < high, got {self.bounds!r}")
+        g0 = check_finite_array("initial", self.initial, ndim=(0, 1))
+        if g0.size == 0 or np.any(g0 < lo) or np.any(g0 > hi):
+            raise ValueError(f"initial must be within bounds {self.bounds!r}, got {self.initial!r}")
+        object.__setattr__(self, "initial", g0)
+        if self.modes is not None:
+            idx = np.asarray(self.modes)
+            if (
+                idx.ndim != 1
+                or idx.size == 0
+                or not np.issubdtype(idx.dtype, np.integer)
+                or np.any(idx < 0)
+                or np.any(np.diff(idx) <= 0)
+            ):
+                raise ValueError(
+                    f"modes must be increasing mode indices >= 0, got {self.modes!r}"
+                )
+            object.__setattr__(self, "modes", idx)
 
     def start(self, n_modes: int, k0: int, rng: np.random.Generator) -> _TrackerRun:
         """Per-run state for a stage of ``n_modes`` modes and ``k0`` whole frames of latency."""
-        a = self.amplitude
-        if a.ndim == 1 and a.size != n_modes:
-            raise ValueError(
-                f"amplitude has {a.size} values, the stage has {n_modes} modes: give a scalar "
-                f"or {n_modes} values"
-            )
-        return _TrackerRun(self, np.broadcast_to(a, (n_modes,)), k0, rng)
+        for name in ("amplitude", "initial"):
+            a = getattr(self, name)
+            if a.ndim == 1 and a.size != n_modes:
+                raise ValueError(
+                    f"{name} has {a.size} values, the stage has {n_modes} modes: give a "
+                    f"scalar or {n_modes} values"
+                )
+        probed = np.arange(n_modes) if self.modes is None else self.modes
+        if probed[-1] >= n_modes:
+            raise ValueError(f"modes must be < n_modes={n_modes}, got {probed[-1]}")
+        amp = np.zeros(n_modes)
+        amp[probed] = np.broadcast_to(self.amplitude, (n_modes,))[probed]
+        gain = np.broadcast_to(self.initial, (n_modes,)).astype(float)
+        return _TrackerRun(self, amp, probed, gain, k0, rng)
 
 
 class _TrackerRun:
     """Mutable state of a :class:`DitherGainTracker` during one run."""
 
     def __init__(
-        self, cfg: DitherGainTracker, amp: np.ndarray, k0: int, rng: np.random.Generator
+        self,
+        cfg: DitherGainTracker,
+        amp: np.ndarray,
+        probed: np.ndarray,
+        gain: np.ndarray,
+        k0: int,
+        rng: np.random.Generator,
     ) -> None:
         n = amp.size
         self.cfg = cfg
         self.amp = amp
+        self.probed = probed
         self.k0 = k0
         self.rng = rng
         self.depth = k0 + 2
         self.whist = np.zeros((self.depth, n))
-        self.gain = np.ones(n)
+        self.gain = gain
         self.num = np.zeros(n)
         self.den = np.zeros(n)
         self.num_tot = np.zeros(n)
@@ -156,11 +199,13 @@ class _TrackerRun:
         self.num[:] = 0.0
         self.den[:] = 0.0
         lo, hi = self.cfg.bounds
+        p = self.probed
+        num, den = self.num_tot[p], self.den_tot[p]
         with np.errstate(divide="ignore", invalid="ignore"):
-            est = self.num_tot / self.den_tot
-        ok = np.isfinite(est) & (self.den_tot > 0) & (est >= lo) & (est <= hi)
+            est = num / den
+        ok = np.isfinite(est) & (den > 0) & (est >= lo) & (est <= hi)
         if not ok.all():
-            bad = np.flatnonzero(~ok)
+            bad = p[~ok]
             self.rejected[bad] += 1
             logger.warning(
                 "optical-gain tracker: estimate rejected (not finite or outside %s) for modes "
@@ -168,7 +213,11 @@ class _TrackerRun:
                 self.cfg.bounds,
                 bad[:10].tolist(),
             )
-        self.gain = np.where(ok, est, self.gain)
+        probed_gain = np.where(ok, est, self.gain[p])
+        if p.size == self.gain.size:
+            self.gain = probed_gain
+        else:  # the other modes: linear in mode index between the probed ones
+            self.gain = np.interp(np.arange(self.gain.size), p, probed_gain)
         self.history.append(self.gain.copy())
 
     def metadata(self) -> dict:

@@ -139,14 +139,17 @@ def _frames(scene: Scene, seconds: float) -> int:
 
 
 def _stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
+    # The sensor in the loop and its optical-gain handling: the case's stage settings.
     stroke = st.spec.dm_stroke
+    sensor, tracker = st.loop_sensor()
     return Stage(
         controller,
-        st.sensor,
+        sensor,
         st.spec.latency_frames,
         dm_stroke=None if stroke is None else stroke * 1e9,
-        m2c=None if stroke is None else st.basis.m2c,
         name=name,
+        basis=st.basis,
+        gain_tracker=tracker,
     )
 
 
@@ -222,6 +225,16 @@ def _summary(result: Any) -> dict:
         "mean_contrast_4_6": float(sci.mean_contrast_4_6) if sci is not None else math.nan,
         "residual_rms_nm": float(_stage2_result(result).residual_rms),
     }
+
+
+def _sensor_overrides(sensor: str | None, optical_gain: str | None) -> dict:
+    """Case overrides of stage 2's sensor settings (validated by the case loader)."""
+    out = {}
+    if sensor is not None:
+        out["stage2.sensor"] = sensor
+    if optical_gain is not None:
+        out["stage2.optical_gain"] = optical_gain
+    return out
 
 
 def _check_names(controller: str, scheme: str) -> ControllerSpec:
@@ -348,6 +361,8 @@ def run_configuration(
     quick: bool = False,
     progress: bool = False,
     design: DesignInputs | None = None,
+    sensor: str | None = None,
+    optical_gain: str | None = None,
 ) -> RunOutcome:
     """Run one configuration: a case, a stage-2 controller and a scheme.
 
@@ -372,6 +387,10 @@ def run_configuration(
         Progress bar on the exposure.
     design : DesignInputs, optional
         Reuse these design inputs instead of a new calibration run.
+    sensor : {"linear", "diffractive"}, optional
+        Stage 2's sensor in the loop (default the case's ``[stage2] sensor``, "linear").
+    optical_gain : {"none", "calibrated", "tracked"}, optional
+        Stage 2's optical-gain handling (default the case's, "calibrated").
 
     Returns
     -------
@@ -388,6 +407,7 @@ def run_configuration(
     if not (isinstance(seconds, (int, float)) and seconds > 0):
         raise ValueError(f"seconds must be > 0, got {seconds!r}")
     base = load_case(case)
+    overrides = dict(overrides or {}, **_sensor_overrides(sensor, optical_gain))
     c = apply_overrides(base, overrides)
     scene = build_scene(c, quick=quick)
     gain = c.stage2.gain
@@ -582,6 +602,8 @@ def compare_case(
     gain_grid: Sequence[float] | None = None,
     results_dir: str | os.PathLike | None = None,
     progress: bool = False,
+    sensor: str | None = None,
+    optical_gain: str | None = None,
 ) -> CaseComparison:
     """The paper's protocol on one case (module docstring).
 
@@ -604,6 +626,9 @@ def compare_case(
         Write one results file per configuration there (:mod:`aocontrol.study.results`).
     progress : bool
         Log progress at INFO level and show bars on the exposures.
+    sensor, optical_gain : str, optional
+        Stage 2's sensor and optical-gain handling (:func:`run_configuration`); the gain scan,
+        calibration run and exposures all use them.
 
     Returns
     -------
@@ -613,7 +638,7 @@ def compare_case(
         _check_names(name, "single")
     for s in schemes:
         _check_names("reference", s)
-    c = load_case(case)
+    c = apply_overrides(load_case(case), _sensor_overrides(sensor, optical_gain))
     scene = build_scene(c, quick=quick)
     exposure = seconds if seconds is not None else (0.5 if quick else c.science.exposure)
     scan_s = _QUICK_SCAN_SECONDS if quick else _SCAN_SECONDS
