@@ -3,26 +3,31 @@
 Method
 ------
 A small pseudo-random dither ``w`` (independent +-a per mode and frame, from its own random
-stream) is added to the stage's DM commands, as the modal-dither optical-gain measurements of
-the pyramid do (Esposito et al. 2012 at the LBT, the "dithering" method discussed by Deo et
-al. 2019 and Chambouleyron et al. 2020). With one frame of WFS integration and the plant of
-:func:`aocontrol.loop_plant`, the sensor output of frame ``k`` is, to first order around the
-current residual,
+stream) is added to the stage's DM shape, as the modal-dither optical-gain measurements of the
+pyramid do (Esposito et al. 2012 at the LBT, the "dithering" method discussed by Deo et al.
+2019 and Chambouleyron et al. 2020). The dither is an offset of the mirror synchronous with
+the WFS frames (like the dCAO offset; a pre-computed sequence is sent ahead of the loop's
+latency), so ``w[k]`` is in the DM shape of frame ``k`` with weight 1 whatever the latency.
+With one frame of WFS integration, the sensor output of frame ``k`` is, to first order around
+the current residual,
 
-    m[k] = g (d[k-1] - y[k-1]) + n[k]
+    m[k] = g (d[k-1] - y_c[k-1] - w[k-1]) + n[k]
 
-with ``y`` the applied DM shape (dither and the controller's reaction to it included), ``d``
-the disturbance and ``n`` the noise, both independent of the dither. The dither applied at
-frame ``k - 1 - k0`` (``k0`` the whole frames of the stage's latency) is in ``y[k-1]`` with the
-weight ``1 - f`` and is an instrument: correlating both sides with it,
+with ``y_c`` the controller's part of the DM shape, ``d`` the disturbance and ``n`` the noise.
+``w[k-1]`` is an instrument: ``d`` and ``n`` are independent of it, and ``y_c[k-1]`` reacts to
+measurements up to frame ``k-1-k0`` (``k0`` the whole frames of the latency), hence to dithers
+up to frame ``k-2-k0`` only (causality). Correlating both sides with it,
 
-    g = sum_k m[k] w[k-1-k0] / (- sum_k y[k-1] w[k-1-k0]),
+    g = - sum_k m[k] w[k-1] / sum_k w[k-1]^2,
 
-an unbiased estimate whatever the controller does with the dither (its reaction is in ``y``,
-which is known), with no model of the closed loop and no assumption on the disturbance
-spectrum. Modes are dithered independently, so the estimate of a mode is not biased by the
-others'. For a diffractive sensor the estimate is the local slope of the sensor around the
-loop's own residual, i.e. ``diag(R D_res)`` of :func:`aocontrol.sim.wfs.optical_gains`.
+an unbiased estimate whatever the controller does, with no model of the closed loop and no
+assumption on the disturbance spectrum; its statistical error is ``~ sigma_m / (a sqrt(N))``
+after ``N`` frames (``sigma_m`` the measurement's RMS, ``a`` the dither's). Modes are
+dithered independently, so the estimate of a mode is not biased by the others'. For a
+diffractive sensor the estimate is the local slope of the sensor averaged over the loop's own
+residual, i.e. ``diag(R D_res)`` of :func:`aocontrol.sim.wfs.optical_gains`. The dither is in
+the ``dm`` telemetry, not in the ``commands``: a pseudo-open loop from the telemetry sees it as
+a white disturbance of variance ``a^2`` on the dithered modes.
 
 Why the dither and not CLOSE (Deo et al. 2021): CLOSE adapts the modal gain so that the
 autocorrelation of the closed-loop measurements meets a set point; its fixed point depends on
@@ -124,8 +129,8 @@ class DitherGainTracker:
                 )
             object.__setattr__(self, "modes", idx)
 
-    def start(self, n_modes: int, k0: int, rng: np.random.Generator) -> _TrackerRun:
-        """Per-run state for a stage of ``n_modes`` modes and ``k0`` whole frames of latency."""
+    def start(self, n_modes: int, rng: np.random.Generator) -> _TrackerRun:
+        """Per-run state for a stage of ``n_modes`` modes; ``rng`` draws the dither."""
         for name in ("amplitude", "initial"):
             a = getattr(self, name)
             if a.ndim == 1 and a.size != n_modes:
@@ -139,7 +144,7 @@ class DitherGainTracker:
         amp = np.zeros(n_modes)
         amp[probed] = np.broadcast_to(self.amplitude, (n_modes,))[probed]
         gain = np.broadcast_to(self.initial, (n_modes,)).astype(float)
-        return _TrackerRun(self, amp, probed, gain, k0, rng)
+        return _TrackerRun(self, amp, probed, gain, rng)
 
 
 class _TrackerRun:
@@ -151,17 +156,14 @@ class _TrackerRun:
         amp: np.ndarray,
         probed: np.ndarray,
         gain: np.ndarray,
-        k0: int,
         rng: np.random.Generator,
     ) -> None:
         n = amp.size
         self.cfg = cfg
         self.amp = amp
         self.probed = probed
-        self.k0 = k0
         self.rng = rng
-        self.depth = k0 + 2
-        self.whist = np.zeros((self.depth, n))
+        self.w_prev: np.ndarray | None = None  # the dither of the previous frame
         self.gain = gain
         self.num = np.zeros(n)
         self.den = np.zeros(n)
@@ -176,20 +178,19 @@ class _TrackerRun:
         signs = self.rng.integers(0, 2, size=(m_chunk, self.amp.size)) * 2.0 - 1.0
         self.w = signs * self.amp
 
-    def observe(self, k: int, m_raw: np.ndarray, y_prev: np.ndarray) -> None:
-        """Accumulate frame ``k``: its raw measurement and the DM shape of frame ``k - 1``."""
-        if k - 1 - self.k0 >= 0:
-            z = self.whist[(k - 1 - self.k0) % self.depth]
-            self.num += m_raw * z
-            self.den -= y_prev * z
+    def observe(self, m_raw: np.ndarray) -> None:
+        """Accumulate a frame's raw measurement against its instrument, the previous dither."""
+        z = self.w_prev
+        if z is not None:
+            self.num -= m_raw * z
+            self.den += z * z
         self.frames += 1
         if self.frames % self.cfg.update_every == 0:
             self._update()
 
-    def dither(self, k: int, j: int) -> np.ndarray:
-        """The dither of frame ``k`` (row ``j`` of the chunk), remembered for the estimate."""
-        w = self.w[j]
-        self.whist[k % self.depth] = w
+    def dither(self, j: int) -> np.ndarray:
+        """The dither of row ``j`` of the chunk (this frame), remembered for the estimate."""
+        w = self.w_prev = self.w[j]
         return w
 
     def _update(self) -> None:

@@ -166,10 +166,9 @@ class _StageRun:
         self.tracker = (
             None
             if stage.gain_tracker is None
-            else stage.gain_tracker.start(n, self.k0, rng.spawn(1)[0])
+            else stage.gain_tracker.start(n, rng.spawn(1)[0])
         )
         self.e_prev = np.zeros(n)
-        self.y_prev = np.zeros(n)
         self.og = optical_gain
         self.noise_std = noise_std
         self.noise_scale = 10.0 * float(np.max(noise_std / optical_gain))
@@ -265,10 +264,9 @@ class _StageRun:
         its map on demand), then :meth:`frame`; returns the DM shape ``y``."""
         m = self.sensor.read(j, self.e_prev, opd)
         if self.tracker is not None:
-            self.tracker.observe(self.k, m, self.y_prev)
+            self.tracker.observe(m)
             m = m / self.tracker.gain
         self.e_prev, y = self.frame(m, d_j, j, r_j, offset)
-        self.y_prev = y
         return y
 
     def frame(
@@ -286,8 +284,6 @@ class _StageRun:
         DM (before the delay line without offset, on the total shape with one).
         """
         u = self.ctrl.step(m)
-        if self.tracker is not None:
-            u = u + self.tracker.dither(self.k, j)
         if self.clip and offset is None:
             u = self.dm.clip(u, self.dm_state)
         k = self.k
@@ -296,6 +292,8 @@ class _StageRun:
         y = (1.0 - self.frac) * hist[(k - self.k0) % depth]
         if self.frac:
             y = y + self.frac * hist[(k - self.k0 - 1) % depth]
+        if self.tracker is not None:  # the dither: an offset of the mirror (_gain_tracking)
+            y = y + self.tracker.dither(j)
         if offset is not None:
             y = y + offset
             if self.clip:
