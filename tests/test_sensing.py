@@ -214,3 +214,98 @@ def test_diffractive_optical_gains_measured_in_the_loop(small_pyramid):
     assert np.all(og < 0.95)  # the gains did fall (the check is not around a flat wavefront)
     est = np.array(res.metadata["gain_tracker_estimate"])
     np.testing.assert_allclose(est, og, rtol=0.1)
+
+
+# ------------------------------------------------------------------ the study's settings
+def test_case_sensor_keys_are_validated():
+    from aocontrol.study.cases import CaseError, apply_overrides, load_case
+
+    case = load_case("bright1-best")
+    assert (case.stage2.sensor, case.stage2.optical_gain) == ("linear", "calibrated")
+    c = apply_overrides(case, {"stage2.sensor": "diffractive", "stage2.optical_gain": "tracked"})
+    assert (c.stage2.sensor, c.stage2.optical_gain) == ("diffractive", "tracked")
+    with pytest.raises(CaseError, match=r"stage2.sensor.*must be one of \['linear', 'diffractive'\]"):
+        apply_overrides(case, {"stage2.sensor": "pyramid"})
+    with pytest.raises(CaseError, match=r"stage1.sensor.*needs a pyramid WFS"):
+        apply_overrides(case, {"stage1.sensor": "diffractive"})
+    with pytest.raises(CaseError, match=r"stage2.optical_gain.*must be one of"):
+        apply_overrides(case, {"stage2.optical_gain": "auto"})
+
+
+@pytest.mark.slow
+def test_scene_loop_sensors_per_setting():
+    from aocontrol.study.scene import build_scene
+
+    st = build_scene("bright1-best", quick=True).stage2
+    og = st.optical_gain
+    lin, tr = st.loop_sensor("linear", "calibrated")
+    assert tr is None and np.all(lin.optical_gain == 1.0)
+    raw, _ = st.loop_sensor("linear", "none")
+    np.testing.assert_array_equal(raw.optical_gain, og)  # the loop sees the gains
+    np.testing.assert_allclose(raw.noise_std, lin.noise_std * og)
+    dif, _ = st.loop_sensor("diffractive", "calibrated")
+    np.testing.assert_array_equal(dif.gain_compensation, og)
+    assert dif.photons == st.photons and dif.wfs is st.wfs
+    dif_raw, tracker = st.loop_sensor("diffractive", "tracked")
+    assert dif_raw.gain_compensation is None
+    np.testing.assert_allclose(tracker.initial, og)
+    assert tracker.modes[0] == 0 and tracker.modes[-1] == st.n_modes - 1
+    with pytest.raises(ValueError, match="optical_gain must be one of"):
+        st.loop_sensor("linear", "adaptive")
+    with pytest.raises(ValueError, match="sensor='diffractive' needs a pyramid stage"):
+        build_scene("bright1-best", quick=True).stage1.loop_sensor("diffractive")
+
+
+def test_sweep_spec_takes_the_sensor_settings():
+    from aocontrol.study.sweep import SweepSpec
+
+    spec = SweepSpec.from_dict(
+        {
+            "cases": ["bright1-best"],
+            "controllers": ["reference"],
+            "schemes": ["standalone"],
+            "seeds": [0],
+            "overrides": {"stage2.sensor": ["linear", "diffractive"]},
+        }
+    )
+    runs = spec.runs()
+    assert [r.settings["overrides"]["stage2.sensor"] for r in runs] == ["linear", "diffractive"]
+    assert runs[0].hash != runs[1].hash
+
+
+@pytest.mark.slow
+def test_run_configuration_with_the_diffractive_pyramid(tmp_path):
+    # The whole chain in diffractive mode (quick scene, reference integrator, short run):
+    # the pyramid in the loop, the optical-gain tracker, the settings recorded.
+    from aocontrol.study.compare import run_configuration
+
+    out = run_configuration(
+        "bright1-best",
+        controller="reference",
+        scheme="standalone",
+        seconds=0.05,
+        quick=True,
+        sensor="diffractive",
+        optical_gain="tracked",
+    )
+    assert out.settings["case_values"]["stage2"]["sensor"] == "diffractive"
+    meta = out.result.stages[1].metadata
+    assert meta["gain_tracker"] == "dither" and meta["gain_tracker_updates"] >= 1
+    assert 0.0 < out.summary["strehl"] < 1.0
+
+
+@pytest.mark.slow
+def test_two_pass_optical_gains_are_those_of_the_closed_loop_residual():
+    # The closed-loop residual (fitting error plus servo-lag and noise) is larger than the
+    # fitting error alone, so the two-pass gains are lower than the fitting-error ones
+    # (the pyramid's gains fall as the residual grows); they are what optical_gains gives
+    # around the first pass's residual maps by construction, so the check is on the physics.
+    from aocontrol.study.compare import two_pass_scene
+    from aocontrol.study.scene import build_scene
+
+    scene = build_scene("red5-best", quick=True)
+    two = two_pass_scene(scene, "standalone", scene.case.stage2.gain, seconds=0.05, seed=3)
+    og0, og1 = scene.stage2.optical_gain, two.stage2.optical_gain
+    assert np.median(og1) < np.median(og0)
+    np.testing.assert_allclose(two.stage2.sensor.noise_std * og1, scene.stage2.raw_noise_std)
+    assert two.stage1 is scene.stage1

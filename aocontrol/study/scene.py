@@ -147,6 +147,23 @@ class StageScene:
         """Measurement noise per mode seen by the controller [nm RMS per frame]."""
         return np.asarray(self.sensor.noise_std)
 
+    def with_optical_gains(self, optical_gain: np.ndarray) -> StageScene:
+        """The same stage with other calibrated optical gains (the compensated linear sensor
+        rebuilt from them).
+
+        Parameters
+        ----------
+        optical_gain : ndarray (n_modes,)
+            Optical gains, > 0.
+        """
+        og = np.asarray(optical_gain, dtype=float)
+        if og.shape != (self.n_modes,) or not np.all(og > 0):
+            raise ValueError(
+                f"optical_gain must be {self.n_modes} values > 0, got shape {og.shape}"
+            )
+        sensor = LinearModalSensor(np.ones(self.n_modes), self.raw_noise_std / og)
+        return dataclasses.replace(self, optical_gain=og, sensor=sensor)
+
     def loop_sensor(
         self, sensor: str | None = None, optical_gain: str | None = None
     ) -> tuple[Any, DitherGainTracker | None]:
@@ -156,8 +173,10 @@ class StageScene:
         ----------
         sensor : {"linear", "diffractive"}, optional
             Default ``spec.sensor``.
-        optical_gain : {"none", "calibrated", "tracked"}, optional
-            Default ``spec.optical_gain``.
+        optical_gain : {"none", "calibrated", "tracked", "two-pass"}, optional
+            Default ``spec.optical_gain`` ("two-pass" compensates :attr:`optical_gain` like
+            "calibrated": the scene's gains are then those of
+            :func:`aocontrol.study.compare.two_pass_scene`).
 
         Returns
         -------
@@ -191,8 +210,8 @@ class StageScene:
                 initial=np.clip(self.optical_gain, 0.05, 3.0),
             )
         if kind == "linear":
-            if handling == "calibrated":
-                return self.sensor, None
+            if handling in ("calibrated", "two-pass"):  # two-pass: self.optical_gain is the
+                return self.sensor, None  # closed-loop one (two_pass_scene)
             # the loop sees the (calibrated) gains: raw reconstructor
             return LinearModalSensor(self.optical_gain, self.raw_noise_std), tracker
         if self.wfs is None or self.calibration is None:
@@ -205,7 +224,9 @@ class StageScene:
                 self.calibration.recon,
                 photons=self.photons,
                 read_noise=self.spec.read_noise,
-                gain_compensation=self.optical_gain if handling == "calibrated" else None,
+                gain_compensation=(
+                    self.optical_gain if handling in ("calibrated", "two-pass") else None
+                ),
             ),
             tracker,
         )

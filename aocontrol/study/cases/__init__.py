@@ -171,10 +171,12 @@ class StageSpec:
     sensor : {"linear", "diffractive"}
         The sensor in the loop: the linear modal model (the fast default) or the diffractive
         pyramid model (a pyramid stage only; the Shack-Hartmann of stage 1 stays linear).
-    optical_gain : {"none", "calibrated", "tracked"}
+    optical_gain : {"none", "calibrated", "tracked", "two-pass"}
         Optical-gain handling: the raw reconstructor (the loop sees the true gains), the
-        compensation calibrated once around the fitting error, or tracked online (modal
-        dither, :class:`aocontrol.sim.DitherGainTracker`).
+        compensation calibrated once around the fitting error, tracked online (modal
+        dither, :class:`aocontrol.sim.DitherGainTracker`), or calibrated around the
+        closed-loop residual of a first run (``two-pass``,
+        :func:`aocontrol.study.compare.two_pass_scene`).
     """
 
     fs: float
@@ -385,7 +387,7 @@ _STAGE_SCHEMA: dict[str, tuple[str, bool]] = {
 }
 #: Sensors in the loop and optical-gain settings of a stage (keys ``sensor``, ``optical_gain``).
 SENSORS = ("linear", "diffractive")
-OPTICAL_GAIN_SETTINGS = ("none", "calibrated", "tracked")
+OPTICAL_GAIN_SETTINGS = ("none", "calibrated", "tracked", "two-pass")
 _SCHEMA["stage1"] = _STAGE_SCHEMA
 _SCHEMA["stage2"] = _STAGE_SCHEMA
 _TOP = {"name", "title", "base", "description"}
