@@ -264,9 +264,7 @@ def test_cascade_is_bit_identical_to_the_golden_run(scheme):
                 got = st.telemetry[name] if name in st.telemetry else getattr(st, name)
                 np.testing.assert_array_equal(np.asarray(got), z[key], err_msg=key)
         assert res.science.strehl == z[f"{scheme}/strehl"]
-        np.testing.assert_array_equal(
-            res.science.contrast_profile, z[f"{scheme}/contrast_profile"]
-        )
+        np.testing.assert_array_equal(res.science.contrast_profile, z[f"{scheme}/contrast_profile"])
 
 
 def test_result_round_trip(bases, tmp_path):

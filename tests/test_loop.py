@@ -13,7 +13,6 @@ from aocontrol.sim.loop import (
     LoopResult,
     ModalTimeSeries,
     Stage,
-    TurbulenceSource,
     run_loop,
 )
 
@@ -268,6 +267,7 @@ def test_engine_with_science_is_bit_identical_to_the_golden_run():
 
 def test_diffractive_loop_is_bit_identical_to_the_golden_run():
     import _golden_loop
+
     from aocontrol.sim.wfs import DiffractiveSensor
 
     def factory(wfs, recon, photons, read_noise):

@@ -53,8 +53,9 @@ def test_tracked_gains_converge_to_the_sensor_gains(latency):
     g = np.array([0.45, 0.8, 1.0, 1.3])
     n = 24000
     tracker = DitherGainTracker(amplitude=1.0, update_every=1000, memory=1e9)
-    stage = Stage(Integrator(0.3, fs=FS, n_modes=4), LinearModalSensor(g, 0.5), latency,
-                  gain_tracker=tracker)
+    stage = Stage(
+        Integrator(0.3, fs=FS, n_modes=4), LinearModalSensor(g, 0.5), latency, gain_tracker=tracker
+    )
     res = run_loop(stage, ModalTimeSeries(_red_modes(n, 4, 1, 3.0), fs=FS), n, rng=2)
     est = np.array(res.metadata["gain_tracker_estimate"])
     np.testing.assert_allclose(est, g, rtol=0.04)
@@ -88,8 +89,9 @@ def test_a_diverging_tracker_is_reported_and_not_used(caplog):
     # the compensation keeps its initial value, the rejections are counted and logged.
     n = 4000
     tracker = DitherGainTracker(amplitude=1.0, update_every=500, bounds=(0.9, 3.0))
-    stage = Stage(Integrator(0.3, fs=FS, n_modes=2), LinearModalSensor(0.5, 0.2), 0.83,
-                  gain_tracker=tracker)
+    stage = Stage(
+        Integrator(0.3, fs=FS, n_modes=2), LinearModalSensor(0.5, 0.2), 0.83, gain_tracker=tracker
+    )
     with caplog.at_level(logging.WARNING, logger="aocontrol.sim._gain_tracking"):
         res = run_loop(stage, ModalTimeSeries(_red_modes(n, 2, 5, 2.0), fs=FS), n, rng=1)
     assert res.metadata["gain_tracker_rejected"] == [8, 8]
@@ -102,8 +104,9 @@ def test_probed_modes_and_interpolation():
     g = np.array([0.4, 0.6, 0.8, 1.0])
     n = 20000
     tracker = DitherGainTracker(amplitude=1.0, update_every=1000, memory=1e9, modes=[0, 3])
-    stage = Stage(Integrator(0.3, fs=FS, n_modes=4), LinearModalSensor(g, 0.3), 0.83,
-                  gain_tracker=tracker)
+    stage = Stage(
+        Integrator(0.3, fs=FS, n_modes=4), LinearModalSensor(g, 0.3), 0.83, gain_tracker=tracker
+    )
     res = run_loop(stage, ModalTimeSeries(_red_modes(n, 4, 6, 2.0), fs=FS), n, rng=4)
     est = np.array(res.metadata["gain_tracker_estimate"])
     np.testing.assert_allclose(est[[0, 3]], g[[0, 3]], rtol=0.05)
@@ -168,12 +171,18 @@ def test_diffractive_stage_2_follows_the_linear_one_on_a_weak_residual(small_pyr
     coeffs = _red_modes(n, basis.n_modes, 7, 3.0)
 
     def run(sensor):
-        s1 = Stage(Integrator(0.3, fs=1000.0, n_modes=basis.n_modes), latency_frames=0.84,
-                   basis=basis, name="SAXO")
-        s2 = Stage(Integrator(0.4, fs=FS, n_modes=basis.n_modes), sensor, 0.83, basis=basis,
-                   name="SAXO+")
-        return run_cascade(s1, s2, _ModalPhase(basis, coeffs, FS), n, scheme=scheme,
-                           settle_frames=90)
+        s1 = Stage(
+            Integrator(0.3, fs=1000.0, n_modes=basis.n_modes),
+            latency_frames=0.84,
+            basis=basis,
+            name="SAXO",
+        )
+        s2 = Stage(
+            Integrator(0.4, fs=FS, n_modes=basis.n_modes), sensor, 0.83, basis=basis, name="SAXO+"
+        )
+        return run_cascade(
+            s1, s2, _ModalPhase(basis, coeffs, FS), n, scheme=scheme, settle_frames=90
+        )
 
     lin = run(LinearModalSensor(1.0, 0.0)).stages[1]
     dif = run(DiffractiveSensor(pyr, cal.recon)).stages[1]
@@ -204,10 +213,22 @@ def test_diffractive_optical_gains_measured_in_the_loop(small_pyramid):
     atm = Atmosphere(pupil, 0.3, [Layer(0.0, 1.0, 10.0, 25.0)], FS, rng=3)
     keep = _Keep()
     tracker = DitherGainTracker(amplitude=8.0, update_every=500, memory=1e9)
-    stage = Stage(Integrator(0.3, fs=FS, n_modes=basis.n_modes), DiffractiveSensor(pyr, cal.recon),
-                  0.83, basis=basis, gain_tracker=tracker)
-    res = run_loop(stage, TurbulenceSource(atm, basis), n, rng=5, science=keep,
-                   science_every=300, settle_frames=100)
+    stage = Stage(
+        Integrator(0.3, fs=FS, n_modes=basis.n_modes),
+        DiffractiveSensor(pyr, cal.recon),
+        0.83,
+        basis=basis,
+        gain_tracker=tracker,
+    )
+    res = run_loop(
+        stage,
+        TurbulenceSource(atm, basis),
+        n,
+        rng=5,
+        science=keep,
+        science_every=300,
+        settle_frames=100,
+    )
     maps = res.science
     assert np.sqrt(np.mean(pupil.to_vector(maps) ** 2)) > 300.0  # a strong residual [nm]
     og = optical_gains(pyr, basis, maps, recon=cal.recon, method="derivative")
@@ -224,7 +245,9 @@ def test_case_sensor_keys_are_validated():
     assert (case.stage2.sensor, case.stage2.optical_gain) == ("linear", "calibrated")
     c = apply_overrides(case, {"stage2.sensor": "diffractive", "stage2.optical_gain": "tracked"})
     assert (c.stage2.sensor, c.stage2.optical_gain) == ("diffractive", "tracked")
-    with pytest.raises(CaseError, match=r"stage2.sensor.*must be one of \['linear', 'diffractive'\]"):
+    with pytest.raises(
+        CaseError, match=r"stage2.sensor.*must be one of \['linear', 'diffractive'\]"
+    ):
         apply_overrides(case, {"stage2.sensor": "pyramid"})
     with pytest.raises(CaseError, match=r"stage1.sensor.*needs a pyramid WFS"):
         apply_overrides(case, {"stage1.sensor": "diffractive"})

@@ -124,9 +124,7 @@ class DitherGainTracker:
                 or np.any(idx < 0)
                 or np.any(np.diff(idx) <= 0)
             ):
-                raise ValueError(
-                    f"modes must be increasing mode indices >= 0, got {self.modes!r}"
-                )
+                raise ValueError(f"modes must be increasing mode indices >= 0, got {self.modes!r}")
             object.__setattr__(self, "modes", idx)
 
     def start(self, n_modes: int, rng: np.random.Generator) -> _TrackerRun:

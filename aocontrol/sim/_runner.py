@@ -164,9 +164,7 @@ class _StageRun:
         noise_std = np.asarray(self.sensor.noise_std, dtype=float)
         self.noisy = bool(np.any(noise_std > 0))
         self.tracker = (
-            None
-            if stage.gain_tracker is None
-            else stage.gain_tracker.start(n, rng.spawn(1)[0])
+            None if stage.gain_tracker is None else stage.gain_tracker.start(n, rng.spawn(1)[0])
         )
         self.e_prev = np.zeros(n)
         self.og = optical_gain

@@ -26,6 +26,7 @@ multiple of stage 1's, in the ``standalone`` or ``dcao`` scheme).
 """
 
 from aocontrol.sim._cascade import projection_matrix, run_cascade
+from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim._result import TELEMETRY, CascadeResult, LoopDivergedError, LoopResult
 from aocontrol.sim._runner import closed_loop_pole_radius, run_loop
 from aocontrol.sim._sources import (
@@ -35,7 +36,6 @@ from aocontrol.sim._sources import (
     PhaseSource,
     TurbulenceSource,
 )
-from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim._stage import DiffractiveSensor, Sensor, Stage
 from aocontrol.sim.wfs.sensors import LinearModalSensor
 

@@ -27,8 +27,9 @@ from __future__ import annotations
 
 import logging
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -61,9 +62,7 @@ class SensorRun(Protocol):
     def begin_chunk(self, m_chunk: int) -> None:
         """Prepare ``m_chunk`` frames."""
 
-    def read(
-        self, j: int, residual: np.ndarray, opd: Callable[[], np.ndarray]
-    ) -> np.ndarray:
+    def read(self, j: int, residual: np.ndarray, opd: Callable[[], np.ndarray]) -> np.ndarray:
         """Measurement ``(n_modes,)`` [nm] of frame ``j`` of the chunk."""
 
 
@@ -473,9 +472,7 @@ class DiffractiveSensor:
                 f"{b_pupil}"
             )
 
-    def start(
-        self, n_modes: int, rng: np.random.Generator, pupil: Any = None
-    ) -> _DiffractiveRun:
+    def start(self, n_modes: int, rng: np.random.Generator, pupil: Any = None) -> _DiffractiveRun:
         """Per-run state (sensor protocol).
 
         With detector noise, the modal noise level (for the divergence guard only) comes from
