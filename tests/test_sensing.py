@@ -190,6 +190,34 @@ def test_diffractive_stage_2_follows_the_linear_one_on_a_weak_residual(small_pyr
     assert np.max(lin.residual_variance) > 0.1  # not a trivially flat run
 
 
+def test_diffractive_stage_1_integrates_its_frame(small_pyramid):
+    # Stage 1 (a third of the rate) with the pyramid: its WFS sees the mean residual map of
+    # its frame, which on a weak residual inside the basis measures the frame-mean modal
+    # residual: the same statistics as a unit-gain linear stage 1 (tolerance as above).
+    pupil, basis, pyr, cal = small_pyramid
+    n = 900
+    coeffs = _red_modes(n, basis.n_modes, 8, 3.0)
+
+    def run(sensor):
+        s1 = Stage(
+            Integrator(0.4, fs=1000.0, n_modes=basis.n_modes),
+            sensor,
+            0.84,
+            basis=basis,
+            name="SAXO",
+        )
+        s2 = Stage(Integrator(0.3, fs=FS, n_modes=basis.n_modes), latency_frames=0.83, basis=basis)
+        res = run_cascade(
+            s1, s2, _ModalPhase(basis, coeffs, FS), n, scheme="standalone", settle_frames=90
+        )
+        return res.stages[0]
+
+    lin = run(LinearModalSensor(1.0, 0.0))
+    dif = run(DiffractiveSensor(pyr, cal.recon))
+    np.testing.assert_allclose(dif.residual_variance, lin.residual_variance, rtol=0.02)
+    assert np.max(lin.residual_variance) > 0.1
+
+
 def test_diffractive_optical_gains_measured_in_the_loop(small_pyramid):
     # Oracle: on a strong residual (turbulence far beyond the 6 corrected modes: ~0.4 um of
     # fitting error, the pyramid well out of its linear range) the optical gains measured in
