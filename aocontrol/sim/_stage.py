@@ -74,7 +74,7 @@ class Stage:
     dm_stroke: float | None = None
     m2c: Any = None
     name: str = "stage"
-    basis: Any = None
+    basis: Any = field(default=None, repr=False, compare=False)
     gain_tracker: DitherGainTracker | None = None
     dm: ModalDM = field(init=False, repr=False, compare=False)
     delay: tuple = field(init=False, repr=False, compare=False)
