@@ -124,6 +124,7 @@ def test_probed_modes_and_interpolation():
         ({"bounds": (1.0, 0.5)}, "bounds must be"),
         ({"initial": 5.0}, "initial must be within bounds"),
         ({"modes": [3, 1]}, "modes must be increasing"),
+        ({"precision": 1.5}, "precision must be in"),
     ],
 )
 def test_tracker_bad_input(kwargs, match):
@@ -360,3 +361,21 @@ def test_two_pass_optical_gains_are_those_of_the_closed_loop_residual():
     assert np.median(og1) < np.median(og0)
     np.testing.assert_allclose(two.stage2.sensor.noise_std * og1, scene.stage2.raw_noise_std)
     assert two.stage1 is scene.stage1
+
+
+def test_an_imprecise_estimate_is_not_used():
+    # A dither far below the measurement noise: after 2000 frames the estimate's relative
+    # error (~ sigma_m / (a sqrt(N)) ~ 10 / (0.2 * 45) ~ 1) is far above 10 %: the tracker
+    # keeps its initial gains instead of compensating with a random number.
+    n = 2000
+    tracker = DitherGainTracker(amplitude=0.2, update_every=500, initial=0.7)
+    stage = Stage(
+        Integrator(0.3, fs=FS, n_modes=2),
+        LinearModalSensor(0.5, 10.0),
+        0.83,
+        gain_tracker=tracker,
+    )
+    res = run_loop(stage, ModalTimeSeries(_red_modes(n, 2, 9, 2.0), fs=FS), n, rng=1)
+    assert res.metadata["gain_tracker_estimate"] == [0.7, 0.7]
+    assert res.metadata["gain_tracker_imprecise_modes"] == 2
+    assert res.metadata["gain_tracker_rejected"] == [0, 0]

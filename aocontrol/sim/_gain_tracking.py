@@ -45,7 +45,10 @@ beyond the ends), as the optical gains vary smoothly with the spatial frequency.
 
 The estimate is refreshed every ``update_every`` frames from sums with exponential forgetting
 (``memory`` windows) and divides the sensor's output before the controller (modal gain
-compensation). An estimate that is not finite or outside ``bounds`` (a diverging tracker) is
+compensation). A mode's estimate is used only once its relative standard error, estimated from
+the same sums (``sqrt(sum (m w)^2) / |sum m w|``, the frames taken as independent), is below
+``precision``: an imprecise estimate would over-compensate as often as under-compensate, and an
+over-compensated loop can go unstable (faint stars: ``sigma_m`` large, see the error above). An estimate that is not finite or outside ``bounds`` (a diverging tracker) is
 not used: the previous value is kept, the modes are logged and counted in the result's
 metadata (``gain_tracker_rejected``).
 """
@@ -85,6 +88,8 @@ class DitherGainTracker:
         interpolated.
     initial : float or array_like (n_modes,)
         Gains assumed before the first estimate (e.g. calibrated ones), in ``bounds``.
+    precision : float
+        Relative standard error below which a mode's estimate is used, in (0, 1).
 
     Raises
     ------
@@ -98,6 +103,7 @@ class DitherGainTracker:
     bounds: tuple = (0.05, 3.0)
     modes: Any = None
     initial: Any = 1.0
+    precision: float = 0.1
 
     def __post_init__(self) -> None:
         a = check_finite_array("amplitude", self.amplitude, ndim=(0, 1))
@@ -111,6 +117,8 @@ class DitherGainTracker:
         check_positive("bounds[0]", lo)
         if not hi > lo:
             raise ValueError(f"bounds must be (low, high) with 0 < low < high, got {self.bounds!r}")
+        if not 0.0 < float(self.precision) < 1.0:
+            raise ValueError(f"precision must be in (0, 1), got {self.precision!r}")
         g0 = check_finite_array("initial", self.initial, ndim=(0, 1))
         if g0.size == 0 or np.any(g0 < lo) or np.any(g0 > hi):
             raise ValueError(f"initial must be within bounds {self.bounds!r}, got {self.initial!r}")
@@ -165,11 +173,14 @@ class _TrackerRun:
         self.gain = gain
         self.num = np.zeros(n)
         self.den = np.zeros(n)
+        self.sq = np.zeros(n)
         self.num_tot = np.zeros(n)
         self.den_tot = np.zeros(n)
+        self.sq_tot = np.zeros(n)
         self.frames = 0
         self.history: list[np.ndarray] = []
         self.rejected = np.zeros(n, dtype=int)
+        self.imprecise = 0  # probed modes whose last estimate was not precise enough
         self.w = np.zeros((0, n))
 
     def begin_chunk(self, m_chunk: int) -> None:
@@ -180,8 +191,10 @@ class _TrackerRun:
         """Accumulate a frame's raw measurement against its instrument, the previous dither."""
         z = self.w_prev
         if z is not None:
-            self.num -= m_raw * z
+            mz = m_raw * z
+            self.num -= mz
             self.den += z * z
+            self.sq += mz * mz
         self.frames += 1
         if self.frames % self.cfg.update_every == 0:
             self._update()
@@ -195,14 +208,18 @@ class _TrackerRun:
         rho = 1.0 - 1.0 / float(self.cfg.memory)
         self.num_tot = rho * self.num_tot + self.num
         self.den_tot = rho * self.den_tot + self.den
+        self.sq_tot = rho * rho * self.sq_tot + self.sq  # variance weights: rho^2
         self.num[:] = 0.0
         self.den[:] = 0.0
+        self.sq[:] = 0.0
         lo, hi = self.cfg.bounds
         p = self.probed
         num, den = self.num_tot[p], self.den_tot[p]
         with np.errstate(divide="ignore", invalid="ignore"):
             est = num / den
-        ok = np.isfinite(est) & (den > 0) & (est >= lo) & (est <= hi)
+            rel_se = np.sqrt(self.sq_tot[p]) / np.abs(num)
+        precise = rel_se < self.cfg.precision  # not yet precise: keep the previous value
+        ok = ~precise | (np.isfinite(est) & (den > 0) & (est >= lo) & (est <= hi))
         if not ok.all():
             bad = p[~ok]
             self.rejected[bad] += 1
@@ -212,7 +229,8 @@ class _TrackerRun:
                 self.cfg.bounds,
                 bad[:10].tolist(),
             )
-        probed_gain = np.where(ok, est, self.gain[p])
+        self.imprecise = int(np.count_nonzero(~precise))
+        probed_gain = np.where(ok & precise, est, self.gain[p])
         if p.size == self.gain.size:
             self.gain = probed_gain
         else:  # the other modes: linear in mode index between the probed ones
@@ -226,5 +244,6 @@ class _TrackerRun:
             "gain_tracker_estimate": self.gain.tolist(),
             "gain_tracker_updates": len(self.history),
             "gain_tracker_rejected": self.rejected.tolist(),
+            "gain_tracker_imprecise_modes": self.imprecise,
             "gain_tracker_history": [h.tolist() for h in self.history],
         }

@@ -86,10 +86,12 @@ _OG_SCREENS = 2
 _CAL_AMPLITUDE = 10.0
 # Optical-gain tracking ("tracked"): dithered modes (log-spaced in order, where the gains
 # vary fastest), dither amplitude [nm] (cost: n_probes * a^2 of residual variance, ~60 nm^2,
-# a few per cent of a faint case's residual) and update period [s].
+# a few per cent of a faint case's residual), update period [s] and memory (updates: a 2-s
+# horizon). An estimate is used once its relative error is < 10 % (DitherGainTracker).
 _DITHER_PROBES = 16
 _DITHER_NM = 2.0
 _DITHER_UPDATE_S = 0.1
+_DITHER_MEMORY = 20.0
 _CACHE: dict[str, Scene] = {}
 _GEOMETRY_CACHE: dict[str, dict] = {}
 
@@ -206,6 +208,7 @@ class StageScene:
             tracker = DitherGainTracker(
                 amplitude=_DITHER_NM,
                 update_every=max(10, int(round(_DITHER_UPDATE_S * self.fs))),
+                memory=_DITHER_MEMORY,
                 modes=probes,
                 initial=np.clip(self.optical_gain, 0.05, 3.0),
             )
