@@ -48,8 +48,10 @@ The estimate is refreshed every ``update_every`` frames from sums with exponenti
 compensation). A mode's estimate is used only once its relative standard error, estimated from
 the same sums (``sqrt(sum (m w)^2) / |sum m w|``, the frames taken as independent), is below
 ``precision``: an imprecise estimate would over-compensate as often as under-compensate, and an
-over-compensated loop can go unstable (faint stars: ``sigma_m`` large, see the error above). An estimate that is not finite or outside ``bounds`` (a diverging tracker) is
-not used: the previous value is kept, the modes are logged and counted in the result's
+over-compensated loop can go unstable (faint stars: ``sigma_m`` large, see the error above);
+the count of such modes is in the result's metadata (``gain_tracker_imprecise_modes``). A
+precise estimate that is not finite or outside ``bounds`` (a diverging tracker) is not used
+either: the previous value is kept, the modes are logged and counted in the result's
 metadata (``gain_tracker_rejected``).
 """
 
