@@ -379,3 +379,19 @@ def test_an_imprecise_estimate_is_not_used():
     assert res.metadata["gain_tracker_estimate"] == [0.7, 0.7]
     assert res.metadata["gain_tracker_imprecise_modes"] == 2
     assert res.metadata["gain_tracker_rejected"] == [0, 0]
+
+
+def test_cli_sensor_options(capsys):
+    from aocontrol.study.cli import main
+
+    for command in ("run", "compare"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        out = capsys.readouterr().out
+        assert "--sensor {linear,diffractive}" in out
+        assert "--optical-gain {none,calibrated,tracked,two-pass}" in out
+    with pytest.raises(SystemExit) as info:
+        main(["run", "bright1-best", "--controller", "reference", "--scheme", "dcao",
+              "--sensor", "pyramid"])  # fmt: skip
+    assert info.value.code == 2
+    assert "invalid choice: 'pyramid'" in capsys.readouterr().err
