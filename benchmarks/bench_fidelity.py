@@ -10,6 +10,7 @@
     calibration telemetry vs measured.
 
     .venv/bin/python benchmarks/bench_fidelity.py [--quick] [--cost-only] [--seconds S]
+        [--cases red5-best,bright1-best]
 
 ``--quick``: quick scenes (24 stage-2 modes), 0.1-s exposures, one case, one scheme.
 """
@@ -131,13 +132,16 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="quick scenes, short runs")
     parser.add_argument("--cost-only", action="store_true", help="only part (a)")
     parser.add_argument("--seconds", type=float, default=None, help="exposure [s]")
+    parser.add_argument("--cases", default=None, help="comma-separated cases of part (b)")
     args = parser.parse_args()
     quick = args.quick
-    cost("red5-best", quick, 300 if quick else 600)
+    if not args.cases:
+        cost("red5-best", quick, 300 if quick else 600)
     if args.cost_only:
         return
     seconds = args.seconds or (0.1 if quick else 5.0)
-    fidelity(quick, seconds, CASES[:1] if quick else CASES, SCHEMES[:1] if quick else SCHEMES)
+    cases = tuple(args.cases.split(",")) if args.cases else (CASES[:1] if quick else CASES)
+    fidelity(quick, seconds, cases, SCHEMES[:1] if quick else SCHEMES)
 
 
 if __name__ == "__main__":
