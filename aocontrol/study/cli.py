@@ -198,6 +198,8 @@ def _run(args: argparse.Namespace) -> int:
             overrides=None,
             quick=args.quick,
             progress=not args.no_progress,
+            sensor=args.sensor,
+            optical_gain=args.optical_gain,
             **options,
         )
     except RuntimeError as exc:
@@ -256,7 +258,12 @@ def _compare(args: argparse.Namespace) -> int:
     out = _out_dir(args.out)
     try:
         comparison = compare.compare_case(
-            case, quick=args.quick, results_dir=out, progress=not args.no_progress
+            case,
+            quick=args.quick,
+            results_dir=out,
+            progress=not args.no_progress,
+            sensor=args.sensor,
+            optical_gain=args.optical_gain,
         )
     except RuntimeError as exc:
         raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
@@ -698,6 +705,22 @@ def _parser() -> argparse.ArgumentParser:
     def no_progress(p: argparse.ArgumentParser) -> None:
         p.add_argument("--no-progress", action="store_true", help="hide progress bars")
 
+    def sensor_options(p: argparse.ArgumentParser) -> None:
+        from aocontrol.study.cases import OPTICAL_GAIN_SETTINGS, SENSORS
+
+        p.add_argument(
+            "--sensor",
+            choices=SENSORS,
+            default=None,
+            help="stage-2 sensor in the loop (default: the case's, linear)",
+        )
+        p.add_argument(
+            "--optical-gain",
+            choices=OPTICAL_GAIN_SETTINGS,
+            default=None,
+            help="stage-2 optical-gain handling (default: the case's, calibrated)",
+        )
+
     add("cases", _cases, "list the science cases and their parameters")
 
     p = add("run", _run, "simulate one case with one controller; write a results file")
@@ -724,12 +747,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results", help="folder of the results file and plots")
     p.add_argument("--quick", action="store_true", help="reduced modes and pupil (smoke runs)")
     p.add_argument("--telemetry", action="store_true", help="also store the telemetry")
+    sensor_options(p)
     no_progress(p)
 
     p = add("compare", _compare, "the paper's comparison of one case: table, plots, HTML report")
     p.add_argument("case", help="science case name (see 'aocontrol cases')")
     p.add_argument("--quick", action="store_true", help="short, reduced runs")
     p.add_argument("--out", default="compare-output", help="folder of the table and plots")
+    sensor_options(p)
     no_progress(p)
 
     p = add("design", _design, "design a controller bank from closed-loop telemetry")

@@ -56,6 +56,7 @@ from aocontrol.study._registry import (
     DesignInputs,
     register_controller,
 )
+from aocontrol.study._two_pass import two_pass_scene
 from aocontrol.study.cases import Case, apply_overrides, load_case
 from aocontrol.study.scene import Scene, StageScene, build_scene
 from aocontrol.synthesis import (
@@ -78,6 +79,7 @@ __all__ = [
     "run_configuration",
     "prewhitened_disturbance",
     "table_from_files",
+    "two_pass_scene",
 ]
 
 logger = logging.getLogger(__name__)
@@ -139,14 +141,17 @@ def _frames(scene: Scene, seconds: float) -> int:
 
 
 def _stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
+    # The sensor in the loop and its optical-gain handling: the case's stage settings.
     stroke = st.spec.dm_stroke
+    sensor, tracker = st.loop_sensor()
     return Stage(
         controller,
-        st.sensor,
+        sensor,
         st.spec.latency_frames,
         dm_stroke=None if stroke is None else stroke * 1e9,
-        m2c=None if stroke is None else st.basis.m2c,
         name=name,
+        basis=st.basis,
+        gain_tracker=tracker,
     )
 
 
@@ -165,7 +170,7 @@ def _simulate(
     seconds: float,
     seed: int,
     *,
-    science: bool = True,
+    science: Any = True,
     record: tuple[str, ...] = ("measurements", "commands", "residuals"),
     progress: bool = False,
     metadata: dict | None = None,
@@ -175,7 +180,8 @@ def _simulate(
     n = settle + _frames(scene, seconds)
     seeds = np.random.SeedSequence([seed, 7])
     atm_rng, noise_rng = (np.random.default_rng(s) for s in seeds.spawn(2))
-    camera = scene.camera().long_exposure() if science else None
+    # science: True for the camera, False for none, or an accumulator (add(maps), result()).
+    camera = scene.camera().long_exposure() if science is True else (science or None)
     s2 = _stage(scene.stage2, controller, "stage 2")
     if scheme == "single":
         return run_loop(
@@ -222,6 +228,16 @@ def _summary(result: Any) -> dict:
         "mean_contrast_4_6": float(sci.mean_contrast_4_6) if sci is not None else math.nan,
         "residual_rms_nm": float(_stage2_result(result).residual_rms),
     }
+
+
+def _sensor_overrides(sensor: str | None, optical_gain: str | None) -> dict:
+    """Case overrides of stage 2's sensor settings (validated by the case loader)."""
+    out = {}
+    if sensor is not None:
+        out["stage2.sensor"] = sensor
+    if optical_gain is not None:
+        out["stage2.optical_gain"] = optical_gain
+    return out
 
 
 def _check_names(controller: str, scheme: str) -> ControllerSpec:
@@ -348,6 +364,8 @@ def run_configuration(
     quick: bool = False,
     progress: bool = False,
     design: DesignInputs | None = None,
+    sensor: str | None = None,
+    optical_gain: str | None = None,
 ) -> RunOutcome:
     """Run one configuration: a case, a stage-2 controller and a scheme.
 
@@ -372,6 +390,11 @@ def run_configuration(
         Progress bar on the exposure.
     design : DesignInputs, optional
         Reuse these design inputs instead of a new calibration run.
+    sensor : {"linear", "diffractive"}, optional
+        Stage 2's sensor in the loop (default the case's ``[stage2] sensor``, "linear").
+    optical_gain : {"none", "calibrated", "tracked", "two-pass"}, optional
+        Stage 2's optical-gain handling (default the case's, "calibrated"); "two-pass" first
+        runs :func:`two_pass_scene` (seed ``seed + 3000``).
 
     Returns
     -------
@@ -388,9 +411,13 @@ def run_configuration(
     if not (isinstance(seconds, (int, float)) and seconds > 0):
         raise ValueError(f"seconds must be > 0, got {seconds!r}")
     base = load_case(case)
+    overrides = dict(overrides or {}, **_sensor_overrides(sensor, optical_gain))
     c = apply_overrides(base, overrides)
     scene = build_scene(c, quick=quick)
     gain = c.stage2.gain
+    if c.stage2.optical_gain == "two-pass":
+        cal = calibration_seconds(scene, quick)
+        scene = two_pass_scene(scene, scheme, gain, seconds=cal, seed=seed + 3000)
     if design is None and spec.needs_telemetry:
         cal = calibration_seconds(scene, quick)
         design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed + 1000)
@@ -586,6 +613,8 @@ def compare_case(
     gain_grid: Sequence[float] | None = None,
     results_dir: str | os.PathLike | None = None,
     progress: bool = False,
+    sensor: str | None = None,
+    optical_gain: str | None = None,
 ) -> CaseComparison:
     """The paper's protocol on one case (module docstring).
 
@@ -608,6 +637,9 @@ def compare_case(
         Write one results file per configuration there (:mod:`aocontrol.study.results`).
     progress : bool
         Log progress at INFO level and show bars on the exposures.
+    sensor, optical_gain : str, optional
+        Stage 2's sensor and optical-gain handling (:func:`run_configuration`); the gain scan,
+        calibration run and exposures all use them.
 
     Returns
     -------
@@ -617,7 +649,7 @@ def compare_case(
         _check_names(name, "single")
     for s in schemes:
         _check_names("reference", s)
-    c = load_case(case)
+    c = apply_overrides(load_case(case), _sensor_overrides(sensor, optical_gain))
     scene = build_scene(c, quick=quick)
     exposure = seconds if seconds is not None else (0.5 if quick else c.science.exposure)
     scan_s = _QUICK_SCAN_SECONDS if quick else _SCAN_SECONDS
