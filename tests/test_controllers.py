@@ -76,7 +76,9 @@ def _documented_order(b, a, x, stroke=None):
     return np.array(out)
 
 
-@pytest.mark.parametrize(("nb", "na", "stroke"), [(6, 6, None), (2, 6, None), (6, 2, 1.5), (1, 1, None)])
+@pytest.mark.parametrize(
+    ("nb", "na", "stroke"), [(6, 6, None), (2, 6, None), (6, 2, 1.5), (1, 1, None)]
+)
 def test_step_is_bit_identical_to_its_documented_summation_order(nb, na, stroke):
     # Two implementations of the one documented order (vectorised circular buffer vs a scalar
     # loop per mode and tap) agree bit for bit, whatever the lengths of b and a (the shorter
