@@ -26,14 +26,17 @@ of the settings as sorted, compact JSON (floats with an integral value hashed as
 file or a new software version does not rename its runs; sweep into a new folder then.
 
 Execution: every run whose file is missing is submitted to a Dask cluster (a ``LocalCluster``
-of 2 processes with 1 thread each by default, or the scheduler at ``scheduler=``; a remote
-cluster's workers must see ``out`` on a shared file system). The *worker* writes the result in
+of 2 processes with 1 thread each by default, each with its share of the cores as BLAS threads,
+or the scheduler at ``scheduler=``; a remote cluster's workers must see ``out`` on a shared file
+system). The *worker* writes the result in
 ``out/.partial/`` and renames it to ``out/<hash>.h5`` when complete, so a file with a final name
 is always complete and a killed sweep loses at most the runs in flight; run it again and it
 skips what exists. A run that raises leaves ``out/<hash>.error.json`` (settings, error,
 traceback) instead of a result, and the other runs go on. The runs of one case go to one
-worker where possible (each worker process caches the scenes it builds). Start one sweep per
-folder at a time: a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
+worker where possible (each worker process caches the scenes it builds in memory; their
+calibrations are also cached on disk, :mod:`aocontrol.study._cache`, so that a scene built by
+one worker or an earlier sweep is read, not built again). Start one sweep per folder at a time:
+a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
 The summary table (:func:`summary_table`, one row per file, also written to
 ``out/summary.csv``) is rebuilt from the files alone.
@@ -86,6 +89,7 @@ __all__ = [
     "run_sweep",
     "summary_table",
     "default_runner",
+    "blas_threads_per_worker",
 ]
 
 logger = logging.getLogger(__name__)
@@ -94,6 +98,8 @@ logger = logging.getLogger(__name__)
 PARTIAL_DIR = ".partial"
 #: Seconds to wait for a scheduler at ``scheduler=`` before failing.
 CONNECT_TIMEOUT_S = 5.0
+# Thread-count variables of the BLAS and OpenMP libraries numpy and scipy may use.
+_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 # ------------------------------------------------------------------------------------ runners
@@ -328,24 +334,72 @@ class SweepReport:
     wall_s: float
 
 
+#: Loggers of the Dask machinery kept quiet around a sweep's own local cluster.
+_DASK_LOGGERS = ("distributed", "tornado", "asyncio")
+
+
+def _set_levels(levels: Mapping[str, int]) -> dict[str, int]:
+    """Set logger levels; return the previous ones."""
+    old = {}
+    for name, level in levels.items():
+        log = logging.getLogger(name)
+        old[name] = log.level
+        log.setLevel(level)
+    return old
+
+
+def blas_threads_per_worker(n_workers: int) -> int:
+    """BLAS/OpenMP threads of each local worker process: the cores shared among the workers.
+
+    One thread per worker when the cluster has as many workers as cores (or more): two
+    processes each running a multi-threaded BLAS on two cores slow each other down.
+
+    Parameters
+    ----------
+    n_workers : int
+        Worker processes of the local cluster.
+    """
+    return max(1, (os.cpu_count() or 1) // n_workers)
+
+
 def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
+    """A client of the scheduler at ``scheduler`` or of a new local cluster (see run_sweep).
+
+    The local cluster: ``n_workers`` processes of one thread, without work stealing, with
+    :func:`blas_threads_per_worker` BLAS threads each (set in their environment before they
+    start, so numpy's BLAS reads it). Unless aocontrol logs at INFO (``aocontrol -v``), Dask's
+    own INFO messages (scheduler, nannies, connections) are not shown, and the shutdown, after
+    every result is in, is silent (a worker slow to exit is killed by its nanny, harmless).
+    Closed in order: the client, then the cluster.
+    """
     from distributed import Client, LocalCluster
 
     if scheduler is None:
         import dask
 
+        verbose = logging.getLogger("aocontrol").isEnabledFor(logging.INFO)
+        if not verbose:
+            old = _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.WARNING))
+            stack.callback(_set_levels, old)
+        threads = str(blas_threads_per_worker(n_workers))
+        environ = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _BLAS_VARS}
         # no work stealing: a run stays on the worker holding its case's scene (_case_affinity)
-        stack.enter_context(dask.config.set({"distributed.scheduler.work-stealing": False}))
+        stack.enter_context(
+            dask.config.set({"distributed.scheduler.work-stealing": False, **environ})
+        )
         cluster = stack.enter_context(
             LocalCluster(
                 n_workers=n_workers,
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=None,
-                silence_logs=logging.ERROR,
+                silence_logs=logging.WARNING if verbose else logging.CRITICAL,
             )
         )
-        return stack.enter_context(Client(cluster))
+        client = stack.enter_context(Client(cluster))
+        if not verbose:  # runs first on exit: the shutdown is silent
+            stack.callback(_set_levels, dict.fromkeys(_DASK_LOGGERS, logging.CRITICAL + 1))
+        return client
     if isinstance(scheduler, Client):
         return scheduler
     if not isinstance(scheduler, str) or not scheduler:
