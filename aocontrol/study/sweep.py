@@ -533,8 +533,8 @@ def run_sweep(
                     key=f"aocontrol-run-{r.hash}-{token}",
                     pure=False,
                     retries=0,
-                    workers=[where] if where else None,
-                    allow_other_workers=True,
+                    # (a restriction only with affinity: Dask refuses allow_other_workers alone)
+                    **({"workers": [where], "allow_other_workers": True} if where else {}),
                 )
                 futures[fut] = r
             bar = None
