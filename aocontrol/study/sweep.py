@@ -44,6 +44,7 @@ The summary table (:func:`summary_table`, one row per file, also written to
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -55,7 +56,7 @@ import sys
 import time
 import traceback
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -90,6 +91,7 @@ __all__ = [
     "summary_table",
     "default_runner",
     "blas_threads_per_worker",
+    "local_cluster",
 ]
 
 logger = logging.getLogger(__name__)
@@ -362,42 +364,71 @@ def blas_threads_per_worker(n_workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // n_workers)
 
 
-def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
-    """A client of the scheduler at ``scheduler`` or of a new local cluster (see run_sweep).
+def _verbose() -> bool:
+    """aocontrol logs at INFO (``aocontrol -v``): Dask's messages are shown too."""
+    return logging.getLogger("aocontrol").isEnabledFor(logging.INFO)
 
-    The local cluster: ``n_workers`` processes of one thread, without work stealing, with
-    :func:`blas_threads_per_worker` BLAS threads each (set in their environment before they
-    start, so numpy's BLAS reads it). Unless aocontrol logs at INFO (``aocontrol -v``), Dask's
-    own INFO messages (scheduler, nannies, connections) are not shown, and the shutdown, after
-    every result is in, is silent (a worker slow to exit is killed by its nanny, harmless).
-    Closed in order: the client, then the cluster.
+
+@contextlib.contextmanager
+def local_cluster(n_workers: int = 2) -> Iterator[Any]:
+    """The local Dask cluster of :func:`run_sweep` (also for running several sweeps on one).
+
+    ``n_workers`` processes of one thread, without work stealing (runs stay on the worker
+    holding their case's scene), each with :func:`blas_threads_per_worker` BLAS threads (set
+    in its environment before it starts, so that numpy's BLAS reads it). Unless aocontrol logs
+    at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies, connections) are
+    not shown and the shutdown, after every result is in, is silent (a worker slow to exit is
+    killed by its nanny: harmless then).
+
+    Parameters
+    ----------
+    n_workers : int, default 2
+        Worker processes.
+
+    Yields
+    ------
+    distributed.LocalCluster
     """
-    from distributed import Client, LocalCluster
+    import dask
+    from distributed import LocalCluster
 
-    if scheduler is None:
-        import dask
-
-        verbose = logging.getLogger("aocontrol").isEnabledFor(logging.INFO)
-        if not verbose:
-            old = _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.WARNING))
-            stack.callback(_set_levels, old)
-        threads = str(blas_threads_per_worker(n_workers))
-        environ = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _BLAS_VARS}
-        # no work stealing: a run stays on the worker holding its case's scene (_case_affinity)
-        stack.enter_context(
-            dask.config.set({"distributed.scheduler.work-stealing": False, **environ})
-        )
-        cluster = stack.enter_context(
+    verbose = _verbose()
+    threads = str(blas_threads_per_worker(n_workers))
+    config = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _BLAS_VARS}
+    config["distributed.scheduler.work-stealing"] = False
+    old = None if verbose else _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.WARNING))
+    try:
+        with (
+            dask.config.set(config),
             LocalCluster(
                 n_workers=n_workers,
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=None,
                 silence_logs=logging.WARNING if verbose else logging.CRITICAL,
-            )
-        )
+            ) as cluster,
+        ):
+            try:
+                yield cluster
+            finally:
+                if not verbose:
+                    _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.CRITICAL + 1))
+    finally:
+        if old is not None:
+            _set_levels(old)
+
+
+def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
+    """A client of the scheduler at ``scheduler`` or of a new :func:`local_cluster`.
+
+    Closed in order: the client, then the cluster (the shutdown silent, see local_cluster).
+    """
+    from distributed import Client
+
+    if scheduler is None:
+        cluster = stack.enter_context(local_cluster(n_workers))
         client = stack.enter_context(Client(cluster))
-        if not verbose:  # runs first on exit: the shutdown is silent
+        if not _verbose():  # runs first on exit: the client's closing is silent too
             stack.callback(_set_levels, dict.fromkeys(_DASK_LOGGERS, logging.CRITICAL + 1))
         return client
     if isinstance(scheduler, Client):
