@@ -278,7 +278,9 @@ def test_real_runs_write_results_files_that_the_summary_reads(tmp_path, schedule
     again = run_sweep(spec, out=out, scheduler="tcp://127.0.0.1:9")
     assert again.ran == () and again.skipped == (hash_,)
     # two paths: the same run in this process gives the same figures as the cluster's worker
-    # (bit for bit: same settings, same seed; the calibrations from the shared disk cache)
+    # (same settings, same seed, the calibrations from the shared disk cache). To rounding:
+    # the worker's BLAS has one thread and this process's every core, which splits the
+    # reductions of a matrix product differently (measured: the last bit of the RMS).
     from aocontrol.study.sweep import default_runner
 
     runner = default_runner()
@@ -288,7 +290,7 @@ def test_real_runs_write_results_files_that_the_summary_reads(tmp_path, schedule
     runner.run(dict(settings), local / f"{hash_}.h5")
     (local_row,) = summary_table(local, csv_path=None)
     for key in ("strehl", "mean_contrast_4_6", "residual_rms_nm"):
-        assert local_row[key] == row[key], key
+        assert local_row[key] == pytest.approx(row[key], rel=1e-12, abs=0), key
 
 
 def test_real_spec_typos_name_the_valid_cases_and_keys(tmp_path):
