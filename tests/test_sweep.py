@@ -349,4 +349,5 @@ def test_successful_cli_sweep_prints_no_traceback_and_no_dask_info(tmp_path):
     assert "1 run, 0 already present, 0 failed" in proc.stdout
     assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
     assert "CommClosedError" not in proc.stderr
+    assert "Warning" not in proc.stderr, proc.stderr[-3000:]  # e.g. a busy dashboard port
     assert not [line for line in proc.stderr.splitlines() if line.startswith("INFO")]

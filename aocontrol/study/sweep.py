@@ -405,6 +405,9 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=None,
+                # no dashboard; the scheduler's HTTP endpoints on a free local port (the
+                # default 8787 may be taken: Dask then warns on stderr)
+                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                 silence_logs=logging.WARNING if verbose else logging.CRITICAL,
             ) as cluster,
         ):
