@@ -306,13 +306,17 @@ def test_real_spec_typos_name_the_valid_cases_and_keys(tmp_path):
         load_sweep_spec(_write(tmp_path, text, "typo.toml"))
 
 
-def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(tmp_path, caplog, capfd):
+def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(
+    tmp_path, caplog, capfd, monkeypatch
+):
     # run_sweep's own local cluster: each worker has cores // workers BLAS threads, set before
     # the worker starts (one worker: every core, where Dask's default would give it one; as
     # many workers as cores: one each); Dask's INFO messages are not shown when aocontrol is
     # not verbose, and the shutdown leaves no traceback.
     text = 'cases = ["alpha"]\ncontrollers = ["c"]\nschemes = ["s"]\nseeds = [0, 1, 2, 3]\n'
     runner = SweepRunner(run=environment_run, read=environment_row)
+    for var in BLAS_VARS:  # a value set by the user (or left by another cluster) would win
+        monkeypatch.delenv(var, raising=False)
     with caplog.at_level(logging.WARNING, logger="aocontrol"):
         report = run_sweep(_write(tmp_path, text), out=tmp_path / "out", runner=runner, n_workers=1)
     assert report.failed == () and len(report.ran) == 4
@@ -320,6 +324,7 @@ def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(tmp_path
     for row in report.table:
         assert {k: row[f"env.{k}"] for k in BLAS_VARS} == dict.fromkeys(BLAS_VARS, want)
     assert blas_threads_per_worker(os.cpu_count() or 1) == 1
+    assert not set(BLAS_VARS) & set(os.environ)  # this process's environment left as it was
     assert blas_threads_per_worker(1) == (os.cpu_count() or 1)
     noisy = [r for r in caplog.records if r.name.startswith("distributed") and r.levelno < 30]
     assert noisy == []

@@ -375,7 +375,9 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
 
     ``n_workers`` processes of one thread, without work stealing (runs stay on the worker
     holding their case's scene), each with :func:`blas_threads_per_worker` BLAS threads (set
-    in its environment before it starts, so that numpy's BLAS reads it). Unless aocontrol logs
+    in its environment before it starts, so that numpy's BLAS reads it; ``OMP_NUM_THREADS``,
+    ``OPENBLAS_NUM_THREADS`` or ``MKL_NUM_THREADS`` set in this process's environment take
+    precedence). Unless aocontrol logs
     at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies, connections) are
     not shown and the shutdown, after every result is in, is silent (a worker slow to exit is
     killed by its nanny: harmless then).
@@ -397,6 +399,10 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
     config = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _BLAS_VARS}
     config["distributed.scheduler.work-stealing"] = False
     old = None if verbose else _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.WARNING))
+    # Dask's nannies copy these variables into this process's environment before spawning;
+    # restored once the workers run, so that this process's environment stays the user's
+    # (and a variable the user set explicitly keeps precedence, as Dask documents).
+    saved_env = {v: os.environ.get(v) for v in _BLAS_VARS}
     try:
         with (
             dask.config.set(config),
@@ -411,14 +417,24 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
                 silence_logs=logging.WARNING if verbose else logging.CRITICAL,
             ) as cluster,
         ):
+            _restore_env(saved_env)
             try:
                 yield cluster
             finally:
                 if not verbose:
                     _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.CRITICAL + 1))
     finally:
+        _restore_env(saved_env)
         if old is not None:
             _set_levels(old)
+
+
+def _restore_env(saved: Mapping[str, str | None]) -> None:
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
 
 
 def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
