@@ -28,6 +28,7 @@ BENCHMARKS: dict[str, list[str]] = {
     "bench_pyramid.py": ["--repeats", "3"],
     "bench_sweep.py": ["--seconds", "2"],
     "bench_lqg.py": [],
+    "bench_mpc.py": [],
     "bench_paper_tables.py": [],
 }
 

@@ -72,6 +72,30 @@ def make_runner(marker_dir: str, sleep_s: float = 0.3, fail_case: str | None = N
     )
 
 
+BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def environment_run(settings: dict, path: pathlib.Path) -> None:
+    """A run that records the worker's BLAS thread variables (and its process id)."""
+    import os
+
+    env = {k: os.environ.get(k) for k in BLAS_VARS}
+    with h5py.File(path, "w") as f:
+        f.attrs["settings"] = json.dumps(settings)
+        f.attrs["env"] = json.dumps(env)
+        f.attrs["pid"] = os.getpid()
+
+
+def environment_row(path: pathlib.Path) -> dict:
+    """Summary row of an environment_run result."""
+    with h5py.File(path, "r") as f:
+        return {
+            "settings": json.loads(f.attrs["settings"]),
+            "env": json.loads(f.attrs["env"]),
+            "pid": int(f.attrs["pid"]),
+        }
+
+
 def main(spec: str, out: str, marker_dir: str, sleep_s: str) -> None:
     """Entry point of the subprocess that the kill test kills mid-way."""
     run_sweep(spec, out=out, runner=make_runner(marker_dir, float(sleep_s)))

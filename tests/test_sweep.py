@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import pathlib
 import signal
@@ -13,12 +14,21 @@ import sys
 import time
 
 import pytest
-from _sweep_runner import VALID, expected_value, make_runner
+from _sweep_runner import (
+    BLAS_VARS,
+    VALID,
+    environment_row,
+    environment_run,
+    expected_value,
+    make_runner,
+)
 
 from aocontrol.study.sweep import (
     PARTIAL_DIR,
+    SweepRunner,
     SweepSpec,
     SweepSpecError,
+    blas_threads_per_worker,
     load_sweep_spec,
     run_hash,
     run_sweep,
@@ -167,7 +177,8 @@ def test_killed_sweep_resumes_without_losing_or_duplicating(tmp_path, scheduler_
         stderr=subprocess.PIPE,
     )
     try:
-        deadline = time.monotonic() + 40.0
+        # generous: a loaded 2-core machine takes over a minute to start the cluster
+        deadline = time.monotonic() + 150.0
         while time.monotonic() < deadline and len(_hashes(out) if out.exists() else []) < 3:
             assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
             time.sleep(0.05)
@@ -266,6 +277,20 @@ def test_real_runs_write_results_files_that_the_summary_reads(tmp_path, schedule
     # run again: everything is present, nothing runs (and no cluster is needed)
     again = run_sweep(spec, out=out, scheduler="tcp://127.0.0.1:9")
     assert again.ran == () and again.skipped == (hash_,)
+    # two paths: the same run in this process gives the same figures as the cluster's worker
+    # (same settings, same seed, the calibrations from the shared disk cache). To rounding:
+    # the worker's BLAS has one thread and this process's every core, which splits the
+    # reductions of a matrix product differently (measured: the last bit of the RMS).
+    from aocontrol.study.sweep import default_runner
+
+    runner = default_runner()
+    (settings,) = [r.settings for r in load_sweep_spec(spec)[1]]
+    local = tmp_path / "local"
+    local.mkdir()
+    runner.run(dict(settings), local / f"{hash_}.h5")
+    (local_row,) = summary_table(local, csv_path=None)
+    for key in ("strehl", "mean_contrast_4_6", "residual_rms_nm"):
+        assert local_row[key] == pytest.approx(row[key], rel=1e-12, abs=0), key
 
 
 def test_real_spec_typos_name_the_valid_cases_and_keys(tmp_path):
@@ -279,3 +304,55 @@ def test_real_spec_typos_name_the_valid_cases_and_keys(tmp_path):
     text = text.replace("bright-best", "bright1-best") + "\n[overrides]\nseeinng = [0.6]\n"
     with pytest.raises(SweepSpecError, match="overrides.*seeinng"):
         load_sweep_spec(_write(tmp_path, text, "typo.toml"))
+
+
+def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(
+    tmp_path, caplog, capfd, monkeypatch
+):
+    # run_sweep's own local cluster: each worker has cores // workers BLAS threads, set before
+    # the worker starts (one worker: every core, where Dask's default would give it one; as
+    # many workers as cores: one each); Dask's INFO messages are not shown when aocontrol is
+    # not verbose, and the shutdown leaves no traceback.
+    text = 'cases = ["alpha"]\ncontrollers = ["c"]\nschemes = ["s"]\nseeds = [0, 1, 2, 3]\n'
+    runner = SweepRunner(run=environment_run, read=environment_row)
+    for var in BLAS_VARS:  # a value set by the user (or left by another cluster) would win
+        monkeypatch.delenv(var, raising=False)
+    with caplog.at_level(logging.WARNING, logger="aocontrol"):
+        report = run_sweep(_write(tmp_path, text), out=tmp_path / "out", runner=runner, n_workers=1)
+    assert report.failed == () and len(report.ran) == 4
+    want = str(os.cpu_count() or 1)
+    for row in report.table:
+        assert {k: row[f"env.{k}"] for k in BLAS_VARS} == dict.fromkeys(BLAS_VARS, want)
+    assert blas_threads_per_worker(os.cpu_count() or 1) == 1
+    assert not set(BLAS_VARS) & set(os.environ)  # this process's environment left as it was
+    assert blas_threads_per_worker(1) == (os.cpu_count() or 1)
+    noisy = [r for r in caplog.records if r.name.startswith("distributed") and r.levelno < 30]
+    assert noisy == []
+    assert not any(r.exc_info for r in caplog.records)
+    err = capfd.readouterr().err  # the worker processes' stderr too
+    assert "Traceback" not in err and "CommClosedError" not in err, err[-2000:]
+
+
+@pytest.mark.slow
+def test_successful_cli_sweep_prints_no_traceback_and_no_dask_info(tmp_path):
+    # `aocontrol sweep` end to end in a fresh process (the cheapest real run): exit 0, the
+    # summary on stdout, and on stderr neither a traceback nor Dask's INFO lines.
+    text = (
+        'cases = ["bright1-best"]\ncontrollers = ["integrator"]\nschemes = ["single"]\n'
+        "seeds = [0]\nseconds = 0.05\nquick = true\n\n[overrides]\nseeing = [0.6]\n"
+    )
+    spec = _write(tmp_path, text)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(HERE.parent), *sys.path]))
+    proc = subprocess.run(
+        [sys.executable, "-m", "aocontrol", "sweep", str(spec), "--out", str(tmp_path / "out")],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "1 run, 0 already present, 0 failed" in proc.stdout
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    assert "CommClosedError" not in proc.stderr
+    assert "Warning" not in proc.stderr, proc.stderr[-3000:]  # e.g. a busy dashboard port
+    assert not [line for line in proc.stderr.splitlines() if line.startswith("INFO")]

@@ -1,4 +1,4 @@
-"""Model predictive control bank (casadi QP) with LQG's disturbance model and Kalman predictor.
+"""Model predictive control bank (a QP per group of modes) with LQG's model and Kalman predictor.
 
 Per mode the estimator is the steady-state Kalman predictor of an
 :class:`~aocontrol.controllers.LQGStateSpace` (the same ``A``, ``B``, ``C`` and gain as
@@ -12,8 +12,10 @@ the predicted residual over a horizon of ``N`` frames::
 (``e = H z + D u`` is the residual the command first acts on; ``P`` the regulator Riccati
 solution, so that with no active constraint the first command is exactly LQG's). The
 prediction is condensed (variables ``U`` only): ``0.5 U^T Hq U + (Gz z0)^T U`` with constant
-``Hq``, ``Gz``. One casadi ``qpsol`` is built per group of modes with the parameters
-``(z0, u_prev)`` and warm-started from the previous frame's shifted solution and multipliers.
+``Hq``, ``Gz``. One QP per group of modes, solved each frame from a warm start: by default
+DAQP (a dual active-set solver for small dense QPs, workspace set up once, previous active
+set reused; the real-time path), or the casadi formulation (qpOASES or OSQP ``qpsol`` with the
+parameters ``(xi+, u_prev)``), kept as the reference (:mod:`aocontrol.controllers._qp`).
 Only ``u_0`` is applied; the predictor is advanced with the applied command.
 
 Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
@@ -21,80 +23,33 @@ Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.stud
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 
-import casadi
 import control
 import numpy as np
 
 from aocontrol._validation import check_int
-from aocontrol.controllers._base import ControllerBank
+from aocontrol.controllers._base import ControllerBank, _all_finite
 from aocontrol.controllers._lqg import (
     LQGBank,
     LQGStateSpace,
     state_space_arrays,
     state_space_from_arrays,
 )
+from aocontrol.controllers._qp import SOLVERS, CasadiQP, DaqpQP, QPFailure
 
 __all__ = ["MPCBank"]
 
 logger = logging.getLogger(__name__)
 
-# Solvers and their settings. qpOASES (active set, dense, exact on the active set: the
-# default) prints its licence banner (discarded, see _Discard). OSQP (ADMM) is approximate to
-# eps and, measured, slower on these small dense QPs.
-_SOLVER_OPTIONS = {
-    "qpoases": {
-        "printLevel": "none",
-        "sparse": False,
-        "hessian_type": "posdef",
-        "error_on_fail": False,
-    },
-    "osqp": {
-        "osqp": {"verbose": False, "eps_abs": 1e-9, "eps_rel": 1e-9, "polish": False},
-        "warm_start_primal": True,
-        "warm_start_dual": True,
-        "error_on_fail": False,
-    },
-}
 # The shortcut (unconstrained optimum applied without a QP) requires every constraint to
 # hold with this relative slack: a solution on the boundary goes to the QP.
 _SLACK = 1e-9
 
 
-class _Discard:
-    """A text sink: casadi routes qpOASES's C++ output (its licence banner, printed when a
-    solver is created and on its first solve) through ``sys.stdout``; library code must not
-    print."""
-
-    def write(self, text: str) -> int:
-        return len(text)
-
-    def flush(self) -> None:
-        pass
-
-
-_SINK = _Discard()
 # A failure is logged on its first occurrence and then every this many failures.
 _LOG_EVERY = 1000
-
-
-@dataclass
-class _Group:
-    """One QP: the modes it covers, the casadi solver and its warm start."""
-
-    modes: np.ndarray
-    solver: casadi.Function
-    lbx: np.ndarray
-    ubx: np.ndarray
-    lbg: np.ndarray
-    ubg: np.ndarray
-    x0: np.ndarray
-    lam_x: np.ndarray
-    lam_g: np.ndarray
 
 
 def _condensed(ss: LQGStateSpace, horizon: int) -> tuple[np.ndarray, np.ndarray]:
@@ -156,7 +111,7 @@ class MPCBank(ControllerBank):
     prediction and the unconstrained optimum are vectorised over all modes. With
     ``skip_inactive`` the unconstrained optimum over the horizon is applied without calling
     the solver whenever it meets every limit (it is then the QP's solution); only groups
-    with an active limit are solved, one casadi call each.
+    with an active limit are solved, one solver call each.
 
     When a solve fails (solver status or exception) the group's command is the unconstrained
     LQG command clipped to the limits (stroke, and the rate around the last command), the
@@ -176,8 +131,12 @@ class MPCBank(ControllerBank):
     groups : sequence of sequences of int, optional
         Modes solved together, e.g. ``[[0, 1]]`` (tip and tilt); modes not listed get a group
         of their own. Default: one group per mode.
-    solver : {"qpoases", "osqp"}, default "qpoases"
-        casadi QP plugin (qpOASES: active set, exact; OSQP: ADMM to ``1e-9``).
+    solver : {"daqp", "qpoases", "osqp"}, default "daqp"
+        QP solver. ``"daqp"``: DAQP, dual active set, exact on its active set, workspace
+        set up once and warm-started from the previous active set (the real-time path);
+        ``"qpoases"``, ``"osqp"``: the casadi formulation with that plugin (qpOASES: active
+        set, exact; OSQP: ADMM to ``1e-9``), the reference. DAQP and qpOASES agree to
+        rounding (tested), both with the cvxpy + Clarabel QP.
     skip_inactive : bool, default True
         Apply the unconstrained optimum without a solve when it meets every limit.
     model : object, optional
@@ -214,7 +173,7 @@ class MPCBank(ControllerBank):
         stroke: object = None,
         rate_limit: object = None,
         groups: Sequence[Sequence[int]] | None = None,
-        solver: str = "qpoases",
+        solver: str = "daqp",
         skip_inactive: bool = True,
         model: object = None,
     ) -> None:
@@ -228,13 +187,15 @@ class MPCBank(ControllerBank):
         self._horizon = check_int("horizon", horizon, minimum=1)
         self._stroke = _per_mode("stroke", stroke, n)
         self._rate = _per_mode("rate_limit", rate_limit, n)
-        if solver not in _SOLVER_OPTIONS:
-            raise ValueError(f"solver must be one of {sorted(_SOLVER_OPTIONS)}, got {solver!r}")
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {list(SOLVERS)}, got {solver!r}")
         self._solver_name = solver
         self._skip = bool(skip_inactive)
         self._group_modes = self._partition(groups, n)
         Hq, Gz = _condensed(state_space, self._horizon)
         self._Hq, self._Gz = Hq, Gz
+        # The QP's linear term on the Kalman estimate: f = Gz z0 = (Gz regulator_map) xi+.
+        self._Gx = Gz @ state_space.regulator_map
         # Unconstrained optimum U* = Kfull z0 (n, N, nz); Kfull[:, 0] is LQG's law on z.
         self._Kfull = -np.linalg.solve(Hq, Gz)
         self._KT = self._Kfull @ state_space.regulator_map  # (n, N, ns)
@@ -266,42 +227,12 @@ class MPCBank(ControllerBank):
         out.extend(np.array([m]) for m in np.flatnonzero(~seen))
         return sorted(out, key=lambda a: int(a[0]))
 
-    def _build_group(self, modes: np.ndarray) -> _Group:
-        """casadi qpsol of one group, parameters ``p = (z0 of each mode, u_prev of each)``."""
-        N, nz, ng = self._horizon, self._ss.regulator_A.shape[-1], modes.size
-        U = casadi.SX.sym("U", ng * N)
-        p = casadi.SX.sym("p", ng * nz + ng)
-        cost = 0
-        rate_rows = []
-        for j, m in enumerate(modes):
-            u = U[j * N : (j + 1) * N]
-            z0 = p[j * nz : (j + 1) * nz]
-            lin = casadi.mtimes(casadi.DM(self._Gz[m]), z0)
-            cost += 0.5 * casadi.mtimes([u.T, casadi.DM(self._Hq[m]), u]) + casadi.dot(lin, u)
-            if np.isfinite(self._rate[m]):
-                rate_rows.append(u[0] - p[ng * nz + j])
-                rate_rows.append(u[1:] - u[:-1])
-        g = casadi.vertcat(*rate_rows) if rate_rows else casadi.SX(0, 1)
-        with contextlib.redirect_stdout(_SINK):
-            solver = casadi.qpsol(
-                f"mpc_{int(modes[0])}",
-                self._solver_name,
-                {"x": U, "p": p, "f": cost, "g": g},
-                _SOLVER_OPTIONS[self._solver_name],
-            )
-        stroke = np.repeat(self._stroke[modes], N)
-        rate = np.concatenate([np.full(N, r) for r in self._rate[modes] if np.isfinite(r)] or [[]])
-        return _Group(
-            modes=modes,
-            solver=solver,
-            lbx=-stroke,
-            ubx=stroke,
-            lbg=-rate,
-            ubg=rate,
-            x0=np.zeros(ng * N),
-            lam_x=np.zeros(ng * N),
-            lam_g=np.zeros(rate.size),
-        )
+    def _build_group(self, modes: np.ndarray) -> DaqpQP | CasadiQP:
+        """The QP of one group of modes with the chosen solver."""
+        data = (self._Hq[modes], self._Gx[modes], self._stroke[modes], self._rate[modes])
+        if self._solver_name == "daqp":
+            return DaqpQP(*data)
+        return CasadiQP(*data, plugin=self._solver_name, name=f"mpc_{int(modes[0])}")
 
     # -- controller files (aocontrol.controllers.save_controller) -------------------------
     def to_arrays(self) -> tuple[dict[str, np.ndarray], dict[str, object]]:
@@ -373,14 +304,12 @@ class MPCBank(ControllerBank):
         self.n_solves = np.zeros(n, dtype=np.int64)
         self._failures_logged = 0
         for g in getattr(self, "_groups", []):
-            g.x0[:] = 0.0
-            g.lam_x[:] = 0.0
-            g.lam_g[:] = 0.0
+            g.reset()
 
     def _step(self, m: np.ndarray) -> np.ndarray:
         ss = self._ss
         xi = self._xi
-        innov = m - np.einsum("ij,ij->i", ss.C, xi)
+        innov = m - np.add.reduce(ss.C * xi, axis=1)
         xi_post = xi + ss.kalman_gain * innov[:, None]
         # Unconstrained optimum over the horizon, U = Kfull z0 = (Kfull Tz) xi+, (n, N).
         U = np.matmul(self._KT, xi_post[:, :, None])[:, :, 0]
@@ -396,62 +325,39 @@ class MPCBank(ControllerBank):
             active = () if ok.all() else np.unique(self._group_of[~ok])
         else:
             active = range(len(self._groups))
-        if len(active):
-            z0 = np.matmul(ss.regulator_map, xi_post[:, :, None])[:, :, 0]
-            for gi in active:
-                self._solve_group(self._groups[gi], z0, U, u)
-        if not np.isfinite(u).all():
+        for gi in active:
+            self._solve_group(int(gi), xi_post, U, u)
+        if not _all_finite(u):
             bad = np.flatnonzero(~np.isfinite(u))[:10].tolist()
             raise FloatingPointError(f"MPC command is not finite for modes {bad}")
         self._xi = np.matmul(ss.A, xi_post[:, :, None])[:, :, 0] + ss.B * u[:, None]
         self._u_prev = u
         return u.copy()
 
-    def _solve_group(self, group: _Group, z0: np.ndarray, U: np.ndarray, u: np.ndarray) -> None:
-        """Solve one group's QP and write its first commands into ``u`` (fallback on failure)."""
-        modes, N = group.modes, self._horizon
-        p = np.concatenate([z0[modes].ravel(), self._u_prev[modes]])
+    def _solve_group(self, gi: int, xi: np.ndarray, U: np.ndarray, u: np.ndarray) -> None:
+        """Solve group ``gi``'s QP and write its first commands into ``u`` (fallback on failure)."""
+        modes = self._group_modes[gi]
+        group = self._groups[gi]
         try:
-            with contextlib.redirect_stdout(_SINK):
-                sol = group.solver(
-                    x0=group.x0,
-                    p=p,
-                    lbx=group.lbx,
-                    ubx=group.ubx,
-                    lbg=group.lbg,
-                    ubg=group.ubg,
-                    lam_x0=group.lam_x,
-                    lam_g0=group.lam_g,
-                )
-            success = bool(group.solver.stats().get("success", False))
-            x = np.asarray(sol["x"], dtype=float).ravel()
-            if not success or not np.all(np.isfinite(x)):
-                raise RuntimeError(
-                    f"solver status {group.solver.stats().get('return_status', 'unknown')!r}"
-                )
-        except RuntimeError as exc:
-            self._fallback(group, U, u, exc)
+            X = group.solve(xi[modes], self._u_prev[modes])
+            if not _all_finite(X.ravel()):
+                raise QPFailure("solution not finite")
+        except QPFailure as exc:
+            self._fallback(gi, U, u, exc)
             return
-        X = x.reshape(modes.size, N)
         # Keep the solution within the limits exactly (solver tolerance).
         u[modes] = np.clip(X[:, 0], -self._stroke[modes], self._stroke[modes])
         self.n_solves[modes] += 1
-        # Warm start of the next frame: the solution shifted by one frame.
-        group.x0[:] = np.concatenate([X[:, 1:], X[:, -1:]], axis=1).ravel()
-        group.lam_x[:] = np.asarray(sol["lam_x"], dtype=float).ravel()
-        group.lam_g[:] = np.asarray(sol["lam_g"], dtype=float).ravel()
 
-    def _fallback(self, group: _Group, U: np.ndarray, u: np.ndarray, exc: Exception) -> None:
+    def _fallback(self, gi: int, U: np.ndarray, u: np.ndarray, exc: Exception) -> None:
         """The unconstrained LQG command clipped to the stroke and the rate limit."""
-        modes = group.modes
+        modes = self._group_modes[gi]
         prev, rate, stroke = self._u_prev[modes], self._rate[modes], self._stroke[modes]
         lo = np.maximum(-stroke, prev - rate)
         hi = np.minimum(stroke, prev + rate)
         u[modes] = np.clip(U[modes, 0], lo, hi)
         self.n_solver_failures[modes] += 1
-        group.x0[:] = 0.0
-        group.lam_x[:] = 0.0
-        group.lam_g[:] = 0.0
+        self._groups[gi].reset()
         self._failures_logged += 1
         if self._failures_logged == 1 or self._failures_logged % _LOG_EVERY == 0:
             logger.warning(

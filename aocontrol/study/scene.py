@@ -35,7 +35,10 @@ Physics of the sensors
 
 Calibrations (DMs, bases, reconstructors, noise coefficients, optical gains) are cached in
 memory per (sampling, seeing, stage geometry, quick): a gain scan, the calibration runs and
-the configurations of a case share them, and a change of flux, rate or tau0 reuses them.
+the configurations of a case share them, and a change of flux, rate or tau0 reuses them. They
+are also cached on disk (:mod:`aocontrol.study._cache`: ``$AOCONTROL_CACHE`` or the user cache
+folder, content-addressed, checked before use), shared by the workers of a sweep and by later
+runs; ``cache=False`` bypasses both caches.
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ from aocontrol.sim.wfs import (
     optical_gains,
     shack_hartmann_calibration,
 )
+from aocontrol.study._cache import cached as disk_cached
 from aocontrol.study.cases import Case, StageSpec, apply_overrides, load_case
 
 __all__ = ["QUICK_MODES", "Scene", "StageScene", "build_scene", "clear_scene_cache"]
@@ -426,6 +430,14 @@ def _geometry(c: Case, quick: bool, rng: int, cache: bool) -> dict:
     key = _geometry_key(c, quick, rng)
     if cache and key in _GEOMETRY_CACHE:
         return _GEOMETRY_CACHE[key]
+    if cache:  # the disk cache, shared by processes and later runs (aocontrol.study._cache)
+        out = disk_cached("scene geometry " + key, lambda: _build_geometry(c, quick, rng))
+        _GEOMETRY_CACHE[key] = out
+        return out
+    return _build_geometry(c, quick, rng)
+
+
+def _build_geometry(c: Case, quick: bool, rng: int) -> dict:
     sim = c.simulation
     pupil = Pupil(diameter=sim.diameter, n_pix=sim.n_pix, obstruction=sim.obstruction)
     r0 = r0_from_seeing(c.atmosphere.seeing)
@@ -475,8 +487,6 @@ def _geometry(c: Case, quick: bool, rng: int, cache: bool) -> dict:
         if not np.all(og > 0):
             raise ValueError(f"{spec.wfs} optical gains must be > 0, got min {og.min()!r}")
         out[name] = (dm, basis, model, np.asarray(og, dtype=float), wfs)
-    if cache:
-        _GEOMETRY_CACHE[key] = out
     return out
 
 

@@ -26,14 +26,17 @@ of the settings as sorted, compact JSON (floats with an integral value hashed as
 file or a new software version does not rename its runs; sweep into a new folder then.
 
 Execution: every run whose file is missing is submitted to a Dask cluster (a ``LocalCluster``
-of 2 processes with 1 thread each by default, or the scheduler at ``scheduler=``; a remote
-cluster's workers must see ``out`` on a shared file system). The *worker* writes the result in
+of 2 processes with 1 thread each by default, each with its share of the cores as BLAS threads,
+or the scheduler at ``scheduler=``; a remote cluster's workers must see ``out`` on a shared file
+system). The *worker* writes the result in
 ``out/.partial/`` and renames it to ``out/<hash>.h5`` when complete, so a file with a final name
 is always complete and a killed sweep loses at most the runs in flight; run it again and it
 skips what exists. A run that raises leaves ``out/<hash>.error.json`` (settings, error,
 traceback) instead of a result, and the other runs go on. The runs of one case go to one
-worker where possible (each worker process caches the scenes it builds). Start one sweep per
-folder at a time: a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
+worker where possible (each worker process caches the scenes it builds in memory; their
+calibrations are also cached on disk, :mod:`aocontrol.study._cache`, so that a scene built by
+one worker or an earlier sweep is read, not built again). Start one sweep per folder at a time:
+a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
 The summary table (:func:`summary_table`, one row per file, also written to
 ``out/summary.csv``) is rebuilt from the files alone.
@@ -41,6 +44,7 @@ The summary table (:func:`summary_table`, one row per file, also written to
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -52,7 +56,7 @@ import sys
 import time
 import traceback
 import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -86,6 +90,8 @@ __all__ = [
     "run_sweep",
     "summary_table",
     "default_runner",
+    "blas_threads_per_worker",
+    "local_cluster",
 ]
 
 logger = logging.getLogger(__name__)
@@ -94,6 +100,8 @@ logger = logging.getLogger(__name__)
 PARTIAL_DIR = ".partial"
 #: Seconds to wait for a scheduler at ``scheduler=`` before failing.
 CONNECT_TIMEOUT_S = 5.0
+# Thread-count variables of the BLAS and OpenMP libraries numpy and scipy may use.
+_BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 # ------------------------------------------------------------------------------------ runners
@@ -328,24 +336,120 @@ class SweepReport:
     wall_s: float
 
 
-def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
-    from distributed import Client, LocalCluster
+#: Loggers of the Dask machinery kept quiet around a sweep's own local cluster.
+_DASK_LOGGERS = ("distributed", "tornado", "asyncio")
 
-    if scheduler is None:
-        import dask
 
-        # no work stealing: a run stays on the worker holding its case's scene (_case_affinity)
-        stack.enter_context(dask.config.set({"distributed.scheduler.work-stealing": False}))
-        cluster = stack.enter_context(
+def _set_levels(levels: Mapping[str, int]) -> dict[str, int]:
+    """Set logger levels; return the previous ones."""
+    old = {}
+    for name, level in levels.items():
+        log = logging.getLogger(name)
+        old[name] = log.level
+        log.setLevel(level)
+    return old
+
+
+def blas_threads_per_worker(n_workers: int) -> int:
+    """BLAS/OpenMP threads of each local worker process: the cores shared among the workers.
+
+    One thread per worker when the cluster has as many workers as cores (or more): two
+    processes each running a multi-threaded BLAS on two cores slow each other down.
+
+    Parameters
+    ----------
+    n_workers : int
+        Worker processes of the local cluster.
+    """
+    return max(1, (os.cpu_count() or 1) // n_workers)
+
+
+def _verbose() -> bool:
+    """aocontrol logs at INFO (``aocontrol -v``): Dask's messages are shown too."""
+    return logging.getLogger("aocontrol").isEnabledFor(logging.INFO)
+
+
+@contextlib.contextmanager
+def local_cluster(n_workers: int = 2) -> Iterator[Any]:
+    """The local Dask cluster of :func:`run_sweep` (also for running several sweeps on one).
+
+    ``n_workers`` processes of one thread, without work stealing (runs stay on the worker
+    holding their case's scene), each with :func:`blas_threads_per_worker` BLAS threads (set
+    in its environment before it starts, so that numpy's BLAS reads it; ``OMP_NUM_THREADS``,
+    ``OPENBLAS_NUM_THREADS`` or ``MKL_NUM_THREADS`` set in this process's environment take
+    precedence). Unless aocontrol logs
+    at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies, connections) are
+    not shown and the shutdown, after every result is in, is silent (a worker slow to exit is
+    killed by its nanny: harmless then).
+
+    Parameters
+    ----------
+    n_workers : int, default 2
+        Worker processes.
+
+    Yields
+    ------
+    distributed.LocalCluster
+    """
+    import dask
+    from distributed import LocalCluster
+
+    verbose = _verbose()
+    threads = str(blas_threads_per_worker(n_workers))
+    config = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _BLAS_VARS}
+    config["distributed.scheduler.work-stealing"] = False
+    old = None if verbose else _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.WARNING))
+    # Dask's nannies copy these variables into this process's environment before spawning;
+    # restored once the workers run, so that this process's environment stays the user's
+    # (and a variable the user set explicitly keeps precedence, as Dask documents).
+    saved_env = {v: os.environ.get(v) for v in _BLAS_VARS}
+    try:
+        with (
+            dask.config.set(config),
             LocalCluster(
                 n_workers=n_workers,
                 threads_per_worker=1,
                 processes=True,
                 dashboard_address=None,
-                silence_logs=logging.ERROR,
-            )
-        )
-        return stack.enter_context(Client(cluster))
+                # no dashboard; the scheduler's HTTP endpoints on a free local port (the
+                # default 8787 may be taken: Dask then warns on stderr)
+                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                silence_logs=logging.WARNING if verbose else logging.CRITICAL,
+            ) as cluster,
+        ):
+            _restore_env(saved_env)
+            try:
+                yield cluster
+            finally:
+                if not verbose:
+                    _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.CRITICAL + 1))
+    finally:
+        _restore_env(saved_env)
+        if old is not None:
+            _set_levels(old)
+
+
+def _restore_env(saved: Mapping[str, str | None]) -> None:
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+
+
+def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
+    """A client of the scheduler at ``scheduler`` or of a new :func:`local_cluster`.
+
+    Closed in order: the client, then the cluster (the shutdown silent, see local_cluster).
+    """
+    from distributed import Client
+
+    if scheduler is None:
+        cluster = stack.enter_context(local_cluster(n_workers))
+        client = stack.enter_context(Client(cluster))
+        if not _verbose():  # runs first on exit: the client's closing is silent too
+            stack.callback(_set_levels, dict.fromkeys(_DASK_LOGGERS, logging.CRITICAL + 1))
+        return client
     if isinstance(scheduler, Client):
         return scheduler
     if not isinstance(scheduler, str) or not scheduler:
@@ -479,8 +583,8 @@ def run_sweep(
                     key=f"aocontrol-run-{r.hash}-{token}",
                     pure=False,
                     retries=0,
-                    workers=[where] if where else None,
-                    allow_other_workers=True,
+                    # (a restriction only with affinity: Dask refuses allow_other_workers alone)
+                    **({"workers": [where], "allow_other_workers": True} if where else {}),
                 )
                 futures[fut] = r
             bar = None

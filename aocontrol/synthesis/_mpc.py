@@ -30,7 +30,7 @@ def mpc(
     control_weight: float = 0.0,
     model: DisturbanceModel | None = None,
     n_vibrations: int = 2,
-    solver: str = "qpoases",
+    solver: str = "daqp",
     skip_inactive: bool = True,
 ) -> MPCBank:
     """MPC bank from disturbance and noise PSDs, with the disturbance model of :func:`lqg`.
@@ -65,8 +65,9 @@ def mpc(
         A known disturbance model instead of the fit.
     n_vibrations : int, default 2
         Largest number of resonances fitted per mode.
-    solver : {"qpoases", "osqp"}, default "qpoases"
-        casadi QP plugin.
+    solver : {"daqp", "qpoases", "osqp"}, default "daqp"
+        QP solver: DAQP (real time), or the casadi formulation with that plugin (the
+        reference); see :class:`~aocontrol.controllers.MPCBank`.
     skip_inactive : bool, default True
         Apply the unconstrained optimum without a solve when it meets every limit.
 

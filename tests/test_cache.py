@@ -1,0 +1,192 @@
+"""The on-disk calibration cache (aocontrol.study._cache): reuse, never a wrong entry, policy."""
+
+from __future__ import annotations
+
+import logging
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from aocontrol.study import _cache, scene
+from aocontrol.study._cache import CacheWarning, cached, enforce_policy
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("AOCONTROL_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv("AOCONTROL_CACHE_MAX_GB", raising=False)
+    monkeypatch.delenv("AOCONTROL_CACHE_MAX_DAYS", raising=False)
+    return tmp_path / "cache" / "calibrations"
+
+
+class Counter:
+    """A build function that counts its calls and returns a fresh array each time."""
+
+    def __init__(self, value=None):
+        self.calls = 0
+        self.value = np.arange(1000.0) if value is None else value
+
+    def __call__(self):
+        self.calls += 1
+        return {"basis": self.value.copy(), "gain": 0.5}
+
+
+def _entries(directory: pathlib.Path) -> list[pathlib.Path]:
+    return sorted(directory.glob("*.calib"))
+
+
+def test_second_call_loads_the_entry_built_by_the_first(cache_dir):
+    build = Counter()
+    a = cached("key A", build)
+    b = cached("key A", build)
+    assert build.calls == 1  # built once, then read
+    np.testing.assert_array_equal(a["basis"], b["basis"])  # bit for bit
+    assert a["basis"] is not b["basis"]
+    (entry,) = _entries(cache_dir)
+    cached("key B", build)  # other settings: another entry
+    assert build.calls == 2 and len(_entries(cache_dir)) == 2
+    # The entry's name is the SHA-256 of its settings; no temporary file is left.
+    assert not [p for p in cache_dir.iterdir() if p.name.startswith(".")]
+    assert entry.stem == __import__("hashlib").sha256(b"key A").hexdigest()[:32]
+
+
+@pytest.mark.parametrize("damage", ["flip", "truncate", "header", "empty"])
+def test_a_damaged_entry_is_rebuilt_never_trusted(cache_dir, caplog, damage):
+    build = Counter()
+    cached("key", build)
+    (entry,) = _entries(cache_dir)
+    data = bytearray(entry.read_bytes())
+    if damage == "flip":  # one bit of the payload: its SHA-256 differs
+        data[-100] ^= 0x01
+    elif damage == "truncate":
+        data = data[: len(data) // 2]
+    elif damage == "header":
+        data = b"not json\n" + data
+    else:
+        data = b""
+    entry.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING, logger="aocontrol.study._cache"):
+        value = cached("key", build)
+    assert build.calls == 2
+    np.testing.assert_array_equal(value["basis"], build.value)
+    assert "rebuilt" in caplog.text
+    # the rebuilt entry replaced the damaged one and is used from now on
+    cached("key", build)
+    assert build.calls == 2
+
+
+def test_an_entry_of_another_code_version_is_reported_and_rebuilt(cache_dir, caplog, monkeypatch):
+    monkeypatch.setattr(_cache, "_fingerprint", "an older version of the code")
+    cached("key", Counter(np.zeros(10)))
+    monkeypatch.setattr(_cache, "_fingerprint", None)  # this code's fingerprint again
+    build = Counter()
+    with caplog.at_level(logging.WARNING, logger="aocontrol.study._cache"):
+        value = cached("key", build)
+    assert build.calls == 1  # the other version's zeros were not used
+    np.testing.assert_array_equal(value["basis"], build.value)
+    assert "another version" in caplog.text
+
+
+def test_unwritable_cache_folder_warns_once_and_is_bypassed(tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")  # a folder cannot be created below a file (even as root)
+    monkeypatch.setenv("AOCONTROL_CACHE", str(blocker))
+    monkeypatch.setattr(_cache, "_warned", set())
+    build = Counter()
+    with pytest.warns(CacheWarning, match="not usable"):
+        cached("key", build)
+    cached("key", build)  # reported once, still bypassed
+    assert build.calls == 2
+
+
+def test_cache_off_builds_every_time_and_writes_nothing(tmp_path, monkeypatch):
+    monkeypatch.setenv("AOCONTROL_CACHE", "off")
+    assert _cache.cache_dir() is None
+    build = Counter()
+    cached("key", build)
+    cached("key", build)
+    assert build.calls == 2
+
+
+def test_bad_policy_settings_name_the_variable(cache_dir, monkeypatch):
+    monkeypatch.setenv("AOCONTROL_CACHE_MAX_GB", "-1")
+    with pytest.raises(ValueError, match=r"\$AOCONTROL_CACHE_MAX_GB must be a number > 0"):
+        cached("key", Counter())
+    monkeypatch.setenv("AOCONTROL_CACHE_MAX_GB", "1")
+    monkeypatch.setenv("AOCONTROL_CACHE_MAX_DAYS", "soon")
+    with pytest.raises(ValueError, match="AOCONTROL_CACHE_MAX_DAYS.*'soon'"):
+        cached("key", Counter())
+
+
+def test_size_and_age_policy_delete_least_recently_used(cache_dir, monkeypatch):
+    for key in ("a", "b", "c"):
+        cached(key, Counter())
+    a, b, c = (
+        cache_dir / f"{__import__('hashlib').sha256(k.encode()).hexdigest()[:32]}.calib"
+        for k in ("a", "b", "c")
+    )
+    now = time.time()
+    os.utime(a, (now - 300, now - 300))
+    os.utime(b, (now - 200, now - 200))
+    cached("a", Counter())  # a use refreshes a's time: b is now the least recently used
+    size = a.stat().st_size
+    # room for two entries: the least recently used goes
+    assert enforce_policy(cache_dir, max_bytes=int(2.5 * size), max_age_s=1e9) == 1
+    assert a.exists() and not b.exists() and c.exists()
+    # age: an entry unused for longer than the limit goes, whatever the size
+    os.utime(c, (now - 10 * 86400, now - 10 * 86400))
+    monkeypatch.setenv("AOCONTROL_CACHE_MAX_DAYS", "5")
+    cached("d", Counter())  # the policy runs after each write
+    assert a.exists() and not c.exists()
+
+
+_CONCURRENT = """
+import pathlib, sys, time
+from aocontrol.study._cache import cached
+def build():
+    with open(sys.argv[1], "a") as fh:
+        fh.write("built\\n")
+    time.sleep(1.0)
+    return list(range(100))
+assert cached("shared key", build) == list(range(100))
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="fcntl lock")
+def test_processes_needing_one_entry_build_it_once(cache_dir, tmp_path):
+    # Two processes start together; the second waits for the first's lock and reads its entry.
+    marker = tmp_path / "builds.txt"
+    env = dict(os.environ, PYTHONPATH=str(pathlib.Path(__file__).resolve().parents[1]))
+    procs = [
+        subprocess.Popen([sys.executable, "-c", _CONCURRENT, str(marker)], env=env)
+        for _ in range(2)
+    ]
+    assert [p.wait(timeout=120) for p in procs] == [0, 0]
+    assert marker.read_text().count("built") == 1
+
+
+def test_scene_geometry_goes_through_the_disk_cache(cache_dir, monkeypatch):
+    # A fresh process (here: the memory cache cleared) reads the geometry that an earlier one
+    # built; cache=False builds it anew. A cheap stand-in for the calibrations.
+    build = Counter()
+    monkeypatch.setattr(scene, "_build_geometry", lambda c, quick, rng: build())
+    case = scene.load_case("bright1-best")
+    scene.clear_scene_cache()
+    try:
+        first = scene._geometry(case, True, 0, True)
+        scene.clear_scene_cache()
+        again = scene._geometry(case, True, 0, True)
+        assert build.calls == 1
+        np.testing.assert_array_equal(first["basis"], again["basis"])
+        # another seed of the optical-gain screens: another entry
+        scene._geometry(case, True, 1, True)
+        assert build.calls == 2 and len(_entries(cache_dir)) == 2
+        scene._geometry(case, True, 0, False)
+        assert build.calls == 3
+    finally:
+        scene.clear_scene_cache()
