@@ -13,6 +13,7 @@ from aocontrol.synthesis._datadriven import (
     ModeReport,
     datadriven,
 )
+from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
 from aocontrol.synthesis._modal_gain import (
     ModalGainError,
@@ -32,6 +33,7 @@ __all__ = [
     "DisturbanceModel",
     "ModalGainError",
     "ModeReport",
+    "TelemetryDesign",
     "TelemetryPSD",
     "ar2_variance",
     "datadriven",

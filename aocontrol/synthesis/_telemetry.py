@@ -62,6 +62,10 @@ class TelemetryPSD:
         Loop rate [Hz].
     noise_band : tuple of float
         Band used for the noise floor, as fractions of the Nyquist frequency.
+    method : str
+        Estimator of ``psd``: ``"prewhitened"`` (Welch PSD of the differenced pseudo-open
+        loop divided by ``|1 - z^-1|^2``, the default of every telemetry entry point) or
+        ``"welch"`` (plain Welch); see :func:`disturbance_from_telemetry`.
     """
 
     freqs: np.ndarray
@@ -71,6 +75,7 @@ class TelemetryPSD:
     pol_psd: np.ndarray
     fs: float
     noise_band: tuple[float, float]
+    method: str = "welch"
 
     def __post_init__(self) -> None:
         n_f = self.freqs.shape[0]
