@@ -50,7 +50,8 @@ class TelemetryDesign:
     fs : float
         Loop rate [Hz].
     latency_frames : float
-        RTC latency beyond the one-frame WFS integration [frames].
+        RTC latency beyond the one-frame WFS integration [frames] (``nan`` when the design
+        was given a plant and no latency).
     estimate : TelemetryPSD
         The disturbance and noise estimate the design used (``estimate.freqs`` [Hz],
         ``estimate.psd`` (n_modes, n_freqs), ``estimate.noise_psd`` (n_modes,),
