@@ -146,3 +146,24 @@ def test_missing_latency_names_the_telemetry():
 def test_report_checks_its_shapes(report):
     with pytest.raises(ValueError, match=r"wiener_variance must have shape \(3,\)"):
         dataclasses.replace(report, wiener_variance=np.zeros(2))
+
+
+def test_a_mode_whose_margins_fail_is_nan_not_made_up(telemetry, monkeypatch, caplog):
+    # analysis.margins raising for one mode (as it did for integrators of gain < 4e-4, a
+    # gain crossover inside its first grid interval) must not stop the design nor invent a
+    # margin: that mode reports nan margins, the is_stable verdict, and fails meets_margin.
+    from aocontrol.synthesis import _pipeline
+
+    real = _pipeline.margins
+
+    def flaky(plant, bank, *, mode=0, **kw):
+        if mode == 1:
+            raise ValueError("The function value at x=0.0 is NaN")
+        return real(plant, bank, mode=mode, **kw)
+
+    monkeypatch.setattr(_pipeline, "margins", flaky)
+    with caplog.at_level("WARNING", logger="aocontrol.synthesis._pipeline"):
+        rep = design_from_telemetry(telemetry, "omgi", bounds=())
+    assert np.isnan(rep.achieved_modulus_margin[1]) and rep.stable[1]
+    assert list(rep.meets_margin) == [True, False, True]
+    assert "modes [1]" in caplog.text

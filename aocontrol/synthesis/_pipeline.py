@@ -21,7 +21,14 @@ from typing import Any
 import numpy as np
 
 from aocontrol._validation import check_in_range, check_int
-from aocontrol.analysis import constrained_bound, margins, residual_variance, wiener_bound
+from aocontrol.analysis import (
+    Margins,
+    constrained_bound,
+    is_stable,
+    margins,
+    residual_variance,
+    wiener_bound,
+)
 from aocontrol.plant import loop_plant, plant_fs
 from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._modal_gain import optimal_modal_gain
@@ -53,8 +60,30 @@ def _as_loop(telemetry: object, fs: float | None, latency: float | None) -> Loop
     )
 
 
-def _per_mode_margins(plant: Any, bank: Any) -> tuple:
-    return tuple(margins(plant, bank, mode=i) for i in range(bank.n_modes))
+def _per_mode_margins(plant: Any, bank: Any, label: str) -> tuple:
+    """:func:`aocontrol.analysis.margins` per mode; a mode it cannot certify gets ``nan``.
+
+    Such a mode keeps the stability verdict of :func:`aocontrol.analysis.is_stable` and
+    ``nan`` margins (so :attr:`TelemetryDesign.meets_margin` is False for it), with a
+    warning naming it: no margin is reported that was not computed.
+    """
+    out, failed = [], []
+    for i in range(bank.n_modes):
+        try:
+            out.append(margins(plant, bank, mode=i))
+        except ValueError as exc:
+            failed.append((i, str(exc)))
+            stable = is_stable(plant, bank.transfer_function(i))
+            nan = float("nan")
+            out.append(Margins(nan, nan, nan, nan, stable, nan, nan, nan))
+    if failed:
+        logger.warning(
+            "margins of the %s not computed for modes %s (%s): reported as nan",
+            label,
+            [i for i, _ in failed][:10],
+            failed[0][1],
+        )
+    return tuple(out)
 
 
 def design_from_telemetry(
@@ -87,7 +116,9 @@ def design_from_telemetry(
        The reference is the optimised modal-gain integrator at the same modulus margin
        (:func:`aocontrol.synthesis.optimal_modal_gain`, the data-driven design's start).
     3. Certify: :func:`aocontrol.analysis.margins` per mode, of the design and the
-       reference (closed-loop stability and the modulus margin on the whole circle).
+       reference (closed-loop stability and the modulus margin on the whole circle). A mode
+       whose margins cannot be computed keeps the :func:`aocontrol.analysis.is_stable`
+       verdict and ``nan`` margins (logged; it does not count as meeting the margin).
     4. Predict and bound: :func:`aocontrol.analysis.residual_variance` on the estimate's
        grid; the Wiener bound (any causal linear controller) and the constrained bound
        (linear controllers with ``modulus_margin``, FIR Youla of ``n_taps`` taps), each
@@ -218,8 +249,8 @@ def design_from_telemetry(
     timings["reference"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    mar = _per_mode_margins(plant, bank)
-    ref_mar = _per_mode_margins(plant, reference)
+    mar = _per_mode_margins(plant, bank, controller)
+    ref_mar = _per_mode_margins(plant, reference, "reference")
     timings["margins"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
