@@ -4,8 +4,8 @@ Layers (imports point down only)::
 
     study     cases, compare, sweep, cli, plot          (aocontrol.study)
     sim       atmosphere, modes, WFS, DM, loop, science (aocontrol.sim)
-    control   plant, controllers, synthesis, analysis   (aocontrol.plant, .controllers,
-                                                          .synthesis, .analysis)
+    control   plant, controllers, synthesis, analysis,  (aocontrol.plant, .controllers,
+              io (AOT telemetry, RTC export)             .synthesis, .analysis, .io)
 
 Conventions: discrete time at ``fs`` [Hz]; public frequencies in Hz; one-sided PSDs
 [units^2/Hz] (``scipy.signal.welch`` density); wavefronts as optical path in nm; modal

@@ -23,9 +23,9 @@ fs = 3000 Hz, latency 0.83 frame (SAXO+ stage 2).
 (d) Estimated PSDs (what a design from telemetry sees): each PSD as a Welch estimate of
     disturbance + noise with ``WELCH_SEGMENTS`` averaged segments (chi-square scatter with
     ``2 WELCH_SEGMENTS`` degrees of freedom) on a 513-bin Welch grid, minus the noise level,
-    clipped to a floor -- the estimate :func:`aocontrol.study.compare.prewhitened_disturbance`
-    forms. Design-grid size and serial time per mode against the exact PSDs on the same grid
-    and modes, in the same run.
+    clipped to a floor -- the estimate :func:`aocontrol.synthesis.disturbance_from_telemetry`
+    (pre-whitened by default) forms. Design-grid size and serial time per mode against the
+    exact PSDs on the same grid and modes, in the same run.
 
 Timings are wall-clock on a shared machine: compare the ratios measured in one run.
 """

@@ -251,9 +251,10 @@ def test_fit_on_a_grid_with_zero_frequency_raises_no_floating_point_warning():
 def test_unresolved_low_frequency_turbulence_is_not_a_resonance():
     # Regression (LQG of the case comparison from a 0.5-s calibration): on a coarse Welch grid
     # the turbulence of a low-order mode sits in the first bins, the variance below the first
-    # bin added at 0 Hz (what aocontrol.study.compare.prewhitened_disturbance does), the
-    # noise-subtracted bins clipped to a floor. The excess at the grid's lower edge was fitted
-    # as an undamped resonance next to the first bin holding 250x the mode's variance (the
+    # bin added at 0 Hz (what the pre-whitened aocontrol.synthesis.disturbance_from_telemetry
+    # does), the noise-subtracted bins clipped to a floor. The excess at the grid's lower
+    # edge was fitted as an undamped resonance next to the first bin holding 250x the mode's
+    # variance (the
     # LQG then had no integral action and its loop 2x the predicted residual). Oracle: the
     # spectrum falls monotonically from 0 Hz: no peak, so no resonance.
     fs, noise = 3000.0, 7e-3

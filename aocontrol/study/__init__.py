@@ -3,6 +3,7 @@
 Only :mod:`aocontrol.study.plot` imports matplotlib.
 """
 
+from aocontrol.study.aot import write_run_aot
 from aocontrol.study.cases import Case, CaseError, list_cases, load_case
 from aocontrol.study.results import (
     convert_npz,
@@ -24,4 +25,5 @@ __all__: list[str] = [
     "CaseError",
     "load_case",
     "list_cases",
+    "write_run_aot",
 ]

@@ -5,8 +5,8 @@ Commands (``aocontrol COMMAND --help`` for each)::
     aocontrol cases                         the science cases and their parameters
     aocontrol run CASE --controller C --scheme S [--seconds S] [--seed N] [--out DIR]
     aocontrol compare CASE [--quick] [--out DIR]
-    aocontrol design TELEMETRY --fs F --latency L [--controller datadriven] [--order 5]
-                     [--out FILE]
+    aocontrol design TELEMETRY [--loop NAME] [--fs F --latency L] [--controller datadriven]
+                     [--order 5] [--out FILE] [--export FILE.fits|.csv] [--aot-out FILE]
     aocontrol sweep SPEC.toml [--scheduler ADDRESS] [--out DIR]
     aocontrol demo [--output DIR]
 
@@ -34,8 +34,6 @@ logger = logging.getLogger(__name__)
 RUN_CONTROLLERS = ("integrator", "omgi", "datadriven", "lqg", "mpc")
 #: Cascade schemes of ``run``.
 RUN_SCHEMES = ("single", "standalone", "dcao")
-#: Controllers ``design`` builds from telemetry.
-DESIGN_CONTROLLERS = ("datadriven", "omgi", "integrator", "lqg")
 # Fewest telemetry frames for a PSD estimate worth designing on (8 Welch segments of 16).
 _MIN_TELEMETRY_FRAMES = 64
 # Per-mode margins are printed up to this many modes, a min/median/max summary beyond.
@@ -485,64 +483,76 @@ def read_telemetry(path: str, stage: str | None = None) -> tuple[np.ndarray, np.
     return m, u, info
 
 
-def _design(args: argparse.Namespace) -> int:
-    from aocontrol.analysis import margins, residual_variance, sensitivity
-    from aocontrol.controllers import Integrator, save_controller
-    from aocontrol.plant import loop_plant
-    from aocontrol.synthesis import (
-        datadriven,
-        disturbance_from_telemetry,
-        lqg,
-        optimal_modal_gain,
-    )
+_AOT_EXTENSIONS = (".fits", ".fit", ".fits.gz", ".fts")
 
-    controller = _valid_name("controller", args.controller, DESIGN_CONTROLLERS)
-    m, u, info = read_telemetry(args.telemetry, args.stage)
+
+def _design_telemetry(args: argparse.Namespace) -> Any:
+    """The telemetry of ``design``: an AOT loop, or our .npz/.h5 layouts."""
+    from aocontrol.synthesis import LoopTelemetry
+
+    path = args.telemetry
+    if path.lower().endswith(_AOT_EXTENSIONS):
+        from aocontrol.io import read_aot
+
+        if args.stage is not None:
+            raise UserError("--stage is for results files; an AOT file takes --loop NAME")
+        return read_aot(path, args.loop, latency_frames=args.latency)
+    if args.loop is not None:
+        raise UserError(f"--loop is for AOT files (.fits), got {path!r}")
+    m, u, info = read_telemetry(path, args.stage)
     fs = args.fs if args.fs is not None else info.get("fs")
     latency = args.latency if args.latency is not None else info.get("latency_frames")
     if fs is None or latency is None:
         raise UserError("--fs [Hz] and --latency [frames] are required for this telemetry file")
-    plant = loop_plant(fs, latency)
-    tel = disturbance_from_telemetry(m, u, plant)
-    freqs, psd, noise = tel.freqs, tel.psd, tel.noise_psd
-    n_modes = tel.n_modes
-    if controller == "integrator":
-        bank = Integrator(args.gain, fs=fs, n_modes=n_modes)
-    elif controller == "omgi":
-        bank = optimal_modal_gain(plant, freqs, psd, noise, modulus_margin=args.modulus_margin)
-    elif controller == "lqg":
-        bank = lqg(plant, freqs, psd, noise_psd=noise, control_weight=args.control_weight)
-    else:
-        bank = datadriven(
-            plant,
-            freqs,
-            psd,
-            noise_psd=noise,
-            order=args.order,
-            modulus_margin=args.modulus_margin,
-            progress=not args.no_progress,
-            n_jobs=args.jobs,
-        ).controller
-    reference = optimal_modal_gain(plant, freqs, psd, noise, modulus_margin=args.modulus_margin)
-    rms = np.sqrt(np.atleast_1d(residual_variance(plant, bank, freqs, psd, noise)))
-    rms_ref = np.sqrt(np.atleast_1d(residual_variance(plant, reference, freqs, psd, noise)))
-    mar = [margins(plant, bank, mode=i) for i in range(n_modes)]
+    return LoopTelemetry(m, u, fs, latency, source=path)
+
+
+def _design(args: argparse.Namespace) -> int:
+    from aocontrol.analysis import sensitivity
+    from aocontrol.controllers import save_controller
+    from aocontrol.synthesis import CONTROLLERS, design_from_telemetry
+
+    controller = _valid_name("controller", args.controller, sorted(CONTROLLERS))
+    telemetry = _design_telemetry(args)
+    given = {
+        "order": args.order,
+        "control_weight": args.control_weight,
+        "n_jobs": args.jobs,
+        "progress": not args.no_progress,
+    }
+    # The registry says which options a design reads; the CLI offers them all.
+    options = {k: v for k, v in given.items() if k in CONTROLLERS[controller].options}
+    bounds = () if args.bounds == "none" else tuple(args.bounds.split(","))
+    rep = design_from_telemetry(
+        telemetry,
+        controller,
+        fs=args.fs,
+        estimator=args.estimator,
+        modulus_margin=args.modulus_margin,
+        reference_gain=args.gain,
+        options=options,
+        bounds=bounds,
+    )
+    n_modes = rep.n_modes
     print(
-        f"telemetry: {m.shape[0]} frames x {n_modes} modes, fs = {fs:g} Hz, latency = "
-        f"{latency:g} frame; controller: {controller}"
+        f"telemetry: {telemetry.n_frames} frames x {n_modes} modes, fs = {rep.fs:g} Hz, "
+        f"latency = {rep.latency_frames:g} frame; controller: {controller}; estimator: "
+        f"{rep.estimate.method}"
     )
     rows = [
         {
-            "mode": i,
-            "stable": "yes" if mi.stable else "NO",
-            "gm_db": 20 * np.log10(mi.gain_margin) if mi.gain_margin > 0 else -np.inf,
-            "pm": mi.phase_margin,
-            "mm": mi.modulus_margin,
-            "dm": mi.delay_margin,
-            "rms": rms[i],
-            "ref": rms_ref[i],
+            "mode": r["mode"],
+            "stable": "yes" if r["stable"] else "NO",
+            "gm_db": r["gain_margin_db"],
+            "pm": r["phase_margin_deg"],
+            "mm": r["modulus_margin"],
+            "dm": r["delay_margin_frames"],
+            "rms": r["residual_nm"],
+            "ref": r["reference_nm"],
+            "wiener": r["wiener_nm"],
+            "bound": r["constrained_nm"],
         }
-        for i, mi in enumerate(mar)
+        for r in rep.rows()
     ]
     columns = [
         ("mode", "mode", "d"),
@@ -553,6 +563,8 @@ def _design(args: argparse.Namespace) -> int:
         ("dm", "DM[frames]", ".2f"),
         ("rms", "resid[nm]", ".2f"),
         ("ref", "OMGI resid[nm]", ".2f"),
+        ("wiener", "Wiener[nm]", ".2f"),
+        ("bound", "MM-bound[nm]", ".2f"),
     ]
     if n_modes > _MAX_MODE_ROWS:
         summary = []
@@ -568,37 +580,55 @@ def _design(args: argparse.Namespace) -> int:
         columns[0] = ("mode", "over modes", "")
         rows = summary
     print(_format_table(rows, columns))
-    total, total_ref = float(np.sqrt(np.sum(rms**2))), float(np.sqrt(np.sum(rms_ref**2)))
+    total, total_ref = rep.residual_rms, rep.reference_residual_rms
     print(
         f"predicted residual (all modes): {total:.2f} nm RMS; optimal-gain integrator "
-        f"{total_ref:.2f} nm RMS (ratio {total / total_ref:.3f})"
+        f"{total_ref:.2f} nm RMS (ratio {total / total_ref:.3f}); Wiener bound "
+        f"{rep.wiener_rms:.2f} nm, modulus-margin bound {rep.constrained_rms:.2f} nm"
     )
     out = args.out
     folder = os.path.dirname(os.path.abspath(out))
     _out_dir(folder)
-    path = save_controller(bank, out)
+    path = save_controller(rep.controller, out)
+    print(f"controller file: {path} (reload with aocontrol.load_controller)")
+    if args.export:
+        from aocontrol.io import export_controller
+
+        exported = export_controller(
+            rep.controller,
+            args.export,
+            latency_frames=rep.latency_frames,
+            modulus_margin=rep.achieved_modulus_margin,
+        )
+        print(f"real-time export: {exported} (read with aocontrol.io.read_exported_controller)")
+    if args.aot_out:
+        from aocontrol.io import write_aot_filter
+
+        if not args.telemetry.lower().endswith(_AOT_EXTENSIONS):
+            raise UserError("--aot-out needs an AOT telemetry file (its loop gets the filter)")
+        written = write_aot_filter(args.telemetry, rep.controller, args.loop, out=args.aot_out)
+        print(f"AOT file with the designed temporal filter: {written}")
     plot = _plot_module()
     stem = os.path.splitext(out)[0]
     show = sorted({0, n_modes // 2, n_modes - 1})
-    S = sensitivity(plant, bank, freqs)
-    sens = {f"mode {i}": S[i] for i in show}
+    freqs, psd = rep.estimate.freqs, rep.estimate.psd
+    S = sensitivity(rep.plant, rep.controller, freqs)
     fig_path = stem + "_sensitivity.png"
     plot.plot_sensitivity(
         freqs,
-        sens,
+        {f"mode {i}": S[i] for i in show},
         disturbance_psd=psd[show[0]],
-        noise_psd=float(noise[show[0]]),
+        noise_psd=float(rep.estimate.noise_psd[show[0]]),
         modulus_margin=args.modulus_margin,
         title=f"{controller}: disturbance and noise PSD of mode {show[0]}",
         path=fig_path,
     )
     margins_path = stem + "_margins.png"
     plot.plot_margins(
-        {f"mode {i}": mar[i] for i in show},
+        {f"mode {i}": rep.margins[i] for i in show},
         path=margins_path,
         required_modulus_margin=args.modulus_margin,
     )
-    print(f"controller file: {path} (reload with aocontrol.load_controller)")
     print(f"plot: {fig_path}")
     print(f"plot: {margins_path}")
     from aocontrol.analysis import wiener_bound
@@ -760,21 +790,30 @@ def _parser() -> argparse.ArgumentParser:
     p = add("design", _design, "design a controller bank from closed-loop telemetry")
     p.add_argument(
         "telemetry",
-        help=".npz with 'measurements' and 'commands' (n_frames, "
-        "n_modes), or a results file saved with --telemetry",
+        help="AOT file (.fits, with --loop NAME when it has several loops), .npz with "
+        "'measurements' and 'commands' (n_frames, n_modes), or a results file saved with "
+        "--telemetry",
     )
+    p.add_argument("--loop", default=None, help="control loop of an AOT file (its uid)")
     p.add_argument("--fs", type=float, default=None, help="loop rate [Hz]")
     p.add_argument(
         "--latency",
         type=float,
         default=None,
-        help="RTC latency beyond the WFS integration [frames]",
+        help="RTC latency beyond the WFS integration [frames] (AOT: delay - 1 by default)",
     )
     p.add_argument(
         "--controller",
         default="datadriven",
-        metavar="{" + ",".join(DESIGN_CONTROLLERS) + "}",
-        help="controller to design (default datadriven)",
+        metavar="NAME",
+        help="registered controller to design (default datadriven; see "
+        "aocontrol.synthesis.CONTROLLERS)",
+    )
+    p.add_argument(
+        "--estimator",
+        default="prewhitened",
+        choices=("prewhitened", "welch"),
+        help="disturbance PSD estimator (default prewhitened)",
     )
     p.add_argument("--order", type=int, default=5, help="data-driven controller order")
     p.add_argument(
@@ -794,7 +833,23 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="worker processes of the data-driven design (default: every core; 1: none)",
     )
+    p.add_argument(
+        "--bounds",
+        default="wiener,constrained",
+        help="bounds to report: 'wiener', 'constrained' (one SOCP per mode), both "
+        "comma-separated (default), or 'none'",
+    )
     p.add_argument("--out", default="controller.h5", help="controller file (HDF5)")
+    p.add_argument(
+        "--export",
+        default=None,
+        help="also write the filters for a real-time computer (.fits table or .csv)",
+    )
+    p.add_argument(
+        "--aot-out",
+        default=None,
+        help="AOT input only: copy it with the designed filter in the loop's time_filter_*",
+    )
     no_progress(p)
 
     p = add("sweep", _sweep, "run a sweep spec (cases x controllers x schemes x seeds) on Dask")

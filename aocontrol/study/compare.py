@@ -18,8 +18,7 @@ runs each registered controller (:data:`CONTROLLERS`):
 The last two are designed from the simulator's own telemetry: a calibration run with the
 reference integrator, whose pseudo-open loop goes through
 :func:`aocontrol.synthesis.disturbance_from_telemetry` (pre-whitened against the window
-leakage of the sub-hertz turbulence, :func:`prewhitened_disturbance`) -- never from the hidden
-disturbance.
+leakage of the sub-hertz turbulence by default) -- never from the hidden disturbance.
 Any controller joins through :func:`register_controller` with a :class:`ControllerSpec`
 whose ``design`` maps :class:`DesignInputs` to a :class:`~aocontrol.controllers.ControllerBank`.
 
@@ -93,11 +92,10 @@ QUICK_GAIN_GRID = (0.3, 0.5)
 # Lengths of the auxiliary runs [s]: gain-scan runs and calibration run, and their quick
 # versions. The calibration run lasts at least _CAL_FRAMES (_QUICK_CAL_FRAMES) stage-2 frames
 # (27 s at 300 Hz, cheap since the cost goes with frames) so that its Welch PSDs average at
-# least _MIN_SEGMENTS segments: a PSD of one segment is a chi-square(2) scatter that the
-# designs would fit.
+# least 8 segments (synthesis.default_nperseg): a PSD of one segment is a chi-square(2)
+# scatter that the designs would fit.
 _SCAN_SECONDS, _CAL_SECONDS, _CAL_FRAMES = 0.5, 2.0, 8192
 _QUICK_SCAN_SECONDS, _QUICK_CAL_SECONDS, _QUICK_CAL_FRAMES = 0.2, 0.5, 4096
-_MIN_SEGMENTS, _MAX_NPERSEG, _MIN_NPERSEG = 8, 1024, 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,61 +246,33 @@ def _check_names(controller: str, scheme: str) -> ControllerSpec:
     return CONTROLLERS[controller]
 
 
-def _nperseg(n_frames: int) -> int:
-    """Welch segment: the largest power of 2 giving >= _MIN_SEGMENTS half-overlapped segments."""
-    n = 2 ** int(math.floor(math.log2(max(n_frames, 2) * 2 / (_MIN_SEGMENTS + 1))))
-    return int(min(_MAX_NPERSEG, max(_MIN_NPERSEG, n)))
-
-
 def prewhitened_disturbance(
     measurements: np.ndarray, commands: np.ndarray, plant: Any, fs: float
 ) -> tuple[TelemetryPSD, np.ndarray]:
-    """Disturbance PSD from closed-loop telemetry, pre-whitened against window leakage.
+    """Pre-whitened disturbance PSD; kept for old callers (now in the control layer).
 
-    Turbulence puts most of its variance below 1 Hz, below the first Welch bin (3-6 Hz for
-    segments of 512-1024 frames at 3 kHz): the Hann window leaks it into the first bins, where
-    a loop's ``|S|^2`` is no longer small, and the PSD predicts (and the designs fight) a
-    residual several times the real one (measured: 14.5 nm predicted for 7.1 nm). The
-    classic cure is pre-whitening: the Welch PSD of the first difference of the pseudo-open
-    loop (both inputs differenced, ``Delta pol = Delta m + G Delta u``, through
-    :func:`aocontrol.synthesis.disturbance_from_telemetry`), flat at low frequency, divided by
-    ``|1 - z^-1|^2``. The white noise level comes from the undifferenced telemetry (its
-    estimator assumes a white floor) and is subtracted. The variance the differenced record
-    cannot see (at 0 Hz) is put back in the 0-Hz bin so that the PSD integrates to the
-    pseudo-open loop's variance minus the noise.
+    ``disturbance_from_telemetry(measurements, commands, plant, fs=fs)`` (whose default is
+    the pre-whitened estimator) returned as ``(tel, tel.psd)``; use
+    :func:`aocontrol.synthesis.disturbance_from_telemetry` directly.
 
     Parameters
     ----------
     measurements, commands : ndarray, shape (n_frames, n_modes)
-        Stage-2 telemetry [nm].
+        Closed-loop telemetry [nm].
     plant : control.TransferFunction
-        Stage-2 loop plant.
+        Loop plant.
     fs : float
-        Stage-2 rate [Hz].
+        Loop rate [Hz].
 
     Returns
     -------
     tel : TelemetryPSD
-        The undifferenced estimate (noise level, pseudo-open loop).
+        The pre-whitened estimate.
     psd : ndarray, shape (n_modes, n_f)
-        Disturbance PSD on ``tel.freqs``, one-sided [nm^2/Hz].
+        ``tel.psd`` [nm^2/Hz].
     """
-    nperseg = _nperseg(measurements.shape[0])
-    tel = disturbance_from_telemetry(measurements, commands, plant, nperseg=nperseg)
-    diff = disturbance_from_telemetry(
-        np.diff(measurements, axis=0), np.diff(commands, axis=0), plant, nperseg=nperseg
-    )
-    f = tel.freqs
-    w = np.abs(1.0 - np.exp(-2j * np.pi * f[1:] / fs)) ** 2
-    floor = 1e-6 * tel.noise_psd[:, None]
-    psd = np.empty_like(diff.pol_psd)
-    psd[:, 1:] = np.maximum(diff.pol_psd[:, 1:] / w - tel.noise_psd[:, None], floor)
-    psd[:, 0] = psd[:, 1]
-    pol = tel.pseudo_open_loop
-    target = pol.var(axis=0) - tel.noise_psd * fs / 2
-    deficit = target - np.trapezoid(psd, f, axis=1)
-    psd[:, 0] += np.maximum(deficit, 0.0) * 2.0 / (f[1] - f[0])
-    return tel, psd
+    tel = disturbance_from_telemetry(measurements, commands, plant, fs=fs, method="prewhitened")
+    return tel, tel.psd
 
 
 def calibration_seconds(scene: Scene, quick: bool = False) -> float:
@@ -312,7 +282,13 @@ def calibration_seconds(scene: Scene, quick: bool = False) -> float:
 
 
 def design_inputs(
-    scene: Scene, scheme: str, gain: float, *, seconds: float, seed: int
+    scene: Scene,
+    scheme: str,
+    gain: float,
+    *,
+    seconds: float,
+    seed: int,
+    estimator: str = "prewhitened",
 ) -> DesignInputs:
     """Calibration run with the reference integrator and the PSDs of its telemetry.
 
@@ -327,6 +303,9 @@ def design_inputs(
         Length of the calibration run [s] (after the start-up).
     seed : int
         Seed of the run (use another than the exposure's: independent data).
+    estimator : {"prewhitened", "welch"}
+        Disturbance estimator (``method`` of
+        :func:`aocontrol.synthesis.disturbance_from_telemetry`).
 
     Returns
     -------
@@ -339,11 +318,11 @@ def design_inputs(
     k = r2.settle_frames
     m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
     u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
-    tel, psd = prewhitened_disturbance(m, u, st.plant, st.fs)
+    tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=estimator)
     return DesignInputs(
         plant=st.plant,
         freqs=tel.freqs,
-        psd=psd,
+        psd=tel.psd,
         noise_psd=tel.noise_psd,
         fs=st.fs,
         n_modes=st.n_modes,
@@ -615,6 +594,7 @@ def compare_case(
     progress: bool = False,
     sensor: str | None = None,
     optical_gain: str | None = None,
+    estimator: str = "prewhitened",
 ) -> CaseComparison:
     """The paper's protocol on one case (module docstring).
 
@@ -640,6 +620,9 @@ def compare_case(
     sensor, optical_gain : str, optional
         Stage 2's sensor and optical-gain handling (:func:`run_configuration`); the gain scan,
         calibration run and exposures all use them.
+    estimator : {"prewhitened", "welch"}
+        Disturbance estimator of the calibration telemetry
+        (:func:`aocontrol.synthesis.disturbance_from_telemetry`).
 
     Returns
     -------
@@ -672,7 +655,9 @@ def compare_case(
         timing["scan"] += time.perf_counter() - t0
         logger.info("%s %s: reference gain %.2f (scan %s)", c.name, scheme, best, scan)
         t0 = time.perf_counter()
-        design = design_inputs(scene, scheme, best, seconds=cal_s, seed=seed + 1000)
+        design = design_inputs(
+            scene, scheme, best, seconds=cal_s, seed=seed + 1000, estimator=estimator
+        )
         designs[scheme] = design
         timing["calibration"] += time.perf_counter() - t0
         for name in controllers:

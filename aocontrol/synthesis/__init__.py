@@ -1,5 +1,6 @@
 """Controller synthesis: optimised modal gains, disturbance estimation from telemetry, the
-data-driven controller.
+data-driven controller, LQG and MPC, the controller registry and the telemetry-to-design
+pipeline (:func:`design_from_telemetry`).
 
 Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
 PSDs are one-sided [units^2/Hz]; telemetry is shaped ``(n_frames, n_modes)``.
@@ -13,6 +14,7 @@ from aocontrol.synthesis._datadriven import (
     ModeReport,
     datadriven,
 )
+from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
 from aocontrol.synthesis._modal_gain import (
     ModalGainError,
@@ -20,18 +22,42 @@ from aocontrol.synthesis._modal_gain import (
     optimal_modal_gain,
 )
 from aocontrol.synthesis._mpc import mpc
+from aocontrol.synthesis._pipeline import BOUNDS, design_from_telemetry
+from aocontrol.synthesis._registry import (
+    CONTROLLERS,
+    MODULUS_MARGIN,
+    MPC_HORIZON,
+    ControllerSpec,
+    DesignInputs,
+    register_controller,
+)
 from aocontrol.synthesis._telemetry import (
+    ESTIMATORS,
+    LoopTelemetry,
     TelemetryPSD,
+    default_nperseg,
     disturbance_from_telemetry,
     pseudo_open_loop,
 )
 
 __all__ = [
+    "BOUNDS",
+    "CONTROLLERS",
+    "ControllerSpec",
+    "DesignInputs",
+    "ESTIMATORS",
+    "LoopTelemetry",
+    "MODULUS_MARGIN",
+    "MPC_HORIZON",
+    "default_nperseg",
+    "design_from_telemetry",
+    "register_controller",
     "DataDrivenError",
     "DataDrivenResult",
     "DisturbanceModel",
     "ModalGainError",
     "ModeReport",
+    "TelemetryDesign",
     "TelemetryPSD",
     "ar2_variance",
     "datadriven",

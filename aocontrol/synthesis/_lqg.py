@@ -431,11 +431,13 @@ def lqg_from_telemetry(
     n_vibrations: int = 2,
     control_weight: float = 0.0,
     n_jobs: int | None = 1,
+    method: str = "prewhitened",
 ) -> LQGBank:
     """LQG bank from closed-loop telemetry: pseudo open loop -> PSD and noise -> model -> LQG.
 
-    :func:`aocontrol.synthesis.disturbance_from_telemetry` (Welch PSD of ``m + G u``, white
-    noise floor) then :func:`lqg` on its PSD and per-mode noise level.
+    :func:`aocontrol.synthesis.disturbance_from_telemetry` (pre-whitened Welch PSD of
+    ``m + G u`` by default, white noise floor) then :func:`lqg` on its PSD and per-mode noise
+    level.
 
     Parameters
     ----------
@@ -446,7 +448,8 @@ def lqg_from_telemetry(
     plant : control.TransferFunction
         Loop plant :func:`aocontrol.plant.loop_plant`.
     nperseg : int, optional
-        Welch segment length [frames] (default ``min(n_frames, 1024)``).
+        Welch segment length [frames] (default
+        :func:`aocontrol.synthesis.default_nperseg`).
     noise_band : (float, float), default (0.8, 1.0)
         Noise-floor band as fractions of Nyquist.
     n_vibrations : int, default 2
@@ -455,13 +458,15 @@ def lqg_from_telemetry(
         Weight ``rho`` of ``u^2`` in the LQ cost.
     n_jobs : int or None, default 1
         Worker processes of the fit (``None``: every core).
+    method : {"prewhitened", "welch"}, default "prewhitened"
+        Disturbance estimator of :func:`aocontrol.synthesis.disturbance_from_telemetry`.
 
     Returns
     -------
     LQGBank
     """
     tel = disturbance_from_telemetry(
-        measurements, commands, plant, nperseg=nperseg, noise_band=noise_band
+        measurements, commands, plant, nperseg=nperseg, noise_band=noise_band, method=method
     )
     return lqg(
         plant,

@@ -1,0 +1,298 @@
+"""Telemetry in, certified controller out: the one pipeline of the control layer.
+
+:func:`design_from_telemetry` chains what a user with closed-loop telemetry (a bench, an
+instrument, an AOT file through :func:`aocontrol.io.read_aot`) needs: the disturbance and
+noise estimate (:func:`aocontrol.synthesis.disturbance_from_telemetry`, pre-whitened by
+default), a registered design (:data:`aocontrol.synthesis.CONTROLLERS`), the margins of every
+mode's loop (:func:`aocontrol.analysis.margins`), the predicted residual against the bounds
+of any linear controller (:func:`aocontrol.analysis.wiener_bound`, and with the modulus
+margin :func:`aocontrol.analysis.constrained_bound`), and the starting integrator's figures
+for reference. The CLI's ``design`` is a thin wrapper over it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from aocontrol._validation import check_in_range, check_int
+from aocontrol.analysis import (
+    Margins,
+    constrained_bound,
+    is_stable,
+    margins,
+    residual_variance,
+    wiener_bound,
+)
+from aocontrol.plant import loop_plant, plant_fs
+from aocontrol.synthesis._design_report import TelemetryDesign
+from aocontrol.synthesis._modal_gain import optimal_modal_gain
+from aocontrol.synthesis._registry import CONTROLLERS, MODULUS_MARGIN, DesignInputs
+from aocontrol.synthesis._telemetry import LoopTelemetry, TelemetryPSD, disturbance_from_telemetry
+
+__all__ = ["BOUNDS", "design_from_telemetry"]
+
+logger = logging.getLogger(__name__)
+
+#: Bounds :func:`design_from_telemetry` can compute.
+BOUNDS = ("wiener", "constrained")
+
+
+def _as_loop(telemetry: object, fs: float | None, latency: float | None) -> LoopTelemetry:
+    if isinstance(telemetry, LoopTelemetry):
+        fs_ = telemetry.fs if fs is None else fs
+        lat = telemetry.latency_frames if latency is None else latency
+        return LoopTelemetry(telemetry.measurements, telemetry.commands, fs_, lat, telemetry.source)
+    if isinstance(telemetry, Sequence) and len(telemetry) == 2:
+        if fs is None:
+            raise ValueError("fs [Hz] is required with telemetry given as (measurements, commands)")
+        m, u = (np.asarray(x, dtype=float) for x in telemetry)
+        m, u = (x[:, None] if x.ndim == 1 else x for x in (m, u))
+        return LoopTelemetry(m, u, fs, latency)
+    raise TypeError(
+        "telemetry must be a LoopTelemetry (e.g. aocontrol.io.read_aot), a TelemetryPSD or a "
+        f"(measurements, commands) pair, got {type(telemetry).__name__}"
+    )
+
+
+def _per_mode_margins(plant: Any, bank: Any, label: str) -> tuple:
+    """:func:`aocontrol.analysis.margins` per mode; a mode it cannot certify gets ``nan``.
+
+    Such a mode keeps the stability verdict of :func:`aocontrol.analysis.is_stable` and
+    ``nan`` margins (so :attr:`TelemetryDesign.meets_margin` is False for it), with a
+    warning naming it: no margin is reported that was not computed.
+    """
+    out, failed = [], []
+    for i in range(bank.n_modes):
+        try:
+            out.append(margins(plant, bank, mode=i))
+        except ValueError as exc:
+            failed.append((i, str(exc)))
+            stable = is_stable(plant, bank.transfer_function(i))
+            nan = float("nan")
+            out.append(Margins(nan, nan, nan, nan, stable, nan, nan, nan))
+    if failed:
+        logger.warning(
+            "margins of the %s not computed for modes %s (%s): reported as nan",
+            label,
+            [i for i, _ in failed][:10],
+            failed[0][1],
+        )
+    return tuple(out)
+
+
+def design_from_telemetry(
+    telemetry: LoopTelemetry | TelemetryPSD | tuple,
+    controller: str = "datadriven",
+    *,
+    fs: float | None = None,
+    latency_frames: float | None = None,
+    plant: Any = None,
+    estimator: str = "prewhitened",
+    nperseg: int | None = None,
+    noise_band: tuple[float, float] = (0.8, 1.0),
+    modulus_margin: float = MODULUS_MARGIN,
+    reference_gain: float = 0.5,
+    stroke: float | None = None,
+    options: Mapping[str, Any] | None = None,
+    bounds: Sequence[str] = BOUNDS,
+    n_taps: int = 128,
+) -> TelemetryDesign:
+    """Design a controller bank from closed-loop telemetry and certify it.
+
+    Steps (each timed in :attr:`TelemetryDesign.timings`):
+
+    1. Estimate: :func:`aocontrol.synthesis.disturbance_from_telemetry` with ``estimator``
+       (pre-whitened Welch by default) on ``m + G u``, ``G =``
+       :func:`aocontrol.plant.loop_plant` ``(fs, latency_frames)`` unless ``plant`` is
+       given. A :class:`TelemetryPSD` is used as it is.
+    2. Design: the registry's ``controller`` (:data:`aocontrol.synthesis.CONTROLLERS`) on the
+       estimated PSDs, ``options`` passed to it (e.g. ``{"order": 7}`` for ``datadriven``).
+       The reference is the optimised modal-gain integrator at the same modulus margin
+       (:func:`aocontrol.synthesis.optimal_modal_gain`, the data-driven design's start).
+    3. Certify: :func:`aocontrol.analysis.margins` per mode, of the design and the
+       reference (closed-loop stability and the modulus margin on the whole circle). A mode
+       whose margins cannot be computed keeps the :func:`aocontrol.analysis.is_stable`
+       verdict and ``nan`` margins (logged; it does not count as meeting the margin).
+    4. Predict and bound: :func:`aocontrol.analysis.residual_variance` on the estimate's
+       grid; the Wiener bound (any causal linear controller) and the constrained bound
+       (linear controllers with ``modulus_margin``, FIR Youla of ``n_taps`` taps), each
+       when named in ``bounds`` (``nan`` otherwise; a mode whose constrained bound fails is
+       ``nan`` and logged).
+
+    Parameters
+    ----------
+    telemetry : LoopTelemetry, TelemetryPSD or (measurements, commands)
+        Closed-loop modal telemetry (arrays ``(n_frames, n_modes)`` [units]), or an estimate
+        already made (then ``plant`` or ``latency_frames`` is required).
+    controller : str, default "datadriven"
+        A registered name.
+    fs : float, optional
+        Loop rate [Hz]; default the telemetry's.
+    latency_frames : float, optional
+        RTC latency beyond the WFS integration [frames]; default the telemetry's.
+    plant : control.TransferFunction, optional
+        Loop plant (command to measurement) instead of ``loop_plant(fs, latency_frames)``.
+    estimator : {"prewhitened", "welch"}, default "prewhitened"
+        Disturbance estimator (``method`` of ``disturbance_from_telemetry``).
+    nperseg : int, optional
+        Welch segment [frames] (default :func:`aocontrol.synthesis.default_nperseg`).
+    noise_band : (float, float), default (0.8, 1.0)
+        Noise-floor band as fractions of Nyquist.
+    modulus_margin : float, default 0.5
+        Required ``min |1 + G K|`` in (0, 1] of the designs that take one, and of the
+        constrained bound.
+    reference_gain : float, default 0.5
+        Gain of the ``"integrator"``/``"reference"`` design.
+    stroke : float, optional
+        Command limit [units] (the MPC's).
+    options : mapping, optional
+        Options of the design (:attr:`aocontrol.synthesis.ControllerSpec.options`).
+    bounds : sequence of str, default ("wiener", "constrained")
+        Which bounds to compute (:data:`BOUNDS`; ``()`` for none: the constrained bound
+        solves one SOCP per mode).
+    n_taps : int, default 128
+        FIR length of the constrained bound's Youla parameter.
+
+    Returns
+    -------
+    TelemetryDesign
+
+    Raises
+    ------
+    ValueError
+        Unknown ``controller`` (the message lists the registered ones), unknown options or
+        bounds, missing rate or latency, bad telemetry (see ``disturbance_from_telemetry``).
+
+    Examples
+    --------
+    >>> from aocontrol.synthesis import LoopTelemetry
+    >>> rng = np.random.default_rng(0)
+    >>> m = rng.standard_normal((4096, 2))
+    >>> tel = LoopTelemetry(m, np.zeros_like(m), fs=1000.0, latency_frames=0.5)
+    >>> rep = design_from_telemetry(tel, "omgi", bounds=())
+    >>> rep.n_modes, bool(rep.stable.all())
+    (2, True)
+    """
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
+    spec = CONTROLLERS[controller]
+    modulus_margin = check_in_range(
+        "modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False, high_inclusive=True
+    )
+    bounds = tuple(bounds)
+    unknown = [b for b in bounds if b not in BOUNDS]
+    if unknown:
+        raise ValueError(f"bounds must be among {list(BOUNDS)}, got {unknown}")
+    n_taps = check_int("n_taps", n_taps, minimum=1)
+    timings: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    if isinstance(telemetry, TelemetryPSD):
+        est = telemetry
+        fs_ = est.fs if fs is None else fs
+        if plant is None:
+            if latency_frames is None:
+                raise ValueError("latency_frames [frames] or plant is required with a TelemetryPSD")
+            plant = loop_plant(fs_, latency_frames)
+    else:
+        loop = _as_loop(telemetry, fs, latency_frames)
+        fs_ = loop.fs
+        if plant is None:
+            if loop.latency_frames is None:
+                where = f" ({loop.source})" if loop.source else ""
+                raise ValueError(
+                    f"latency_frames [frames] is required: the telemetry{where} does not "
+                    "give the loop's delay"
+                )
+            plant = loop_plant(fs_, loop.latency_frames)
+        est = disturbance_from_telemetry(
+            loop.measurements,
+            loop.commands,
+            plant,
+            nperseg=nperseg,
+            noise_band=noise_band,
+            method=estimator,
+        )
+    fs_ = plant_fs(plant, fs_)
+    latency = latency_frames
+    if latency is None and isinstance(telemetry, LoopTelemetry):
+        latency = telemetry.latency_frames
+    timings["estimate"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    opts = MappingProxyType(dict(options or {}))
+    inputs = DesignInputs(
+        plant=plant,
+        freqs=est.freqs,
+        psd=est.psd,
+        noise_psd=est.noise_psd,
+        fs=fs_,
+        n_modes=est.n_modes,
+        reference_gain=float(reference_gain),
+        telemetry=est,
+        stroke=stroke,
+        modulus_margin=modulus_margin,
+        options=opts,
+    )
+    bank, details = spec.build(inputs)
+    timings["design"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    reference = optimal_modal_gain(
+        plant, est.freqs, est.psd, est.noise_psd, modulus_margin=modulus_margin
+    )
+    timings["reference"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    mar = _per_mode_margins(plant, bank, controller)
+    ref_mar = _per_mode_margins(plant, reference, "reference")
+    timings["margins"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    var = np.atleast_1d(residual_variance(plant, bank, est.freqs, est.psd, est.noise_psd))
+    ref_var = np.atleast_1d(residual_variance(plant, reference, est.freqs, est.psd, est.noise_psd))
+    nan = np.full(est.n_modes, np.nan)
+    wiener = nan.copy()
+    constrained = nan.copy()
+    if "wiener" in bounds:
+        wiener = np.atleast_1d(wiener_bound(plant, est.freqs, est.psd, est.noise_psd))
+    if "constrained" in bounds:
+        cb = constrained_bound(
+            plant,
+            est.freqs,
+            est.psd,
+            est.noise_psd,
+            modulus_margin,
+            n_taps=n_taps,
+            raise_on_failure=False,
+        )
+        constrained = np.where(cb.ok, cb.variance, np.nan)
+        if not cb.ok.all():
+            logger.warning(
+                "constrained bound failed for modes %s", np.flatnonzero(~cb.ok)[:10].tolist()
+            )
+    timings["bounds"] = time.perf_counter() - t0
+    return TelemetryDesign(
+        controller_name=controller,
+        controller=bank,
+        reference=reference,
+        plant=plant,
+        fs=fs_,
+        latency_frames=np.nan if latency is None else float(latency),
+        estimate=est,
+        modulus_margin=modulus_margin,
+        margins=mar,
+        reference_margins=ref_mar,
+        residual_variance=var,
+        reference_residual_variance=ref_var,
+        wiener_variance=wiener,
+        constrained_variance=constrained,
+        details=details,
+        options=dict(opts),
+        timings=timings,
+    )

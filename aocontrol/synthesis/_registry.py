@@ -1,0 +1,256 @@
+"""The controller registry: a name -> a design on disturbance and noise PSDs.
+
+Control layer: what a design receives (:class:`DesignInputs`: the plant, the PSDs estimated
+from telemetry, the reference gain) and the designs themselves. One registry serves
+:func:`aocontrol.synthesis.design_from_telemetry`, the CLI's ``design`` and the simulator's
+comparison (:mod:`aocontrol.study.compare`, which re-exports it). Built in: the reference
+integrator (alias ``integrator``), ``omgi``, ``datadriven``, ``lqg`` and ``mpc``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from aocontrol.controllers import ControllerBank, Integrator
+from aocontrol.synthesis._datadriven import DataDrivenResult, datadriven
+from aocontrol.synthesis._lqg import lqg
+from aocontrol.synthesis._modal_gain import optimal_modal_gain
+from aocontrol.synthesis._mpc import mpc
+from aocontrol.synthesis._telemetry import TelemetryPSD
+
+__all__ = [
+    "CONTROLLERS",
+    "MODULUS_MARGIN",
+    "MPC_HORIZON",
+    "ControllerSpec",
+    "DesignInputs",
+    "register_controller",
+]
+
+#: Default modulus margin of the designed controllers (the paper's robustness constraint).
+MODULUS_MARGIN = 0.5
+#: Default MPC prediction horizon [frames].
+MPC_HORIZON = 10
+
+
+@dataclass(frozen=True, eq=False)
+class DesignInputs:
+    """What a controller design receives (all from telemetry, none from a simulator).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+        Loop plant (command to measurement).
+    freqs : ndarray, shape (n_f,)
+        Frequencies [Hz] of the PSDs.
+    psd : ndarray, shape (n_modes, n_f)
+        Pseudo-open-loop disturbance PSD, one-sided [units^2/Hz].
+    noise_psd : ndarray, shape (n_modes,)
+        White noise level, one-sided [units^2/Hz].
+    fs : float
+        Loop rate [Hz].
+    n_modes : int
+    reference_gain : float
+        Gain of the reference integrator (scanned, the case's or the user's).
+    telemetry : TelemetryPSD or None
+        The full estimate (pseudo-open loop included).
+    stroke : float or None
+        DM actuator stroke [units] (``None``: unlimited); the MPC's command limit.
+    modulus_margin : float, default :data:`MODULUS_MARGIN`
+        Required modulus margin of the designs that take one.
+    options : mapping, default empty
+        Design options overriding the spec's defaults (names in
+        :attr:`ControllerSpec.options`), e.g. ``{"order": 7}``.
+    """
+
+    plant: Any
+    freqs: np.ndarray
+    psd: np.ndarray
+    noise_psd: np.ndarray
+    fs: float
+    n_modes: int
+    reference_gain: float
+    telemetry: TelemetryPSD | None = None
+    stroke: float | None = None
+    modulus_margin: float = MODULUS_MARGIN
+    options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+    def option(self, name: str, default: Any) -> Any:
+        """The option ``name`` if given, else ``default``."""
+        return self.options.get(name, default)
+
+
+def _no_details(design: Callable[[DesignInputs], ControllerBank]) -> Callable:
+    def build(inp: DesignInputs) -> tuple[ControllerBank, None]:
+        return design(inp), None
+
+    return build
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """A registered controller: a name and a design.
+
+    Parameters
+    ----------
+    name : str
+        Registry name.
+    design : callable
+        ``design(inputs: DesignInputs) -> ControllerBank`` with ``inputs.n_modes`` modes at
+        ``inputs.fs``.
+    needs_telemetry : bool
+        Whether the design needs the PSDs (False for the reference integrator).
+    parameters : dict
+        JSON-serialisable description of the design (recorded in settings).
+    options : tuple of str
+        Names of the :attr:`DesignInputs.options` the design reads.
+    design_with_details : callable, optional
+        ``(inputs) -> (ControllerBank, details)`` when the synthesis has a result worth
+        keeping (e.g. :class:`~aocontrol.synthesis.DataDrivenResult`); default ``design``
+        with ``None``.
+    """
+
+    name: str
+    design: Callable[[DesignInputs], ControllerBank]
+    needs_telemetry: bool = True
+    parameters: dict = field(default_factory=dict)
+    options: tuple[str, ...] = ()
+    design_with_details: Callable[[DesignInputs], tuple[ControllerBank, Any]] | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"name must be a non-empty str, got {self.name!r}")
+        if not callable(self.design):
+            raise TypeError(f"design must be callable, got {type(self.design).__name__}")
+
+    def build(self, inputs: DesignInputs) -> tuple[ControllerBank, Any]:
+        """Run the design: ``(bank, details)`` (``details`` may be ``None``)."""
+        unknown = sorted(set(inputs.options) - set(self.options))
+        if unknown:
+            raise ValueError(
+                f"options {unknown} are not options of controller {self.name!r}; expected "
+                f"some of {list(self.options)}"
+            )
+        fn = self.design_with_details or _no_details(self.design)
+        return fn(inputs)
+
+
+def _reference(inp: DesignInputs) -> ControllerBank:
+    return Integrator(inp.reference_gain, fs=inp.fs, n_modes=inp.n_modes)
+
+
+def _omgi(inp: DesignInputs) -> ControllerBank:
+    return optimal_modal_gain(
+        inp.plant, inp.freqs, inp.psd, inp.noise_psd, modulus_margin=inp.modulus_margin
+    )
+
+
+def _datadriven_details(inp: DesignInputs) -> tuple[ControllerBank, DataDrivenResult]:
+    res = datadriven(
+        inp.plant,
+        inp.freqs,
+        inp.psd,
+        order=inp.option("order", 5),
+        noise_psd=inp.noise_psd,
+        modulus_margin=inp.modulus_margin,
+        progress=inp.option("progress", False),
+        n_jobs=inp.option("n_jobs", None),
+    )
+    return res.controller, res
+
+
+def _datadriven(inp: DesignInputs) -> ControllerBank:
+    return _datadriven_details(inp)[0]
+
+
+def _lqg(inp: DesignInputs) -> ControllerBank:
+    # AR(2) turbulence + up to 2 resonances per mode fitted to the telemetry PSD, minimum
+    # variance by default (no control weight: the fractional latencies of the cases are not
+    # 0.5 frame).
+    return lqg(
+        inp.plant,
+        inp.freqs,
+        inp.psd,
+        noise_psd=inp.noise_psd,
+        n_vibrations=inp.option("n_vibrations", 2),
+        control_weight=inp.option("control_weight", 0.0),
+        n_jobs=inp.option("n_jobs", 1),
+    )
+
+
+def _mpc(inp: DesignInputs) -> ControllerBank:
+    # The LQG's model and estimator, horizon 10 frames, the command limited to the DM stroke
+    # taken as a modal bound (a unit modal coefficient is 1 nm RMS over the pupil, so a mode
+    # at the stroke already exceeds it at some actuator: a loose limit; the DM still clips
+    # its actuators).
+    return mpc(
+        inp.plant,
+        inp.freqs,
+        inp.psd,
+        noise_psd=inp.noise_psd,
+        horizon=inp.option("horizon", MPC_HORIZON),
+        stroke=inp.stroke,
+        n_vibrations=inp.option("n_vibrations", 2),
+    )
+
+
+#: Registered controllers (name -> spec); see :func:`register_controller`.
+CONTROLLERS: dict[str, ControllerSpec] = {}
+
+
+def register_controller(spec: ControllerSpec, *, replace: bool = False) -> None:
+    """Add a controller to :data:`CONTROLLERS`.
+
+    Parameters
+    ----------
+    spec : ControllerSpec
+    replace : bool
+        Allow replacing an existing name.
+
+    Raises
+    ------
+    ValueError
+        The name is taken and ``replace`` is False.
+    """
+    if not isinstance(spec, ControllerSpec):
+        raise TypeError(f"spec must be a ControllerSpec, got {type(spec).__name__}")
+    if spec.name in CONTROLLERS and not replace:
+        raise ValueError(f"controller {spec.name!r} is already registered")
+    CONTROLLERS[spec.name] = spec
+
+
+_REF = ControllerSpec("reference", _reference, needs_telemetry=False, parameters={"scan": True})
+register_controller(_REF)
+register_controller(dataclasses.replace(_REF, name="integrator"))
+register_controller(ControllerSpec("omgi", _omgi, parameters={"modulus_margin": MODULUS_MARGIN}))
+register_controller(
+    ControllerSpec(
+        "datadriven",
+        _datadriven,
+        parameters={"order": 5, "noise_term": True, "modulus_margin": MODULUS_MARGIN},
+        options=("order", "n_jobs", "progress"),
+        design_with_details=_datadriven_details,
+    )
+)
+register_controller(
+    ControllerSpec(
+        "lqg",
+        _lqg,
+        parameters={"turbulence": "AR(2)", "n_vibrations": 2},
+        options=("n_vibrations", "control_weight", "n_jobs"),
+    )
+)
+register_controller(
+    ControllerSpec(
+        "mpc",
+        _mpc,
+        parameters={"turbulence": "AR(2)", "n_vibrations": 2, "horizon": MPC_HORIZON},
+        options=("n_vibrations", "horizon"),
+    )
+)

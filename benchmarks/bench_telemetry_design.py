@@ -1,0 +1,162 @@
+"""Benchmark: telemetry in, controller out (issue 16). A script, not a test.
+
+    python benchmarks/bench_telemetry_design.py aot [--seconds 5] [--controllers ...]
+    python benchmarks/bench_telemetry_design.py estimators [--cases ...] [--full]
+
+``aot``: the case ``bright1-best`` (stage 2: 400 modes at 3 kHz, latency 0.828 frame,
+standalone cascade). A calibration exposure of ``--seconds`` with the case's reference
+integrator is written as an AOT file (:func:`aocontrol.study.aot.write_run_aot`, both stages),
+read back (:func:`aocontrol.io.read_aot`, loop ``stage 2``) and designed from
+(:func:`aocontrol.synthesis.design_from_telemetry`, Wiener bound per mode); each design then
+runs in the simulator on an independent exposure (another seed) and its measured stage-2
+modal residual is compared with the prediction. Prints the time of each step and
+predicted / measured per controller.
+
+``estimators``: per case, one calibration run with the reference integrator; its telemetry
+estimated with the plain and with the pre-whitened Welch PSD
+(:func:`aocontrol.synthesis.disturbance_from_telemetry`, ``method``); each controller
+designed from each estimate and run on the same independent exposure; predicted / measured
+stage-2 residual per (case, controller, estimator). Quick scenes unless ``--full``.
+
+Timings are wall-clock on a shared machine (2 cores, other jobs running): read the ratios.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+
+import numpy as np
+
+from aocontrol.analysis import residual_variance
+from aocontrol.study.aot import write_run_aot
+from aocontrol.study.compare import (
+    CONTROLLERS,
+    ControllerSpec,
+    DesignInputs,
+    calibration_seconds,
+    design_inputs,
+    register_controller,
+    run_configuration,
+)
+from aocontrol.study.scene import build_scene
+from aocontrol.synthesis import design_from_telemetry
+
+SCHEME = "standalone"
+
+
+def _run_bank(case: str, bank, design: DesignInputs, seconds: float, seed: int, quick: bool):
+    """Run a given bank on stage 2 through a throw-away registry entry (public API only)."""
+    name = f"bench-fixed-{id(bank)}"
+    register_controller(ControllerSpec(name, lambda inp: bank))
+    try:
+        out = run_configuration(
+            case, controller=name, scheme=SCHEME, seconds=seconds, seed=seed, quick=quick,
+            design=design,
+        )  # fmt: skip
+    finally:
+        del CONTROLLERS[name]
+    return out.summary["residual_rms_nm"]
+
+
+def bench_aot(args: argparse.Namespace) -> None:
+    case = "bright1-best"
+    t0 = time.perf_counter()
+    cal = run_configuration(
+        case, controller="reference", scheme=SCHEME, seconds=args.seconds, seed=1000
+    )
+    t_cal = time.perf_counter() - t0
+    folder = args.out or tempfile.mkdtemp(prefix="aocontrol-aot-")
+    path = os.path.join(folder, "bright1-best-calibration.fits")
+    t0 = time.perf_counter()
+    write_run_aot(cal.result, path)
+    t_write = time.perf_counter() - t0
+    size = os.path.getsize(path) / 1e6
+    from aocontrol.io import read_aot
+
+    t0 = time.perf_counter()
+    k = cal.result.stages[1].settle_frames
+    tel = read_aot(path, "stage 2", skip_frames=k)
+    t_read = time.perf_counter() - t0
+    print(
+        f"calibration: {case} {SCHEME}, {args.seconds:g} s, stage 2 {tel.n_frames} frames x "
+        f"{tel.n_modes} modes at {tel.fs:g} Hz, latency {tel.latency_frames:.3f} frame"
+    )
+    print(
+        f"  simulate {t_cal:.1f} s; write AOT {t_write:.1f} s ({size:.0f} MB, both stages); "
+        f"read loop 'stage 2' {t_read:.1f} s"
+    )
+    print(
+        f"{'controller':12}{'design[s]':>10}{'margins[s]':>11}{'Wiener[s]':>10}"
+        f"{'pred[nm]':>10}{'meas[nm]':>10}{'pred/meas':>10}{'Wiener[nm]':>11}{'MM ok':>7}"
+    )
+    for name in args.controllers:
+        opts = {"progress": False} if name == "datadriven" else None
+        rep = design_from_telemetry(
+            tel, name, reference_gain=cal.settings["reference_gain"], bounds=("wiener",),
+            options=opts,
+        )  # fmt: skip
+        est = rep.estimate
+        design = DesignInputs(
+            rep.plant, est.freqs, est.psd, est.noise_psd, rep.fs, rep.n_modes,
+            cal.settings["reference_gain"], est,
+        )  # fmt: skip
+        measured = _run_bank(case, rep.controller, design, args.exposure, 7, False)
+        t = rep.timings
+        print(
+            f"{name:12}{t['design']:>10.1f}{t['margins']:>11.1f}{t['bounds']:>10.1f}"
+            f"{rep.residual_rms:>10.2f}{measured:>10.2f}{rep.residual_rms / measured:>10.3f}"
+            f"{rep.wiener_rms:>11.2f}{int(rep.meets_margin.sum()):>4}/{rep.n_modes}"
+        )
+
+
+def bench_estimators(args: argparse.Namespace) -> None:
+    quick = not args.full
+    print(
+        f"{'case':14}{'controller':12}{'estimator':13}{'pred[nm]':>10}{'meas[nm]':>10}"
+        f"{'pred/meas':>10}"
+    )
+    for case in args.cases:
+        scene = build_scene(case, quick=quick)
+        gain = scene.case.stage2.gain
+        cal_s = calibration_seconds(scene, quick)
+        for estimator in ("welch", "prewhitened"):
+            design = design_inputs(
+                scene, SCHEME, gain, seconds=cal_s, seed=1000, estimator=estimator
+            )
+            for name in args.controllers:
+                bank = CONTROLLERS[name].design(design)
+                pred = residual_variance(
+                    design.plant, bank, design.freqs, design.psd, design.noise_psd
+                )
+                pred_rms = float(np.sqrt(np.sum(pred)))
+                measured = _run_bank(case, bank, design, args.exposure, 7, quick)
+                print(
+                    f"{case:14}{name:12}{estimator:13}{pred_rms:>10.2f}{measured:>10.2f}"
+                    f"{pred_rms / measured:>10.3f}"
+                )
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="part", required=True)
+    a = sub.add_parser("aot")
+    a.add_argument("--seconds", type=float, default=5.0, help="calibration exposure [s]")
+    a.add_argument("--exposure", type=float, default=2.0, help="scoring exposure [s]")
+    a.add_argument("--controllers", nargs="+", default=["integrator", "omgi", "lqg", "datadriven"])
+    a.add_argument("--out", default=None, help="folder of the AOT file (default: a temp dir)")
+    e = sub.add_parser("estimators")
+    e.add_argument("--cases", nargs="+", default=["bright1-best", "red1-fast", "red3-medium"])
+    e.add_argument("--controllers", nargs="+", default=["omgi", "lqg", "datadriven"])
+    e.add_argument("--exposure", type=float, default=1.0, help="scoring exposure [s]")
+    e.add_argument("--full", action="store_true", help="full scenes instead of quick ones")
+    args = p.parse_args()
+    t0 = time.perf_counter()
+    (bench_aot if args.part == "aot" else bench_estimators)(args)
+    print(f"total {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
