@@ -631,28 +631,8 @@ def _design(args: argparse.Namespace) -> int:
     )
     print(f"plot: {fig_path}")
     print(f"plot: {margins_path}")
-    from aocontrol.analysis import wiener_bound
-    from aocontrol.study.report import DesignReportData
-
-    data = DesignReportData(
-        plant,
-        freqs,
-        psd,
-        noise,
-        {controller: bank, "optimal-gain integrator": reference},
-        predicted_rms={controller: rms, "optimal-gain integrator": rms_ref},
-        margins={controller: mar},
-        bounds={"Wiener bound": np.sqrt(np.atleast_1d(wiener_bound(plant, freqs, psd, noise)))},
-        modulus_margin=args.modulus_margin,
-        title=f"aocontrol design: {controller}",
-        info={
-            "telemetry": args.telemetry,
-            "frames": m.shape[0],
-            "fs": f"{fs:g} Hz",
-            "latency": f"{latency:g} frame",
-        },
-    )
-    print(f"report: {_design_report(data, stem + '_report.html')}")
+    info = {"telemetry": args.telemetry, "frames": telemetry.n_frames}
+    print(f"report: {_design_report(rep, stem + '_report.html', info=info)}")
     return 0
 
 
