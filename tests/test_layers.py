@@ -12,7 +12,15 @@ import pathlib
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "aocontrol"
-CONTROL = ["plant.py", "controllers", "analysis", "synthesis", "disturbance.py", "_validation.py"]
+CONTROL = [
+    "plant.py",
+    "controllers",
+    "analysis",
+    "synthesis",
+    "disturbance.py",
+    "adaptive.py",
+    "_validation.py",
+]
 
 
 def _module_name(path: pathlib.Path, root: pathlib.Path) -> tuple[str, bool]:

@@ -302,6 +302,55 @@ class IIRBank(ControllerBank):
         self._u_hist = np.zeros((self._n, max(self._a.shape[1] - 1, 0)))
         self.n_saturated = np.zeros(self._n, dtype=np.int64)
 
+    def set_history(self, measurements: object, commands: object) -> None:
+        """Set the filter state from past frames: a bumpless start inside a running loop.
+
+        The Direct-Form I state *is* the past inputs and outputs, so after this call the next
+        ``step(m[k])`` returns ``sum_i b_i m[k-i] - sum_i a_i u[k-i]`` with ``m[k-1], m[k-2],
+        ...`` the last rows of ``measurements`` and ``u[k-1], ...`` the last rows of
+        ``commands``: the command the filter would give had it been running on the same loop
+        (the commands actually applied, as with anti-windup). Rows missing for a short history
+        count as zeros. Counters (``n_saturated``, ``n_rejected``) are not touched.
+
+        Parameters
+        ----------
+        measurements : array_like, shape (n_frames, n_modes)
+            Past measurements, oldest first (``n_frames >= 0``).
+        commands : array_like, shape (n_frames', n_modes)
+            Past commands, oldest first.
+
+        Raises
+        ------
+        ValueError
+            If the arrays are not finite or not ``(n_frames, n_modes)``.
+
+        Examples
+        --------
+        >>> bank = IIRBank(b=[0.5], a=[1.0, -1.0], fs=1000.0)         # integrator, g = 0.5
+        >>> bank.set_history(np.array([[0.0]]), np.array([[3.0]]))   # u[k-1] = 3
+        >>> bank.step(np.array([2.0]))                               # 3 + 0.5 * 2
+        array([4.])
+        """
+        hist = []
+        for name, value in (("measurements", measurements), ("commands", commands)):
+            arr = check_finite_array(name, value, ndim=2)
+            if arr.shape[1] != self._n:
+                raise ValueError(
+                    f"{name} must have shape (n_frames, {self._n}) (one column per mode), "
+                    f"got {arr.shape}"
+                )
+            hist.append(arr)
+        m, u = hist
+        nm = min(self._b.shape[1] - 1, m.shape[0])  # m[k-1] ... m[k-nb+1]
+        self._m_hist[:] = 0.0
+        if nm:  # before a step, column j holds m[k-1-j] (the step shifts it to j + 1)
+            self._m_hist[:, :nm] = m[::-1][:nm].T
+        nu = min(self._u_hist.shape[1], u.shape[0])  # u[k-1] ... u[k-na+1]
+        self._u_hist[:] = 0.0
+        if nu:
+            self._u_hist[:, :nu] = u[::-1][:nu].T
+        self._last_command = u[-1].copy() if u.shape[0] else None
+
     def _step(self, m: np.ndarray) -> np.ndarray:
         mh, uh = self._m_hist, self._u_hist
         if mh.shape[1] > 1:
