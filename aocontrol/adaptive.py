@@ -167,11 +167,14 @@ class AdaptiveRun:
         Every design, in order.
     n_skipped : int
         Designs skipped because the previous one was still pending.
+    final : IIRBank or None
+        The bank in use at the end of the run (set when the run is archived by a reset).
     """
 
     frames: int = 0
     redesigns: list[Redesign] = field(default_factory=list)
     n_skipped: int = 0
+    final: IIRBank | None = None
 
     @property
     def n_switches(self) -> int:
@@ -568,6 +571,7 @@ class AdaptiveController(ControllerBank):
 
     def reset(self) -> None:
         if self.run.frames:
+            self.run.final = self.current
             self.last_run = self.run
         self.run = AdaptiveRun()
         self.current = _merge(self._initial, self._initial, np.zeros(self.n_modes, dtype=bool))
