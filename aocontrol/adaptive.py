@@ -479,6 +479,17 @@ class AdaptiveController(ControllerBank):
         Welch segment [frames] (default ``min(window frames, 1024)``).
     noise_band : (float, float), default (0.8, 1.0)
         Noise-floor band of :func:`~aocontrol.synthesis.disturbance_from_telemetry`.
+    estimator : callable, optional
+        ``estimator(pol, plant) -> TelemetryPSD`` from the window's pseudo-open loop
+        ``(n_frames, n_modes)``; default
+        :func:`~aocontrol.synthesis.disturbance_from_telemetry` (``pol`` as measurements,
+        zero commands) with ``nperseg`` and ``noise_band``. E.g. a pre-whitened estimate.
+    max_designs : int, optional
+        Stop after this many designs (``1``: a fixed design from the first window).
+    oracle : callable, optional
+        ``oracle(frame) -> TelemetryPSD``: the disturbance and noise PSDs to design from at
+        ``frame`` instead of the telemetry estimate (a yardstick that knows the truth, e.g. in
+        a simulation; its ``pseudo_open_loop`` is not used).
 
     Attributes
     ----------
@@ -501,6 +512,9 @@ class AdaptiveController(ControllerBank):
         max_pole_radius: float = 1.0,
         nperseg: int | None = None,
         noise_band: tuple[float, float] = (0.8, 1.0),
+        estimator: Callable[[np.ndarray, control.TransferFunction], TelemetryPSD] | None = None,
+        max_designs: int | None = None,
+        oracle: Callable[[int], TelemetryPSD] | None = None,
     ) -> None:
         if not isinstance(initial, IIRBank):
             raise TypeError(f"initial must be an IIRBank, got {type(initial).__name__}")
@@ -532,6 +546,15 @@ class AdaptiveController(ControllerBank):
                 )
         self._nperseg = nperseg
         self._noise_band = noise_band
+        self._max_designs = (
+            None if max_designs is None else check_int("max_designs", max_designs, minimum=1)
+        )
+        if oracle is not None and not callable(oracle):
+            raise TypeError(f"oracle must be callable, got {oracle!r}")
+        self._oracle = oracle
+        if estimator is not None and not callable(estimator):
+            raise TypeError(f"estimator must be callable, got {estimator!r}")
+        self._estimator = estimator
         if latency is None:
             self._latency_frames = None
         else:
@@ -591,7 +614,10 @@ class AdaptiveController(ControllerBank):
         if self._pending is not None and self._pending[0] == k:
             self._switch(self._pending[1])
             self._pending = None
-        if k and k % self._period_frames == 0 and k >= self._window_frames:
+        due = k and k % self._period_frames == 0 and k >= self._window_frames
+        if due and self._max_designs is not None:
+            due = len(self.run.redesigns) < self._max_designs
+        if due:
             if self._pending is None:
                 self._redesign(k)
                 if self._pending is not None and self._pending[0] == k:  # zero latency
@@ -623,12 +649,22 @@ class AdaptiveController(ControllerBank):
 
     def _redesign(self, k: int) -> None:
         t0 = time.perf_counter()
-        m, u = self._history(self._window_frames + self._lead)
-        lead = m.shape[0] - self._window_frames
-        pol = pseudo_open_loop(m, u, self._plant)[lead:]
-        tel = disturbance_from_telemetry(
-            pol, np.zeros_like(pol), self._plant, nperseg=self._nperseg, noise_band=self._noise_band
-        )
+        if self._oracle is not None:
+            tel = self._oracle(k)
+        else:
+            m, u = self._history(self._window_frames + self._lead)
+            lead = m.shape[0] - self._window_frames
+            pol = pseudo_open_loop(m, u, self._plant)[lead:]
+            if self._estimator is not None:
+                tel = self._estimator(pol, self._plant)
+            else:
+                tel = disturbance_from_telemetry(
+                    pol,
+                    np.zeros_like(pol),
+                    self._plant,
+                    nperseg=self._nperseg,
+                    noise_band=self._noise_band,
+                )
         proposal = self._designer(tel, self._plant, self.current)
         if not isinstance(proposal, Proposal):
             raise TypeError(f"the designer must return a Proposal, got {type(proposal).__name__}")
