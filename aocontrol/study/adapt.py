@@ -12,9 +12,10 @@ Strategies (each a bank of per-mode controllers starting from the case's integra
 * ``fixed``: data-driven design from the first window, never redesigned;
 * ``adaptive``: data-driven, redesigned every ``period`` from the last ``window`` of its own
   telemetry (warm-started, certified, switched after the design latency, bumplessly);
-* ``oracle``: data-driven, redesigned every ``period`` from the true disturbance PSD of the
-  coming period (the disturbance series itself, Welch), with the true noise level and no
-  latency: what perfect knowledge of the drift would give;
+* ``oracle``: data-driven, redesigned every ``period`` from the true disturbance of the
+  coming period (the disturbance series itself plus white noise of the true level, through
+  the same pre-whitened estimator), switched with no latency: what knowing the drift in
+  advance would give;
 * ``modal-gain``: the optimised integrator gain, adapted like ``adaptive``;
 * ``lqg``: LQG re-identified from the same windows, adapted like ``adaptive``.
 
@@ -138,16 +139,18 @@ def _prewhitened(pol: np.ndarray, plant: object) -> TelemetryPSD:
     return dataclasses.replace(tel, psd=psd)
 
 
-def _oracle(d: np.ndarray, scene: Scene, period_frames: int, nperseg: int):
-    """PSDs of the true disturbance over the coming period, true white noise level."""
+def _oracle(d: np.ndarray, scene: Scene, period_frames: int, nperseg: int, seed: int):
+    """PSDs of the true disturbance of the coming period: the disturbance itself (no loop, no
+    latency) plus white noise of the true level, through the same estimator as the loops."""
     st = scene.stage2
-    noise = 2.0 * st.noise_std**2 / st.fs  # one-sided level of white noise of that variance
+    rng = np.random.default_rng([seed, 23])
 
     def oracle(frame: int) -> TelemetryPSD:
-        seg = np.asarray(d[frame : frame + max(period_frames, nperseg)], dtype=float)
-        seg = seg if seg.shape[0] >= nperseg else np.asarray(d[-nperseg:], dtype=float)
-        f, psd = welch_psd(seg, st.fs, min(nperseg, seg.shape[0]))
-        return TelemetryPSD(f, psd, noise, seg, psd, st.fs, (0.8, 1.0))
+        length = max(period_frames, 4 * nperseg)
+        start = max(0, min(frame, d.shape[0] - length))
+        seg = np.asarray(d[start : start + length], dtype=float)
+        seg = seg + rng.standard_normal(seg.shape) * st.noise_std
+        return _prewhitened(seg, st.plant)
 
     return oracle
 
@@ -236,12 +239,16 @@ def _controller(
     order: int,
     modulus_margin: float,
     n_jobs: int | None,
+    seed: int,
+    design_options: dict,
 ) -> AdaptiveController:
     st = scene.stage2
     initial = Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes)
     window_frames = round(window * st.fs)
     nperseg = min(1024, 2 ** int(np.log2(max(window_frames // 4, 8))))
-    dd = datadriven_designer(order=order, modulus_margin=modulus_margin, n_jobs=n_jobs)
+    dd = datadriven_designer(
+        order=order, modulus_margin=modulus_margin, n_jobs=n_jobs, **design_options
+    )
     designer = {
         "fixed": dd,
         "adaptive": dd,
@@ -260,7 +267,7 @@ def _controller(
     if strategy == "fixed":
         kwargs["max_designs"] = 1
     if strategy == "oracle":
-        kwargs["oracle"] = _oracle(d, scene, round(period * st.fs), nperseg)
+        kwargs["oracle"] = _oracle(d, scene, round(period * st.fs), nperseg, seed)
     return AdaptiveController(initial, st.plant, designer, **kwargs)
 
 
@@ -279,6 +286,7 @@ def run_adapt(
     seed: int = 0,
     n_jobs: int | None = 1,
     overrides: dict | None = None,
+    design_options: dict | None = None,
 ) -> AdaptStudy:
     """Run the strategies on one drifting scenario for every (period, window).
 
@@ -309,6 +317,9 @@ def run_adapt(
         Worker processes of each data-driven design.
     overrides : dict, optional
         Case overrides.
+    design_options : dict, optional
+        Other keyword arguments of :func:`aocontrol.synthesis.datadriven` (e.g. ``n_grid``,
+        ``max_iter`` for quick runs).
 
     Returns
     -------
@@ -345,7 +356,17 @@ def run_adapt(
         ]
         for period, window in pairs:
             ctrl = _controller(
-                strategy, scene, d, period, window, latency, order, modulus_margin, n_jobs
+                strategy,
+                scene,
+                d,
+                period,
+                window,
+                latency,
+                order,
+                modulus_margin,
+                n_jobs,
+                seed,
+                dict(design_options or {}),
             )
             stage = Stage(ctrl, st.sensor, st.spec.latency_frames, name="stage 2")
             res = run_loop(
