@@ -44,7 +44,6 @@ from aocontrol.adaptive import (
     lqg_designer,
     modal_gain_designer,
 )
-from aocontrol.analysis import welch_psd
 from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.drift import Drift
