@@ -333,6 +333,8 @@ def run_adapt(
     bad = [s for s in strategies if s not in STRATEGIES]
     if bad:
         raise ValueError(f"strategies must be among {list(STRATEGIES)}, got {bad}")
+    if scenario not in SCENARIOS:
+        raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {scenario!r}")
     for w in windows:
         if not 0 < w < duration:
             raise ValueError(f"window must be in (0, duration={duration:g}) s, got {w!r} s")
