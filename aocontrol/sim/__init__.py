@@ -8,6 +8,7 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 """
 
 from aocontrol.sim.atmosphere import Atmosphere, Layer
+from aocontrol.sim.drift import Drift
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
 from aocontrol.sim.loop import (
     CascadeResult,
@@ -58,6 +59,7 @@ __all__ = [
     "DiffractiveSensor",
     "Atmosphere",
     "Layer",
+    "Drift",
     "eso_median_profile",
     "compress_profile",
     "scale_to_tau0",

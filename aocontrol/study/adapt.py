@@ -110,8 +110,25 @@ def scenario_drift(
 def drifting_disturbance(
     scene: Scene, drift: Drift, n_frames: int, seed: int, *, chunk: int = 3000
 ) -> np.ndarray:
-    """Stage-2 modal disturbance [nm] of ``n_frames`` frames under ``drift``, shape
-    ``(n_frames, n_modes)`` (float32; the atmosphere at stage 2's rate, projected on its basis).
+    """Stage-2 modal disturbance [nm] of ``n_frames`` frames under ``drift``.
+
+    Parameters
+    ----------
+    scene : Scene
+        The case's scene (pupil, r0, layers, stage-2 basis and rate).
+    drift : Drift
+        Seeing and wind history.
+    n_frames : int
+        Frames at stage 2's rate.
+    seed : int
+        Seed of the phase screens.
+    chunk : int, default 3000
+        Frames generated at once.
+
+    Returns
+    -------
+    ndarray, shape (n_frames, n_modes), float32
+        The atmosphere at stage 2's rate projected on its KL basis [nm].
     """
     atm = Atmosphere(
         scene.pupil,
