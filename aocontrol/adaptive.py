@@ -29,7 +29,8 @@ commands it returns, and every ``period`` seconds:
    measurements and the commands actually applied (:meth:`IIRBank.set_history`), so the
    first command of the new filter continues the loop instead of restarting from zero.
 
-Timing: frame ``k`` (counted from :meth:`reset`) is at ``k / fs``. Designs are requested at
+Timing: frame ``k`` (counted from :meth:`reset`; a frame rejected for a non-finite measurement
+is not stepped, hence not counted) is at ``k / fs``. Designs are requested at
 the frames ``j * period * fs`` (``j >= 1``) that have a full window behind them, on the
 telemetry up to the previous frame; the switch happens at the start of frame
 ``k_design + latency_frames``. A design requested while the previous one is still pending
