@@ -361,6 +361,10 @@ def datadriven_designer(
 ) -> Designer:
     """Designer: :func:`aocontrol.synthesis.datadriven` warm-started from the current bank.
 
+    When the synthesis refuses the current bank as a start (free controller poles outside its
+    ``max_pole_radius``, e.g. an integrator's pole at ``z = 1``), the design starts from the
+    synthesis's default instead.
+
     Parameters
     ----------
     order : int, default 5
@@ -379,16 +383,28 @@ def datadriven_designer(
             noise_psd=tel.noise_psd,
             order=order,
             modulus_margin=modulus_margin,
-            initial=current,
             n_jobs=n_jobs,
             progress=False,
         )
         kwargs.update(options)
+
+        def run(initial: IIRBank | None) -> Proposal:
+            try:
+                res = datadriven(plant, tel.freqs, tel.psd, initial=initial, **kwargs)
+            except DataDrivenError as exc:
+                return Proposal(exc.result.controller, dict(exc.failed))
+            return Proposal(res.controller)
+
         try:
-            res = datadriven(plant, tel.freqs, tel.psd, **kwargs)
-        except DataDrivenError as exc:
-            return Proposal(exc.result.controller, dict(exc.failed))
-        return Proposal(res.controller)
+            return run(current)
+        except ValueError as exc:
+            # A synthesis that keeps the free controller poles inside a radius refuses a start
+            # outside it (e.g. the loop's first integrator, pole at z = 1): start from its
+            # own default instead (cold); later designs start from the certified bank.
+            if "max_pole_radius" not in str(exc):
+                raise
+            logger.info("warm start refused (%s): cold start", exc)
+            return run(None)
 
     design.__name__ = design.__qualname__ = f"datadriven(order={order})"
     return design
