@@ -15,7 +15,7 @@ from aocontrol.study.results import save_result
 
 FS = 1000.0
 LATENCY = 0.5
-COMMANDS = ("cases", "run", "compare", "design", "sweep", "demo")
+COMMANDS = ("cases", "run", "compare", "design", "sweep", "demo", "adapt")
 
 
 def test_demo_designs_stable_controllers_and_writes_plot(tmp_path):

@@ -19,6 +19,7 @@ CONTROL = [
     "synthesis",
     "io",
     "disturbance.py",
+    "adaptive.py",
     "_validation.py",
 ]
 

@@ -337,6 +337,57 @@ class IIRBank(ControllerBank):
         self._head = 0
         self.n_saturated = np.zeros(n, dtype=np.int64)
 
+    def set_history(self, measurements: object, commands: object) -> None:
+        """Set the filter state from past frames: a bumpless start inside a running loop.
+
+        The Direct-Form I state *is* the past inputs and outputs, so after this call the next
+        ``step(m[k])`` returns ``sum_i b_i m[k-i] - sum_i a_i u[k-i]`` with ``m[k-1], m[k-2],
+        ...`` the last rows of ``measurements`` and ``u[k-1], ...`` the last rows of
+        ``commands``: the command the filter would give had it been running on the same loop
+        (the commands actually applied, as with anti-windup). Rows missing for a short history
+        count as zeros. Counters (``n_saturated``, ``n_rejected``) are not touched.
+
+        Parameters
+        ----------
+        measurements : array_like, shape (n_frames, n_modes)
+            Past measurements, oldest first (``n_frames >= 0``).
+        commands : array_like, shape (n_frames', n_modes)
+            Past commands, oldest first.
+
+        Raises
+        ------
+        ValueError
+            If the arrays are not finite or not ``(n_frames, n_modes)``.
+
+        Examples
+        --------
+        >>> bank = IIRBank(b=[0.5], a=[1.0, -1.0], fs=1000.0)         # integrator, g = 0.5
+        >>> bank.set_history(np.array([[0.0]]), np.array([[3.0]]))   # u[k-1] = 3
+        >>> bank.step(np.array([2.0]))                               # 3 + 0.5 * 2
+        array([4.])
+        """
+        hist = []
+        for name, value in (("measurements", measurements), ("commands", commands)):
+            arr = check_finite_array(name, value, ndim=2)
+            if arr.shape[1] != self._n:
+                raise ValueError(
+                    f"{name} must have shape (n_frames, {self._n}) (one column per mode), "
+                    f"got {arr.shape}"
+                )
+            hist.append(arr)
+        m, u = hist
+        n, depth = self._n, self._taps.shape[0]
+        # Layout of reset(): the next step writes frame k at row depth - 1 when head is 0, so
+        # frame k - i (i >= 1) sits at row i - 1 and its copy at row i - 1 + depth.
+        self._history[:] = 0.0
+        self._head = 0
+        for i in range(1, depth):
+            if i <= m.shape[0]:
+                self._history[[i - 1, i - 1 + depth], :n] = m[-i]
+            if i <= u.shape[0]:
+                self._history[[i - 1, i - 1 + depth], n:] = u[-i]
+        self._last_command = u[-1].copy() if u.shape[0] else None
+
     def _step(self, m: np.ndarray) -> np.ndarray:
         n = self._n
         depth = self._taps.shape[0]

@@ -9,6 +9,7 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
+from aocontrol.sim.drift import Drift
 from aocontrol.sim.loop import (
     CascadeResult,
     DiffractiveSensor,
@@ -59,6 +60,7 @@ __all__ = [
     "DitherGainTracker",
     "Atmosphere",
     "Layer",
+    "Drift",
     "eso_median_profile",
     "compress_profile",
     "scale_to_tau0",

@@ -38,6 +38,13 @@ screens reproduce the von Kármán (L0 = 25 m) tip/tilt variance within 2 % and 
 piston-removed pupil variance within 1 % (measured over 600-3200 L0 of extrusion, 16-64
 pixels across the pupil); the tests check 10 %.
 
+Drifting turbulence (argument ``drift``, a :class:`aocontrol.sim.drift.Drift`): frame ``k`` is
+multiplied by ``seeing(k dt)^(5/6)`` (the phase of a screen scales as ``r0^(-5/6)``, so the
+statistics at each instant are those of ``r0(t)``), and each layer's window sits at
+``-X(k dt)``, ``X`` the exact time integral of the layer's time-varying wind velocity (no jump
+when the wind changes). Both are functions of the frame index: frames stay independent of the
+split into calls.
+
 Units: phase maps are optical path differences in nm (wavelength independent): radians at
 500 nm times ``500 / (2 pi)``. ``r0`` is quoted at 500 nm.
 """
@@ -56,6 +63,7 @@ import scipy.sparse
 
 from aocontrol._validation import check_int, check_nonnegative, check_positive
 from aocontrol.sim._screens import Extruder, fft_screens
+from aocontrol.sim.drift import Drift
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.turbulence import opd_per_radian
 from aocontrol.sim.turbulence import tau0 as _tau0
@@ -182,15 +190,19 @@ class _LayerState:
         step: tuple[float, float],
         amplitude: float,
         rng: np.random.Generator,
+        path: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> None:
         self.screen = screen  # (N, N) nm; screen[i, j] is global pixel (oy + i, ox + j)
         self.oy, self.ox = origin
         self.sy, self.sx = step  # window displacement [pixels/frame] (= -v dt / dx)
         self.amplitude = amplitude  # nm per unit (r0 = 1 m, rad at 500 nm) screen
         self.rng = rng
+        self.path = path  # frames -> (rows, columns) when the wind drifts
 
     def positions(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Global (row, column) of the window's first pixel at each frame [pixels]."""
+        if self.path is not None:
+            return self.path(frames)
         return frames * self.sy, frames * self.sx
 
 
@@ -224,6 +236,9 @@ class Atmosphere:
         Sub-pixel sampling of the moving screens: bilinear (default, fastest) or bicubic
         (Keys, a = -1/2; a third of the pixel-scale structure-function deficit, about twice
         the cost). See the module notes.
+    drift : Drift, optional
+        Seeing and wind that change in time (:class:`aocontrol.sim.drift.Drift`): ``r0`` and
+        the layers' winds are then the base values, scaled by the drift at each frame.
     dtype : {numpy.float64, numpy.float32}
         Floating type of the frames returned. float32 (7 significant digits, i.e. < 0.01 nm
         on a turbulent OPD of microns) makes frame synthesis 2-4 times faster; the screens and
@@ -257,6 +272,7 @@ class Atmosphere:
         screen_size: int | None = None,
         interpolation: str = "linear",
         dtype: type[np.floating] | str = np.float64,
+        drift: Drift | None = None,
     ) -> None:
         if not isinstance(pupil, Pupil):
             raise TypeError(f"pupil must be a Pupil, got {type(pupil).__name__}")
@@ -276,6 +292,9 @@ class Atmosphere:
         self._size = check_int("screen_size", screen_size, minimum=n + 4)
         self._extruder = _extruder(self._size, pupil.pixel_scale, self._L0)
         dx = pupil.pixel_scale
+        if drift is not None and not isinstance(drift, Drift):
+            raise TypeError(f"drift must be an aocontrol.sim.drift.Drift, got {drift!r}")
+        self._drift = drift
         steps = []
         for lay in self._layers:
             a = math.radians(lay.wind_direction)
@@ -283,12 +302,24 @@ class Atmosphere:
             # The pupil samples phi_0(x - v t): its window moves by -v dt on the screen.
             steps.append((-shift * math.sin(a), -shift * math.cos(a)))
         self._steps = tuple(steps)
+        if drift is not None:
+            self._wind = (
+                np.array([lay.wind_speed for lay in self._layers]),
+                np.array([lay.wind_direction for lay in self._layers]),
+            )
+            v0 = drift.knot_velocities(*self._wind)[0] / self._fs / dx  # (n_layers, 2)
+            # Start positions follow the first velocity; the block size the fastest one.
+            steps = [(-float(vy), -float(vx)) for vx, vy in v0]
+            self._steps = tuple(steps)
+            fastest_drift = drift.max_speed(*self._wind) / self._fs / dx
         self._interp = interpolation
         taps = _TAPS[interpolation]
         # A window starting at screen index g reads g + taps[0] ... g + n - 1 + taps[-1]:
         # g ranges over [-taps[0], -taps[0] + span].
         self._span = self._size - n - (taps[-1] - taps[0])
         fastest = max(max(abs(sy), abs(sx)) for sy, sx in steps)
+        if drift is not None:
+            fastest = max(fastest, fastest_drift)
         self._block = (
             MAX_BLOCK_FRAMES
             if fastest == 0
@@ -343,6 +374,18 @@ class Atmosphere:
         return self._size
 
     @property
+    def drift(self) -> Drift | None:
+        """The seeing and wind drift, or ``None`` (stationary)."""
+        return self._drift
+
+    def r0_at(self, t: object) -> np.ndarray:
+        """Fried parameter at 500 nm [m] at times ``t`` [s] (``r0`` without drift)."""
+        t = np.asarray(t, dtype=float)
+        if self._drift is None:
+            return np.full(t.shape, self._r0)
+        return self._r0 / self._drift.seeing_at(t)
+
+    @property
     def frame(self) -> int:
         """Index of the next frame :meth:`phase` returns (frames produced since reset)."""
         return self._frame
@@ -391,8 +434,9 @@ class Atmosphere:
             # Start the window where it has room to move: at the far end of its motion.
             start_y = first + (span if sy < 0 else (0 if sy > 0 else span // 2))
             start_x = first + (span if sx < 0 else (0 if sx > 0 else span // 2))
+            path = None if self._drift is None else functools.partial(self._drift_path, i)
             states.append(
-                _LayerState(unit[i] * amp, (-start_y, -start_x), (sy, sx), amp, gens[i + 1])
+                _LayerState(unit[i] * amp, (-start_y, -start_x), (sy, sx), amp, gens[i + 1], path)
             )
         self._states = states
         self._frame = 0
@@ -432,6 +476,13 @@ class Atmosphere:
         return out
 
     # ------------------------------------------------------------------ internals
+    def _drift_path(self, layer: int, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Window position (rows, columns) [pixels] of ``layer`` at ``frames`` under drift:
+        minus the screen's displacement, the exact integral of its velocity."""
+        x = self._drift.displacement(frames / self._fs, *self._wind)[:, layer]
+        dx = self._pupil.pixel_scale
+        return -x[:, 1] / dx, -x[:, 0] / dx
+
     def _generate(self, n_frames: int, store: Callable[[slice, np.ndarray], None]) -> None:
         """Compute the next ``n_frames`` frames block by block, ``store(rows, values)``."""
         n_valid = self._pupil.n_valid
@@ -445,9 +496,13 @@ class Atmosphere:
             frames = np.arange(start, stop, dtype=float)
             parts = []
             total = 0
+            # Seeing drift: the phase of every layer scales as r0(t)^(-5/6).
+            gain = None if self._drift is None else self._drift.phase_scale(frames / self._fs)
             for st in self._states:
                 self._cover(st, j * b, (j + 1) * b)
                 w, inverse, origins = self._interpolation(st, frames)
+                if gain is not None:
+                    w = w * gain[:, None]
                 parts.append((w, inverse + total, origins, st))
                 total += origins.size
             # The distinct integer-shifted windows of all layers, stacked: (total, n_valid).
@@ -471,7 +526,12 @@ class Atmosphere:
 
     def _cover(self, st: _LayerState, first: int, stop: int) -> None:
         """Extrude ``st`` so that its screen holds every window of frames [first, stop)."""
-        ends = np.array([first, stop - 1], dtype=float)
+        # Linear motion: the ends of the block bound it; under drift, every frame does.
+        ends = (
+            np.array([first, stop - 1], dtype=float)
+            if st.path is None
+            else np.arange(first, stop, dtype=float)
+        )
         py, px = st.positions(ends)
         n, size = self._pupil.n_pix, self._size
         taps = _TAPS[self._interp]

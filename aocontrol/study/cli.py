@@ -697,6 +697,49 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------- adapt
+def _floats(name: str, text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise UserError(f"{name} must be comma-separated numbers [s], got {text!r}") from None
+    if not values or any(not v > 0 for v in values):
+        raise UserError(f"{name} must be positive numbers [s], got {text!r}")
+    return values
+
+
+def _adapt(args: argparse.Namespace) -> int:
+    from aocontrol.study.adapt import STRATEGIES, run_adapt
+
+    periods = _floats("--period", args.period)
+    windows = _floats("--window", args.window)
+    strategies = tuple(args.strategies.split(",")) if args.strategies else STRATEGIES
+    latency = None if args.latency < 0 else args.latency
+    if latency is not None and latency >= min(periods):
+        raise UserError(f"--latency {latency:g} s must be shorter than every --period")
+    study = run_adapt(
+        _check_case(args.case),
+        scenario=args.scenario,
+        periods=periods,
+        windows=windows,
+        duration=args.seconds,
+        strategies=strategies,
+        latency=latency,
+        order=args.order,
+        quick=args.quick,
+        seed=args.seed,
+        n_jobs=args.jobs,
+    )
+    table = study.table()
+    print(table)
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, f"adapt_{study.case}_{study.scenario}.txt")
+    with open(path, "w") as fh:
+        fh.write(table + "\n")
+    print(f"table: {path}")
+    return 0
+
+
 # ----------------------------------------------------------------------------- parser
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -839,6 +882,37 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", default="sweep-output", help="results folder")
     no_progress(p)
+
+    p = add(
+        "adapt",
+        _adapt,
+        "adaptive control under drifting turbulence: residual against update period and window",
+    )
+    p.add_argument("case", help="science case name (see 'aocontrol cases') or a case .toml")
+    p.add_argument(
+        "--scenario",
+        default="wind-doubles",
+        help="wind-doubles, seeing-worsens, stochastic, or case (the case's [atmosphere.drift])",
+    )
+    p.add_argument("--period", default="1", help="update periods T [s], comma-separated")
+    p.add_argument("--window", default="1", help="telemetry windows W [s], comma-separated")
+    p.add_argument("--seconds", type=float, default=60.0, help="simulated time [s] (default 60)")
+    p.add_argument(
+        "--strategies",
+        default=None,
+        help="comma-separated among fixed, adaptive, oracle, modal-gain, lqg (default all)",
+    )
+    p.add_argument(
+        "--latency",
+        type=float,
+        default=0.5,
+        help="design latency [s] (default 0.5; negative: the measured compute time)",
+    )
+    p.add_argument("--order", type=int, default=5, help="data-driven controller order")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes of each design")
+    p.add_argument("--quick", action="store_true", help="reduced modes and pupil (smoke runs)")
+    p.add_argument("--out", default="adapt-output", help="folder of the table")
 
     p = add(
         "demo",

@@ -18,6 +18,15 @@ unknown or missing keys, wrong types or units, non-physical values (negative see
 ``tau0``, a rate <= 0), a stage-2 rate that is not an integer multiple of stage 1's, or more
 modes than the stage's DM has (valid actuators of :class:`aocontrol.sim.dm.DeformableMirror`
 minus piston).
+
+A drifting atmosphere (:mod:`aocontrol.sim.drift`) is named by an optional sub-table
+``[atmosphere.drift]`` with ``kind = "step"`` (keys ``at``, ``seeing``, ``wind``,
+``direction``), ``"ramp"`` (``start``, ``stop``, ``seeing``, ``wind``, ``direction``) or
+``"stochastic"`` (``duration``, ``seed``, optional ``knot_interval``, ``seeing_timescale``,
+``seeing_rms_change_1h``, ``wind_timescale``, ``wind_log_sigma``). ``seeing`` and ``wind`` are
+factors on the case's values (> 0 and >= 0), ``direction`` an offset in degrees, times with a
+unit (``at = "20 s"``). Negative factors or times, ``stop < start`` and unknown keys are refused
+naming the key.
 """
 
 from __future__ import annotations
@@ -41,6 +50,7 @@ else:  # pragma: no cover - Python 3.10 (declared dependency tomli)
 
 __all__ = [
     "AtmosphereSpec",
+    "DriftSpec",
     "Case",
     "CaseError",
     "ScienceSpec",
@@ -87,6 +97,90 @@ class CaseError(ValueError):
 
 # ------------------------------------------------------------------------- specifications
 @dataclass(frozen=True)
+class DriftSpec:
+    """A drifting-atmosphere scenario (``[atmosphere.drift]``), see :mod:`aocontrol.sim.drift`.
+
+    Parameters
+    ----------
+    kind : str
+        ``"step"``, ``"ramp"`` or ``"stochastic"``.
+    seeing : float
+        Seeing factor reached (step, ramp), > 0.
+    wind : float
+        Wind-speed factor reached (step, ramp), >= 0.
+    direction : float
+        Wind-direction offset reached [deg] (step, ramp).
+    at : float
+        Time of a step [s].
+    start, stop : float
+        Start and end of a ramp [s].
+    duration : float
+        Length of a stochastic history [s].
+    seed : int
+        Seed of a stochastic history.
+    knot_interval, seeing_timescale, wind_timescale : float or None
+        Stochastic model settings [s] (``None``: the module's defaults).
+    seeing_rms_change_1h : float or None
+        RMS seeing change over one hour [arcsec] (``None``: 0.16, Paranal).
+    wind_log_sigma : float
+        Log-standard deviation of the wind factor (0: no wind drift).
+    """
+
+    kind: str
+    seeing: float = 1.0
+    wind: float = 1.0
+    direction: float = 0.0
+    at: float = 0.0
+    start: float = 0.0
+    stop: float = 0.0
+    duration: float = 0.0
+    seed: int = 0
+    knot_interval: float | None = None
+    seeing_timescale: float | None = None
+    seeing_rms_change_1h: float | None = None
+    wind_timescale: float | None = None
+    wind_log_sigma: float = 0.0
+
+    def build(self, base_seeing: float) -> Any:
+        """The :class:`aocontrol.sim.drift.Drift` of this scenario.
+
+        Parameters
+        ----------
+        base_seeing : float
+            The case's seeing [arcsec] (median of the stochastic model).
+        """
+        from aocontrol.sim.drift import Drift
+
+        if self.kind == "step":
+            return Drift.step(self.at, seeing=self.seeing, wind=self.wind, direction=self.direction)
+        if self.kind == "ramp":
+            return Drift.ramp(
+                self.start,
+                self.stop,
+                seeing=self.seeing,
+                wind=self.wind,
+                direction=self.direction,
+            )
+        options = {
+            k: getattr(self, k)
+            for k in (
+                "knot_interval",
+                "seeing_timescale",
+                "seeing_rms_change_1h",
+                "wind_timescale",
+            )
+            if getattr(self, k) is not None
+        }
+        return Drift.stochastic(
+            self.duration,
+            self.seed,
+            base_seeing=base_seeing,
+            wind_log_sigma=self.wind_log_sigma,
+            **options,
+        )
+
+
+@dataclass(frozen=True)
 class AtmosphereSpec:
     """Turbulence of a case.
 
@@ -104,6 +198,8 @@ class AtmosphereSpec:
         Layers of the published profile (35).
     simulated_layers : int
         Equivalent layers simulated (compression of the profile, <= ``n_layers``).
+    drift : DriftSpec or None
+        Seeing and wind drift (``[atmosphere.drift]``), ``None`` for a stationary sky.
     """
 
     seeing: float
@@ -112,6 +208,7 @@ class AtmosphereSpec:
     profile: str
     n_layers: int
     simulated_layers: int
+    drift: DriftSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -341,6 +438,22 @@ _SCHEMA: dict[str, dict[str, tuple[str, bool]]] = {
         "n_layers": ("int", True),
         "simulated_layers": ("int", True),
     },
+    "atmosphere.drift": {
+        "kind": ("str", True),
+        "seeing": ("float", False),
+        "wind": ("float", False),
+        "direction": ("float", False),
+        "at": ("q:time", False),
+        "start": ("q:time", False),
+        "stop": ("q:time", False),
+        "duration": ("q:time", False),
+        "seed": ("int", False),
+        "knot_interval": ("q:time", False),
+        "seeing_timescale": ("q:time", False),
+        "seeing_rms_change_1h": ("q:angle", False),
+        "wind_timescale": ("q:time", False),
+        "wind_log_sigma": ("float", False),
+    },
     "star": {"G": ("float", True), "J": ("float", True)},
     "stage1": {},
     "stage2": {},
@@ -563,9 +676,10 @@ def _stage(source: str, name: str, t: dict[str, Any], sim: dict[str, Any]) -> St
 
 
 def _build(source: str, data: dict[str, Any]) -> Case:
-    unknown = sorted(set(data) - _TOP - set(_SCHEMA))
+    tables_ok = set(_SCHEMA) - {"atmosphere.drift"}  # a sub-table, not a top-level one
+    unknown = sorted(set(data) - _TOP - tables_ok)
     if unknown:
-        raise CaseError(source, unknown[0], f"unknown key; valid: {sorted(_TOP | set(_SCHEMA))}")
+        raise CaseError(source, unknown[0], f"unknown key; valid: {sorted(_TOP | tables_ok)}")
     for key in ("name", "title"):
         if key not in data:
             raise CaseError(source, key, "missing required key")
@@ -574,8 +688,15 @@ def _build(source: str, data: dict[str, Any]) -> Case:
     for table in _REQUIRED_TABLES:
         if table not in data:
             raise CaseError(source, table, f"missing required table [{table}]")
-    parsed = {name: _parse_table(source, name, data[name]) for name in _REQUIRED_TABLES}
+    tables = dict(data)
+    drift_table = None
+    if isinstance(data["atmosphere"], dict) and "drift" in data["atmosphere"]:
+        tables["atmosphere"] = {k: v for k, v in data["atmosphere"].items() if k != "drift"}
+        drift_table = data["atmosphere"]["drift"]
+    parsed = {name: _parse_table(source, name, tables[name]) for name in _REQUIRED_TABLES}
     atm, sim, sci = parsed["atmosphere"], parsed["simulation"], parsed["science"]
+    if drift_table is not None:
+        atm["drift"] = _drift(source, drift_table)
     if not 1 <= atm["simulated_layers"] <= atm["n_layers"]:
         raise CaseError(
             source,
@@ -642,6 +763,66 @@ def _build(source: str, data: dict[str, Any]) -> Case:
         vibration=vib,
         raw=data,
     )
+
+
+# Keys each drift kind requires and accepts (beyond "kind").
+_DRIFT_KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "step": (("at",), ("at", "seeing", "wind", "direction")),
+    "ramp": (("start", "stop"), ("start", "stop", "seeing", "wind", "direction")),
+    "stochastic": (
+        ("duration", "seed"),
+        (
+            "duration",
+            "seed",
+            "knot_interval",
+            "seeing_timescale",
+            "seeing_rms_change_1h",
+            "wind_timescale",
+            "wind_log_sigma",
+        ),
+    ),
+}
+
+
+def _drift(source: str, table: Any) -> DriftSpec:
+    """Parse and check ``[atmosphere.drift]``."""
+    d = _parse_table(source, "atmosphere.drift", table)
+    kind = d["kind"]
+    if kind not in _DRIFT_KINDS:
+        raise CaseError(
+            source, "atmosphere.drift.kind", f"must be one of {sorted(_DRIFT_KINDS)}, got {kind!r}"
+        )
+    required, allowed = _DRIFT_KINDS[kind]
+    for key in d:
+        if key != "kind" and key not in allowed:
+            raise CaseError(
+                source,
+                f"atmosphere.drift.{key}",
+                f"not a key of a {kind!r} drift; valid keys: {sorted(allowed)}",
+            )
+    for key in required:
+        if key not in d:
+            raise CaseError(source, f"atmosphere.drift.{key}", f"missing for a {kind!r} drift")
+
+    def bad(key: str, reason: str) -> CaseError:
+        return CaseError(source, f"atmosphere.drift.{key}", reason)
+
+    if d.get("seeing", 1.0) <= 0:
+        raise bad("seeing", f"must be a factor > 0 on the case's seeing, got {d['seeing']}")
+    if d.get("wind", 1.0) < 0:
+        raise bad("wind", f"must be a factor >= 0 on the case's wind speeds, got {d['wind']}")
+    for key in ("at", "start", "stop"):
+        if d.get(key, 0.0) < 0:
+            raise bad(key, f"must be >= 0 s, got {d[key]:g} s")
+    for key in ("duration", "knot_interval", "seeing_timescale", "wind_timescale"):
+        if key in d and d[key] <= 0:
+            raise bad(key, f"must be > 0 s, got {d[key]:g} s")
+    for key in ("seeing_rms_change_1h", "wind_log_sigma"):
+        if d.get(key, 0.0) < 0:
+            raise bad(key, f"must be >= 0, got {d[key]:g}")
+    if kind == "ramp" and d["stop"] < d["start"]:
+        raise bad("stop", f"must be >= start = {d['start']:g} s, got {d['stop']:g} s")
+    return DriftSpec(**d)
 
 
 def _data_dir() -> Path:

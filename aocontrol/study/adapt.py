@@ -1,0 +1,415 @@
+"""The adaptive-control study: how often should a loop redesign itself under drifting turbulence?
+
+One single-stage loop (the case's stage 2, the SAXO+ pyramid stage, seeing the full
+turbulence as in dCAO) runs on a drifting atmosphere (:mod:`aocontrol.sim.drift`) with
+controllers that redesign themselves (:class:`aocontrol.adaptive.AdaptiveController`). The
+modal disturbance of a scenario is generated once (atmosphere with drift, projected on the
+stage-2 KL basis) and replayed to every strategy with the same measurement noise: the
+comparisons are paired.
+
+Strategies (each a bank of per-mode controllers starting from the case's integrator):
+
+* ``fixed``: data-driven design from the first window, never redesigned;
+* ``adaptive``: data-driven, redesigned every ``period`` from the last ``window`` of its own
+  telemetry (warm-started, certified, switched after the design latency, bumplessly);
+* ``oracle``: data-driven, redesigned every ``period`` from the true disturbance of the
+  coming period (the disturbance series itself plus white noise of the true level, through
+  the same pre-whitened estimator), switched with no latency: what knowing the drift in
+  advance would give;
+* ``modal-gain``: the optimised integrator gain, adapted like ``adaptive``;
+* ``lqg``: LQG re-identified from the same windows, adapted like ``adaptive``.
+
+Figures: the residual variance summed over modes [nm^2] after the first window (the part the
+strategies differ on) and its ratio to ``fixed`` and ``oracle``; switches and rejected
+(uncertified) modes; design time. Scenarios (:data:`SCENARIOS`): ``wind-doubles`` (a ramp to
+twice the wind speed between 20 % and 50 % of the run), ``seeing-worsens`` (a ramp to 1.5 times
+the seeing over the same interval), ``stochastic`` (the Paranal model of
+:meth:`aocontrol.sim.drift.Drift.stochastic`) and ``case`` (the case file's own
+``[atmosphere.drift]``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from aocontrol.adaptive import (
+    AdaptiveController,
+    AdaptiveRun,
+    datadriven_designer,
+    lqg_designer,
+    modal_gain_designer,
+)
+from aocontrol.controllers import Integrator
+from aocontrol.sim.atmosphere import Atmosphere
+from aocontrol.sim.drift import Drift
+from aocontrol.sim.loop import ModalTimeSeries, Stage, TurbulenceSource, run_loop
+from aocontrol.study.compare import prewhitened_disturbance
+from aocontrol.study.scene import Scene, build_scene
+from aocontrol.synthesis import TelemetryPSD
+
+__all__ = [
+    "SCENARIOS",
+    "STRATEGIES",
+    "AdaptRow",
+    "AdaptStudy",
+    "drifting_disturbance",
+    "run_adapt",
+    "scenario_drift",
+]
+
+logger = logging.getLogger(__name__)
+
+SCENARIOS = ("wind-doubles", "seeing-worsens", "stochastic", "case")
+STRATEGIES = ("fixed", "adaptive", "oracle", "modal-gain", "lqg")
+# Fractions of the run between which the scripted scenarios ramp.
+_RAMP = (0.2, 0.5)
+
+
+def scenario_drift(
+    name: str, duration: float, base_seeing: float, *, seed: int = 0, case_drift: object = None
+) -> Drift:
+    """The :class:`~aocontrol.sim.drift.Drift` of a named scenario.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`SCENARIOS`.
+    duration : float
+        Run length [s] (the ramps span 20 % to 50 % of it).
+    base_seeing : float
+        The case's seeing [arcsec] (median of the stochastic model).
+    seed : int
+        Seed of the stochastic model.
+    case_drift : DriftSpec, optional
+        The case's ``[atmosphere.drift]`` (scenario ``case``).
+
+    Raises
+    ------
+    ValueError
+        Unknown scenario, or ``case`` for a case without a drift.
+    """
+    start, stop = _RAMP[0] * duration, _RAMP[1] * duration
+    if name == "wind-doubles":
+        return Drift.ramp(start, stop, wind=2.0)
+    if name == "seeing-worsens":
+        return Drift.ramp(start, stop, seeing=1.5)
+    if name == "stochastic":
+        return Drift.stochastic(duration, seed, base_seeing=base_seeing)
+    if name == "case":
+        if case_drift is None:
+            raise ValueError("scenario 'case' needs a case with an [atmosphere.drift] table")
+        return case_drift.build(base_seeing)
+    raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {name!r}")
+
+
+def drifting_disturbance(
+    scene: Scene, drift: Drift, n_frames: int, seed: int, *, chunk: int = 3000
+) -> np.ndarray:
+    """Stage-2 modal disturbance [nm] of ``n_frames`` frames under ``drift``.
+
+    Parameters
+    ----------
+    scene : Scene
+        The case's scene (pupil, r0, layers, stage-2 basis and rate).
+    drift : Drift
+        Seeing and wind history.
+    n_frames : int
+        Frames at stage 2's rate.
+    seed : int
+        Seed of the phase screens.
+    chunk : int, default 3000
+        Frames generated at once.
+
+    Returns
+    -------
+    ndarray, shape (n_frames, n_modes), float32
+        The atmosphere at stage 2's rate projected on its KL basis [nm].
+    """
+    atm = Atmosphere(
+        scene.pupil,
+        scene.r0,
+        list(scene.layers),
+        scene.stage2.fs,
+        L0=scene.case.atmosphere.L0,
+        rng=seed,
+        dtype=np.float32,
+        drift=drift,
+    )
+    src = TurbulenceSource(atm, scene.stage2.basis)
+    out = np.empty((n_frames, scene.stage2.n_modes), dtype=np.float32)
+    for k in range(0, n_frames, chunk):
+        m = min(chunk, n_frames - k)
+        out[k : k + m] = src.next(m)[0]
+    return out
+
+
+def _prewhitened(pol: np.ndarray, plant: object) -> TelemetryPSD:
+    """The study's PSD estimate (pre-whitened Welch, :func:`prewhitened_disturbance`)."""
+    fs = 1.0 / float(plant.dt)
+    tel, psd = prewhitened_disturbance(pol, np.zeros_like(pol), plant, fs)
+    return dataclasses.replace(tel, psd=psd)
+
+
+def _oracle(d: np.ndarray, scene: Scene, period_frames: int, nperseg: int, seed: int):
+    """PSDs of the true disturbance of the coming period: the disturbance itself (no loop, no
+    latency) plus white noise of the true level, through the same estimator as the loops."""
+    st = scene.stage2
+    rng = np.random.default_rng([seed, 23])
+
+    def oracle(frame: int) -> TelemetryPSD:
+        length = max(period_frames, 4 * nperseg)
+        start = max(0, min(frame, d.shape[0] - length))
+        seg = np.asarray(d[start : start + length], dtype=float)
+        seg = seg + rng.standard_normal(seg.shape) * st.noise_std
+        return _prewhitened(seg, st.plant)
+
+    return oracle
+
+
+@dataclass(frozen=True)
+class AdaptRow:
+    """One strategy at one (period, window) on one scenario.
+
+    Attributes
+    ----------
+    strategy : str
+    period, window : float
+        [s].
+    residual : float
+        Residual variance summed over modes after the first window [nm^2].
+    residual_late : float
+        The same over the last 30 % of the run (after the drift settled) [nm^2].
+    n_switches, n_rejected_modes, n_rejected_banks : int
+        From the controller's :class:`~aocontrol.adaptive.AdaptiveRun`.
+    design_seconds : float
+        Median compute time of a design [s].
+    """
+
+    strategy: str
+    period: float
+    window: float
+    residual: float
+    residual_late: float
+    n_switches: int
+    n_rejected_modes: int
+    n_rejected_banks: int
+    design_seconds: float
+
+
+@dataclass(frozen=True)
+class AdaptStudy:
+    """Result of :func:`run_adapt`.
+
+    Attributes
+    ----------
+    case, scenario : str
+    duration : float
+        Simulated time [s].
+    rows : tuple of AdaptRow
+    """
+
+    case: str
+    scenario: str
+    duration: float
+    rows: tuple[AdaptRow, ...]
+
+    def row(self, strategy: str, period: float | None = None) -> AdaptRow:
+        """The first row of ``strategy`` (at ``period`` if given)."""
+        for r in self.rows:
+            if r.strategy == strategy and (period is None or r.period == period):
+                return r
+        raise KeyError(f"no row for strategy {strategy!r} and period {period!r}")
+
+    def table(self) -> str:
+        """Plain-text table: residual, ratios to the fixed design and to the oracle."""
+        fixed = {r.window: r.residual for r in self.rows if r.strategy == "fixed"}
+        oracle = {r.period: r.residual for r in self.rows if r.strategy == "oracle"}
+        lines = [
+            f"{self.case}, scenario {self.scenario}, {self.duration:g} s",
+            f"{'strategy':<11} {'T [s]':>6} {'W [s]':>6} {'resid nm2':>10} {'/fixed':>7} "
+            f"{'/oracle':>8} {'late nm2':>9} {'switch':>6} {'reject':>6} {'design s':>8}",
+        ]
+        for r in self.rows:
+            rf = r.residual / fixed[r.window] if r.window in fixed else float("nan")
+            ro = r.residual / oracle[r.period] if r.period in oracle else float("nan")
+            lines.append(
+                f"{r.strategy:<11} {r.period:>6g} {r.window:>6g} {r.residual:>10.4g} "
+                f"{rf:>7.3f} {ro:>8.3f} {r.residual_late:>9.4g} {r.n_switches:>6d} "
+                f"{r.n_rejected_modes:>6d} {r.design_seconds:>8.3g}"
+            )
+        return "\n".join(lines)
+
+
+def _controller(
+    strategy: str,
+    scene: Scene,
+    d: np.ndarray,
+    period: float,
+    window: float,
+    latency: float | None,
+    order: int,
+    modulus_margin: float,
+    n_jobs: int | None,
+    seed: int,
+    design_options: dict,
+) -> AdaptiveController:
+    st = scene.stage2
+    initial = Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes)
+    window_frames = round(window * st.fs)
+    nperseg = min(1024, 2 ** int(np.log2(max(window_frames // 4, 8))))
+    dd = datadriven_designer(
+        order=order, modulus_margin=modulus_margin, n_jobs=n_jobs, **design_options
+    )
+    designer = {
+        "fixed": dd,
+        "adaptive": dd,
+        "oracle": dd,
+        "modal-gain": modal_gain_designer(modulus_margin=modulus_margin),
+        "lqg": lqg_designer(),
+    }[strategy]
+    kwargs = dict(
+        period=window if strategy == "fixed" else period,
+        window=window,
+        latency=0.0 if strategy == "oracle" else latency,
+        modulus_margin=modulus_margin if strategy != "lqg" else min(modulus_margin, 0.3),
+        nperseg=nperseg,
+        estimator=_prewhitened,
+    )
+    if strategy == "fixed":
+        kwargs["max_designs"] = 1
+    if strategy == "oracle":
+        kwargs["oracle"] = _oracle(d, scene, round(period * st.fs), nperseg, seed)
+    return AdaptiveController(initial, st.plant, designer, **kwargs)
+
+
+def run_adapt(
+    case: str,
+    *,
+    scenario: str = "wind-doubles",
+    periods: Sequence[float] = (1.0,),
+    windows: Sequence[float] = (1.0,),
+    duration: float = 60.0,
+    strategies: Sequence[str] = STRATEGIES,
+    latency: float | None = 0.5,
+    order: int = 5,
+    modulus_margin: float = 0.5,
+    quick: bool = False,
+    seed: int = 0,
+    n_jobs: int | None = 1,
+    overrides: dict | None = None,
+    design_options: dict | None = None,
+) -> AdaptStudy:
+    """Run the strategies on one drifting scenario for every (period, window).
+
+    Parameters
+    ----------
+    case : str
+        Case name or TOML path.
+    scenario : str
+        One of :data:`SCENARIOS`.
+    periods, windows : sequence of float
+        Update periods ``T`` and telemetry windows ``W`` [s]; every pair is run (the fixed
+        design once per window, the oracle once per period).
+    duration : float
+        Simulated time [s]; each window must be shorter than the run.
+    strategies : sequence of str
+        Among :data:`STRATEGIES`.
+    latency : float or None, default 0.5
+        Design latency [s] (``None``: the measured compute time); must be below every period.
+    order : int, default 5
+        Data-driven controller order.
+    modulus_margin : float, default 0.5
+        Certified margin of every switched-in controller (0.3 for LQG, which promises none).
+    quick : bool
+        The case's quick scene (24 stage-2 modes).
+    seed : int
+        Seed of the atmosphere, the stochastic drift and the noise.
+    n_jobs : int or None
+        Worker processes of each data-driven design.
+    overrides : dict, optional
+        Case overrides.
+    design_options : dict, optional
+        Other keyword arguments of :func:`aocontrol.synthesis.datadriven` (e.g. ``n_grid``,
+        ``max_iter`` for quick runs).
+
+    Returns
+    -------
+    AdaptStudy
+
+    Raises
+    ------
+    ValueError
+        Unknown scenario or strategy, a window not shorter than the run, a period not longer
+        than the latency.
+    """
+    bad = [s for s in strategies if s not in STRATEGIES]
+    if bad:
+        raise ValueError(f"strategies must be among {list(STRATEGIES)}, got {bad}")
+    if scenario not in SCENARIOS:
+        raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {scenario!r}")
+    for w in windows:
+        if not 0 < w < duration:
+            raise ValueError(f"window must be in (0, duration={duration:g}) s, got {w!r} s")
+    scene = build_scene(case, quick=quick, overrides=overrides)
+    c = scene.case
+    drift = scenario_drift(
+        scenario, duration, c.atmosphere.seeing, seed=seed, case_drift=c.atmosphere.drift
+    )
+    st = scene.stage2
+    n = int(round(duration * st.fs))
+    d = drifting_disturbance(scene, drift, n, seed)
+    rows = []
+    late = int(0.7 * n)
+    for strategy in strategies:
+        pairs = [
+            (p, w)
+            for w in windows
+            for p in (periods if strategy != "fixed" else (w,))
+            if strategy != "oracle" or w == windows[0]
+        ]
+        for period, window in pairs:
+            ctrl = _controller(
+                strategy,
+                scene,
+                d,
+                period,
+                window,
+                latency,
+                order,
+                modulus_margin,
+                n_jobs,
+                seed,
+                dict(design_options or {}),
+            )
+            stage = Stage(ctrl, st.sensor, st.spec.latency_frames, name="stage 2")
+            res = run_loop(
+                stage,
+                ModalTimeSeries(d, st.fs),
+                n,
+                rng=np.random.default_rng([seed, 11]),
+                record=("residuals",),
+            )
+            run: AdaptiveRun = ctrl.last_run
+            e = res.telemetry["residuals"]
+            first = round(window * st.fs)
+            secs = [r.design_seconds for r in run.redesigns]
+            rows.append(
+                AdaptRow(
+                    strategy=strategy,
+                    period=float(period),
+                    window=float(window),
+                    residual=float(np.mean(np.sum(e[first:].astype(float) ** 2, axis=1))),
+                    residual_late=float(np.mean(np.sum(e[late:].astype(float) ** 2, axis=1))),
+                    n_switches=run.n_switches,
+                    n_rejected_modes=run.n_rejected_modes,
+                    n_rejected_banks=run.n_rejected_banks,
+                    design_seconds=float(np.median(secs)) if secs else 0.0,
+                )
+            )
+            logger.info("%s", rows[-1])
+    return AdaptStudy(c.name, scenario, float(duration), tuple(rows))

@@ -1,0 +1,145 @@
+"""Benchmark of adaptive control under drifting turbulence (issue 17). A script, not a test.
+
+    python benchmarks/bench_adaptive.py [--quick] [--seconds 60] [--period 1] [--window 1]
+
+(a) Residual over a run where the wind doubles (ramp between 20 % and 50 % of the run), on
+    stage 2 of ``bright1-best`` seeing the whole turbulence: the adaptive data-driven loop
+    (redesigned every T from the last W of its own telemetry) / the fixed design from the
+    first window (goal <= 0.8) and / the oracle redesigned every T from the coming disturbance
+    (goal <= 1.05); the adaptive modal gain for reference.
+(b) Certificates and switch transients: uncertified banks and modes (never switched in:
+    counted), and the residual energy in the 50 frames after each switch / the 50 before,
+    pooled over switches (goal <= 1 within noise).
+(c) Cost of one warm-started redesign of an ``--n-modes`` bank (default 540) on the machine's
+    cores, from synthetic turbulence PSDs, against the update period it serves (goal <= 10 s).
+
+Timings are wall-clock on a shared machine: compare the ratios measured in one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+import warnings
+
+import numpy as np
+
+from aocontrol import loop_plant
+from aocontrol.adaptive import (
+    AdaptiveController,
+    datadriven_designer,
+)
+from aocontrol.controllers import Integrator
+from aocontrol.disturbance import synthetic_turbulence_psd
+from aocontrol.sim.loop import ModalTimeSeries, Stage, run_loop
+from aocontrol.study.adapt import drifting_disturbance, run_adapt, scenario_drift
+from aocontrol.study.scene import build_scene
+from aocontrol.synthesis import TelemetryPSD, datadriven
+
+
+def part_a(args: argparse.Namespace) -> None:
+    opts = dict(n_grid=24, max_iter=8) if args.quick else {}
+    study = run_adapt(
+        "bright1-best",
+        scenario="wind-doubles",
+        periods=(args.period,),
+        windows=(args.window,),
+        duration=args.seconds,
+        strategies=("fixed", "adaptive", "oracle", "modal-gain"),
+        latency=args.latency,
+        order=2 if args.quick else 5,
+        quick=args.quick,
+        n_jobs=args.jobs,
+        design_options=opts,
+    )
+    print(study.table())
+    a, f, o = (study.row(s).residual for s in ("adaptive", "fixed", "oracle"))
+    print(
+        f"(a) adaptive / fixed = {a / f:.3f} (goal <= 0.8); adaptive / oracle = {a / o:.3f} "
+        "(goal <= 1.05)"
+    )
+    r = study.row("adaptive")
+    print(
+        f"(b) uncertified banks {r.n_rejected_banks}, modes kept by certificate "
+        f"{r.n_rejected_modes} (none switched in by construction)"
+    )
+
+
+def part_b(args: argparse.Namespace) -> None:
+    """Switch transients of the adaptive data-driven loop on the same scenario."""
+    scene = build_scene("bright1-best", quick=args.quick)
+    st = scene.stage2
+    duration = args.seconds
+    n = int(round(duration * st.fs))
+    d = drifting_disturbance(
+        scene, scenario_drift("wind-doubles", duration, scene.case.atmosphere.seeing), n, 0
+    )
+    opts = dict(n_grid=24, max_iter=8) if args.quick else {}
+    ctrl = AdaptiveController(
+        Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes),
+        st.plant,
+        datadriven_designer(order=2 if args.quick else 5, n_jobs=args.jobs, **opts),
+        period=args.period,
+        window=args.window,
+        latency=args.latency,
+    )
+    res = run_loop(
+        Stage(ctrl, st.sensor, st.spec.latency_frames),
+        ModalTimeSeries(d, st.fs),
+        n,
+        rng=1,
+        record=("residuals",),
+    )
+    e = res.telemetry["residuals"].astype(float)
+    ks = [k for k in ctrl.last_run.switch_frames if 50 <= k <= n - 50]
+    before = np.mean([np.sum(e[k - 50 : k] ** 2) for k in ks])
+    after = np.mean([np.sum(e[k : k + 50] ** 2) for k in ks])
+    print(
+        f"(b) {len(ks)} switches: residual energy 50 frames after / before = "
+        f"{after / before:.3f} (goal <= 1 within noise)"
+    )
+
+
+def part_c(args: argparse.Namespace) -> None:
+    fs, n = 3000.0, args.n_modes
+    plant = loop_plant(fs, 0.83)
+    f = np.linspace(0.0, fs / 2, 513)
+    psd = synthetic_turbulence_psd(f, n, wind_speed=10.0, fs=fs)
+    noise = np.full(n, 2.0 * 2.0**2 / fs)  # 2 nm RMS per frame, white
+    t = time.perf_counter()
+    first = datadriven(plant, f, psd, noise_psd=noise, order=5, n_jobs=args.jobs, progress=False)
+    cold = time.perf_counter() - t
+    # The sky drifted: the wind doubled.
+    psd2 = synthetic_turbulence_psd(f, n, wind_speed=20.0, fs=fs)
+    tel = TelemetryPSD(f, psd2, noise, np.zeros((8, n)), psd2, fs, (0.8, 1.0))
+    design = datadriven_designer(order=5, n_jobs=args.jobs)
+    t = time.perf_counter()
+    proposal = design(tel, plant, first.controller)
+    warm = time.perf_counter() - t
+    print(
+        f"(c) {n} modes: cold design {cold:.1f} s, warm-started redesign {warm:.1f} s "
+        f"(goal <= 10 s; {len(proposal.failed)} modes failed), warm / cold = {warm / cold:.2f}"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="24 modes, short runs")
+    parser.add_argument("--seconds", type=float, default=60.0, help="simulated time [s]")
+    parser.add_argument("--period", type=float, default=1.0, help="update period T [s]")
+    parser.add_argument("--window", type=float, default=1.0, help="telemetry window W [s]")
+    parser.add_argument("--latency", type=float, default=0.5, help="design latency [s]")
+    parser.add_argument("--n-modes", type=int, default=540, help="modes of part (c)")
+    parser.add_argument("--jobs", type=int, default=None, help="worker processes per design")
+    parser.add_argument("--parts", default="abc", help="parts to run, e.g. 'ac'")
+    args = parser.parse_args()
+    warnings.simplefilter("ignore")
+    logging.disable(logging.WARNING)
+    for part, fun in (("a", part_a), ("b", part_b), ("c", part_c)):
+        if part in args.parts:
+            fun(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,69 @@
+"""The adaptive-control study (aocontrol.study.adapt) and its command ``aocontrol adapt``.
+
+Quick scenes (24 stage-2 modes) and the modal-gain strategy (fast designs) keep these short;
+the data-driven strategies are exercised by tests/test_adaptive.py and notebook 05.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aocontrol.study.adapt import SCENARIOS, run_adapt, scenario_drift
+from aocontrol.study.cli import main
+
+
+def test_scenarios():
+    # The two scripted scenarios of the issue: the wind doubles, the seeing worsens 1.5x,
+    # both by the middle of the run; the stochastic one has the Paranal statistics.
+    wind = scenario_drift("wind-doubles", 60.0, 0.4)
+    assert wind.wind_at(0.0, 1)[0] == 1.0 and wind.wind_at(30.0, 1)[0] == 2.0
+    seeing = scenario_drift("seeing-worsens", 60.0, 0.4)
+    assert seeing.seeing_at(60.0) == 1.5 and seeing.wind_at(60.0, 1)[0] == 1.0
+    stoch = scenario_drift("stochastic", 60.0, 0.4, seed=1)
+    assert np.all(stoch.seeing > 0) and stoch.times[-1] >= 60.0
+    assert set(SCENARIOS) >= {"wind-doubles", "seeing-worsens", "stochastic", "case"}
+    with pytest.raises(ValueError, match="scenario must be one of"):
+        scenario_drift("storm", 60.0, 0.4)
+    with pytest.raises(ValueError, match=r"needs a case with an \[atmosphere.drift\]"):
+        scenario_drift("case", 60.0, 0.4)
+
+
+@pytest.mark.slow
+def test_adaptive_modal_gain_study_runs_and_adapts():
+    # 1.2 s at 3 kHz, the wind doubling between 0.24 and 0.6 s: the modal gain redesigned
+    # every 0.2 s switches in certified banks, and the table reports every row.
+    study = run_adapt(
+        "bright1-best",
+        scenario="wind-doubles",
+        periods=(0.2,),
+        windows=(0.2,),
+        duration=1.2,
+        strategies=("modal-gain",),
+        latency=0.05,
+        quick=True,
+    )
+    row = study.row("modal-gain")
+    assert row.n_switches == 5 and row.n_rejected_banks == 0
+    assert 0 < row.residual < 1e6 and "modal-gain" in study.table()
+
+
+def test_bad_study_arguments():
+    with pytest.raises(ValueError, match="window must be in"):
+        run_adapt("bright1-best", windows=(5.0,), duration=2.0, quick=True)
+    with pytest.raises(ValueError, match="strategies must be among"):
+        run_adapt("bright1-best", strategies=("pid",), quick=True)
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--period", "-1"], "--period must be positive"),
+        (["--window", "a,b"], "--window must be comma-separated"),
+        (["--latency", "2", "--period", "1"], "--latency 2 s must be shorter"),
+        (["--scenario", "storm", "--seconds", "1", "--window", "0.5"], "scenario must be one"),
+    ],
+)
+def test_adapt_command_refuses_bad_input(argv, words, capsys):
+    assert main(["adapt", "bright1-best", "--quick", *argv]) == 2
+    assert words in capsys.readouterr().err
