@@ -269,3 +269,14 @@ def test_designs_are_certified(fs, latency, n_res, zeta, margin, seed):
     assert res.residual_variance[0] == pytest.approx(
         residual_variance(G, res.controller, f, psd, noise), rel=1e-9
     )
+
+
+def test_margins_of_a_tiny_gain_integrator():
+    # Oracle: for g << 1, |L| = 1 where |1 - exp(-j theta)| ~ theta = g, i.e. f_c = g fs / 2 pi,
+    # with a phase margin near 90 deg (the integrator's -90 plus a delay of 2 pi f_c tau).
+    # Used to raise: the crossover fell in the first grid interval, next to L's pole at 0 Hz.
+    fs, g = 3000.0, 3e-4
+    m = margins(loop_plant(fs, 0.83), Integrator(g, fs=fs))
+    assert m.stable
+    assert m.gain_crossover_hz == pytest.approx(g * fs / (2 * np.pi), rel=1e-3)
+    assert 89.0 < m.phase_margin < 90.0

@@ -124,7 +124,15 @@ def _roots_of(fun, theta: np.ndarray, values: np.ndarray, exact: bool) -> list[f
     for i in np.flatnonzero(finite[:-1] & finite[1:] & (values[:-1] * values[1:] < 0)):
         a, b = theta[i], theta[i + 1]
         if exact:
-            out.append(optimize.brentq(fun, a, b, xtol=1e-13))
+            va, vb = values[i], values[i + 1]
+
+            def bracketed(t: float, a=a, b=b, va=va, vb=vb) -> float:
+                # A pole of L on the circle (an integrator's at 0 Hz) makes the exact value
+                # non-finite at a bracket end: use the grid's finite stand-in there.
+                v = fun(t)
+                return v if np.isfinite(v) else (va if t - a < b - t else vb)
+
+            out.append(optimize.brentq(bracketed, a, b, xtol=1e-13))
         else:
             va, vb = values[i], values[i + 1]
             out.append(a + (b - a) * va / (va - vb))
