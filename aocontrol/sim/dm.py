@@ -161,8 +161,8 @@ class DeformableMirror:
         return float(np.log(self.coupling))
 
     @cached_property
-    def _grid(self) -> tuple[np.ndarray, np.ndarray]:
-        """Valid-actuator flags on the full grid and the valid actuators' (x, y) [m]."""
+    def positions(self) -> np.ndarray:
+        """``(x, y)`` of the valid actuators [m], shape ``(n_act, 2)``, full-grid row-major."""
         c = (np.arange(self.n_actuators) - (self.n_actuators - 1) / 2.0) * self.pitch
         ya, xa = np.meshgrid(c, c, indexing="ij")
         xa, ya = xa.ravel(), ya.ravel()
@@ -171,24 +171,13 @@ class DeformableMirror:
         r_in = self.pupil.obstruction * self.pupil.diameter / 2 - self.margin * self.pitch
         valid = (r <= r_out * (1 + 1e-12)) & (r >= r_in * (1 - 1e-12))
         pos = np.stack([xa[valid], ya[valid]], axis=1)
-        valid.setflags(write=False)
         pos.setflags(write=False)
-        return valid, pos
-
-    @property
-    def valid_grid(self) -> np.ndarray:
-        """Boolean map of the valid actuators, shape ``(n_actuators, n_actuators)``."""
-        return self._grid[0].reshape(self.n_actuators, self.n_actuators)
-
-    @property
-    def positions(self) -> np.ndarray:
-        """``(x, y)`` of the valid actuators [m], shape ``(n_act, 2)``."""
-        return self._grid[1]
+        return pos
 
     @property
     def n_act(self) -> int:
         """Number of valid actuators: the length of a command vector."""
-        return int(self._grid[1].shape[0])
+        return int(self.positions.shape[0])
 
     # ------------------------------------------------------------------ influence
     @cached_property
@@ -253,7 +242,7 @@ class DeformableMirror:
         ndarray, shape (..., n_act)
             Commands [nm] minimising ``mean((shape(c) - phase)^2)`` over the valid pixels.
         """
-        return _as_vectors(self.pupil, phase, "phase") @ self._fit_matrix
+        return self.pupil.as_vectors(phase, "phase") @ self._fit_matrix
 
     # ------------------------------------------------------------------ stroke
     def clip(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -452,15 +441,3 @@ class ModalDMState:
     saturation: np.ndarray
     actuator_saturation: np.ndarray | None = None
 
-
-def _as_vectors(pupil: Pupil, data: np.ndarray, name: str) -> np.ndarray:
-    """``(..., n_pix, n_pix)`` maps or ``(..., n_valid)`` vectors -> ``(..., n_valid)``."""
-    arr = check_finite_array(name, data)
-    if arr.ndim >= 1 and arr.shape[-1] == pupil.n_valid:
-        return arr
-    if arr.ndim >= 2 and arr.shape[-2:] == (pupil.n_pix, pupil.n_pix):
-        return pupil.to_vector(arr)
-    raise ValueError(
-        f"{name} must end with ({pupil.n_pix}, {pupil.n_pix}) (maps) or n_valid="
-        f"{pupil.n_valid} (vectors on valid pixels), got shape {arr.shape}"
-    )
