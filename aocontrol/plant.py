@@ -558,15 +558,30 @@ def frequency_response(sys: object, freqs: object, fs: float | None = None) -> n
     freqs = np.atleast_1d(freqs)
     if np.any(freqs < 0) or np.any(freqs > fs / 2 + FREQ_RTOL * fs):
         raise ValueError(f"freqs must lie in [0, fs/2] = [0, {fs / 2}] Hz")
-    out = _response(sys, freqs, fs)
+    out = frequency_response_unchecked(sys, freqs, fs)
     return out[0] if scalar else out
 
 
-def _response(sys: object, freqs: np.ndarray, fs: float) -> np.ndarray:
+def frequency_response_unchecked(sys: object, freqs: np.ndarray, fs: float) -> np.ndarray:
     """:func:`frequency_response` of an already validated system on a 1-D grid [Hz].
 
-    For inner loops (root refinement, bisection) that evaluate the same checked system many
-    times; the public function validates, this one only computes.
+    Internal to aocontrol (shared by the analysis and the synthesis; not in ``__all__``):
+    for inner loops (root refinement, bisection) that evaluate the same checked system many
+    times. The public function validates, this one only computes: the caller must have
+    checked ``sys`` (:func:`check_system`) and ``freqs`` (1-D, in ``[0, fs/2]``).
+
+    Parameters
+    ----------
+    sys : control.TransferFunction or control.FRD
+        Validated discrete SISO system.
+    freqs : numpy.ndarray, shape (n,)
+        Frequencies [Hz].
+    fs : float
+        Loop rate [Hz].
+
+    Returns
+    -------
+    numpy.ndarray of complex, shape (n,)
     """
     if isinstance(sys, control.TransferFunction):
         z = np.exp(2j * np.pi * freqs / fs)

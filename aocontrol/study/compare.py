@@ -56,6 +56,7 @@ from aocontrol.study._registry import (
     DesignInputs,
     register_controller,
 )
+from aocontrol.study._seeds import seed_sequence, seed_streams
 from aocontrol.study.cases import Case, apply_overrides, load_case
 from aocontrol.study.scene import Scene, StageScene, build_scene
 from aocontrol.synthesis import (
@@ -164,6 +165,7 @@ def _simulate(
     scheme: str,
     seconds: float,
     seed: int,
+    purpose: str,
     *,
     science: bool = True,
     record: tuple[str, ...] = ("measurements", "commands", "residuals"),
@@ -173,7 +175,7 @@ def _simulate(
     sci = scene.case.science
     settle = _frames(scene, sci.startup)
     n = settle + _frames(scene, seconds)
-    seeds = np.random.SeedSequence([seed, 7])
+    seeds = seed_sequence(seed, purpose)
     atm_rng, noise_rng = (np.random.default_rng(s) for s in seeds.spawn(2))
     camera = scene.camera().long_exposure() if science else None
     s2 = _stage(scene.stage2, controller, "stage 2")
@@ -310,7 +312,8 @@ def design_inputs(
     seconds : float
         Length of the calibration run [s] (after the start-up).
     seed : int
-        Seed of the run (use another than the exposure's: independent data).
+        User seed; the run draws from its ``"calibration"`` stream
+        (:mod:`aocontrol.study._seeds`), independent of every exposure's.
 
     Returns
     -------
@@ -318,7 +321,7 @@ def design_inputs(
     """
     st = scene.stage2
     ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
-    res = _simulate(scene, ref, scheme, seconds, seed, science=False)
+    res = _simulate(scene, ref, scheme, seconds, seed, "calibration", science=False)
     r2 = _stage2_result(res)
     k = r2.settle_frames
     m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
@@ -363,7 +366,10 @@ def run_configuration(
     seconds : float
         Exposure after the case's start-up [s].
     seed : int
-        Seed of the atmosphere and noise (the calibration run uses ``seed + 1000``).
+        User seed. The exposure draws the atmosphere and noise from its ``"exposure"``
+        stream, the calibration run from its ``"calibration"`` stream
+        (``SeedSequence([seed, purpose])``, :mod:`aocontrol.study._seeds`); the settings
+        record both as ``seed_streams``.
     overrides : dict, optional
         Case values replaced, e.g. ``{"seeing": 0.6, "stage2.fs": 1500}``.
     quick : bool
@@ -393,7 +399,7 @@ def run_configuration(
     gain = c.stage2.gain
     if design is None and spec.needs_telemetry:
         cal = calibration_seconds(scene, quick)
-        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed + 1000)
+        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed)
     if design is None:
         st = scene.stage2
         design = DesignInputs(
@@ -417,12 +423,17 @@ def run_configuration(
         "scheme": scheme,
         "seconds": float(seconds),
         "seed": int(seed),
+        "seed_streams": seed_streams(
+            seed, ("exposure",) if not spec.needs_telemetry else ("exposure", "calibration")
+        ),
         "quick": bool(quick),
         "scene": scene.settings(),
         "version": _version(),
     }
     t0 = time.perf_counter()
-    res = _simulate(scene, ctrl, scheme, seconds, seed, progress=progress, metadata=settings)
+    res = _simulate(
+        scene, ctrl, scheme, seconds, seed, "exposure", progress=progress, metadata=settings
+    )
     summary = _summary(res)
     summary.update(design_seconds=t_design, run_seconds=time.perf_counter() - t0)
     return RunOutcome(res, settings, summary, ctrl, design)
@@ -595,7 +606,9 @@ def compare_case(
     seconds : float, optional
         Exposure [s]; default the case's (5 s), 0.5 s in quick mode.
     seed : int
-        Exposures use ``seed``, the calibration run ``seed + 1000``, the scan ``seed + 2000``.
+        User seed: exposures, the calibration run and the gain scan draw from its
+        ``"exposure"``, ``"calibration"`` and ``"gain_scan"`` streams
+        (``SeedSequence([seed, purpose])``, :mod:`aocontrol.study._seeds`).
     quick : bool
         Quick scene, scan grid :data:`QUICK_GAIN_GRID`, short runs.
     gain_grid : sequence of float, optional
@@ -629,14 +642,14 @@ def compare_case(
         scan = []
         for g in grid:
             ref = Integrator(g, fs=scene.stage2.fs, n_modes=scene.stage2.n_modes)
-            r = _simulate(scene, ref, scheme, scan_s, seed + 2000, record=())
+            r = _simulate(scene, ref, scheme, scan_s, seed, "gain_scan", record=())
             scan.append((g, float(r.science.mean_contrast_4_6)))
         best = min(scan, key=lambda x: x[1])[0]
         gains[scheme], scans[scheme] = best, scan
         timing["scan"] += time.perf_counter() - t0
         logger.info("%s %s: reference gain %.2f (scan %s)", c.name, scheme, best, scan)
         t0 = time.perf_counter()
-        design = design_inputs(scene, scheme, best, seconds=cal_s, seed=seed + 1000)
+        design = design_inputs(scene, scheme, best, seconds=cal_s, seed=seed)
         designs[scheme] = design
         timing["calibration"] += time.perf_counter() - t0
         for name in controllers:
@@ -653,6 +666,8 @@ def compare_case(
                 design=design,
             )
             timing["runs"] += time.perf_counter() - t0
+            # The reference gain came from the scan: its stream belongs to this run's record.
+            out.settings["seed_streams"].update(seed_streams(seed, ("gain_scan",)))
             sci = out.result.science
             path = _save(out, rd, f"{c.name}_{scheme}_{name}")
             cells.append(

@@ -65,6 +65,7 @@ from aocontrol.sim.wfs import (
     fitting_residual_screens,
     optical_gains,
 )
+from aocontrol.study._seeds import seed_sequence
 from aocontrol.study.cases import Case, StageSpec, apply_overrides, load_case
 
 __all__ = ["QUICK_MODES", "Scene", "StageScene", "build_scene", "clear_scene_cache"]
@@ -277,7 +278,8 @@ def build_scene(
     cache : bool
         Reuse a scene built for the same case values and ``quick``.
     rng : int
-        Seed of the residual screens of the optical-gain calibration.
+        Seed of the residual screens of the optical-gain calibration (its
+        ``"optical_gain_screens"`` stream, :mod:`aocontrol.study._seeds`).
 
     Returns
     -------
@@ -337,7 +339,7 @@ def _geometry(c: Case, quick: bool, rng: int, cache: bool) -> dict:
     finer = b1 if n1 >= n2 else b2
     fit_rms = math.sqrt(fitting_error(finer, r0, c.atmosphere.L0))
     cutoff = (max(c.stage1.n_actuators, c.stage2.n_actuators) - 1) / (2 * sim.diameter)
-    gen = np.random.default_rng(rng)
+    gen = np.random.default_rng(seed_sequence(rng, "optical_gain_screens"))
     out = {"pupil": pupil, "r0": r0, "projection": projection_matrix(b1, b2)}
     for name, spec, dm, basis in (("stage1", c.stage1, dm1, b1), ("stage2", c.stage2, dm2, b2)):
         if spec.wfs == "pyramid":

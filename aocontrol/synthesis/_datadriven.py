@@ -32,7 +32,7 @@ from aocontrol._validation import (
     mode_psds,
 )
 from aocontrol.analysis import is_stable, residual_psd, winding_stability
-from aocontrol.analysis._margins import _winding_zeros
+from aocontrol.analysis import winding_zeros as _winding_zeros
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import (
     check_frd_coverage,

@@ -29,7 +29,7 @@ from aocontrol._validation import (
 )
 from aocontrol.analysis import is_stable
 from aocontrol.controllers import Integrator
-from aocontrol.plant import _response, check_frd_coverage, plant_fs
+from aocontrol.plant import check_frd_coverage, frequency_response_unchecked, plant_fs
 
 __all__ = ["optimal_modal_gain", "integrator_gain_limit", "ModalGainError"]
 
@@ -92,7 +92,7 @@ def _open_loop_unit(plant: object, freqs: np.ndarray, fs: float, leak: float) ->
     """``L1 = G / (1 - (1 - leak) z^-1)`` at ``freqs``; ``inf`` where the integrator is."""
     zi = np.exp(-2j * np.pi * freqs / fs)
     den = 1.0 - (1.0 - leak) * zi
-    G = _response(plant, np.atleast_1d(freqs), fs)  # plant validated by the caller
+    G = frequency_response_unchecked(plant, np.atleast_1d(freqs), fs)  # validated by caller
     out = np.full(freqs.shape, np.inf + 0j)
     ok = np.abs(den) > 0
     out[ok] = G[ok] / den[ok]

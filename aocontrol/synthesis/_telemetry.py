@@ -22,7 +22,7 @@ import numpy as np
 from scipy import signal, stats
 
 from aocontrol._validation import check_finite_array, check_in_range, check_int
-from aocontrol.analysis._psd import welch_psd
+from aocontrol.analysis import welch_psd
 from aocontrol.plant import plant_fs, z_inverse_coefficients
 
 __all__ = ["TelemetryPSD", "disturbance_from_telemetry", "pseudo_open_loop"]
