@@ -125,12 +125,10 @@ class RunOutcome:
 
 
 def _version() -> str:
-    try:
-        from importlib.metadata import version
+    """The package version, from its one source (``aocontrol.__version__``)."""
+    from aocontrol import __version__
 
-        return version("aocontrol")
-    except Exception:  # pragma: no cover - not installed
-        return "unknown"
+    return __version__
 
 
 def _frames(scene: Scene, seconds: float) -> int:
