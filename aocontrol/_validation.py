@@ -24,6 +24,7 @@ __all__ = [
     "mode_psds",
     "check_broadcast",
     "is_programming_error",
+    "PerModeError",
     "PROGRAMMING_ERRORS",
     "MAX_MODES",
 ]
@@ -299,6 +300,52 @@ def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray,
     psd2 = np.broadcast_to(psd, (n_modes, n_freqs))
     noise2 = np.broadcast_to(noise if noise.ndim else noise[None, None], (n_modes, n_freqs))
     return psd2, noise2, squeeze
+
+
+class PerModeError(RuntimeError):
+    """Base of the errors of per-mode computations that failed for some modes only.
+
+    A per-mode design or bound keeps every mode that succeeded: the error carries them in
+    ``result`` and names the failed modes with their reasons in ``failed`` (the first ten in
+    the message). Subclasses: :class:`aocontrol.synthesis.ModalGainError`,
+    :class:`aocontrol.analysis.ConstrainedBoundError` (and the data-driven synthesis'
+    ``DataDrivenError``, same fields); ``except PerModeError`` catches them all.
+
+    Parameters
+    ----------
+    failed : dict of int to str
+        Mode index -> reason (exception type and message).
+    result : object
+        The result over every mode (what the failed modes hold is the subclass' to say).
+    n_modes : int
+        Number of modes of the computation.
+    operation : str
+        What failed, for the message (e.g. ``"optimal modal gain"``).
+    note : str, default ". The other modes are in this error's .result"
+        End of the message.
+
+    Attributes
+    ----------
+    failed : dict of int to str
+    result : object
+    """
+
+    def __init__(
+        self,
+        failed: dict[int, str],
+        result: object,
+        *,
+        n_modes: int,
+        operation: str,
+        note: str = ". The other modes are in this error's .result",
+    ) -> None:
+        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
+        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
+        super().__init__(
+            f"{operation} failed for {len(failed)} of {n_modes} modes: {lines}{more}{note}"
+        )
+        self.failed = failed
+        self.result = result
 
 
 def is_programming_error(exc: BaseException) -> bool:

@@ -95,3 +95,18 @@ def test_kl_basis_names_a_wrong_mirror():
 
     with pytest.raises(TypeError, match=r"^dm must be a DeformableMirror, got str 'dm'"):
         kl_basis(dm="dm", n_modes=3)
+
+
+def test_per_mode_errors_share_one_base():
+    # One base for "failed for some modes, the others kept": one except clause catches them,
+    # one message format names the first ten failed modes.
+    from aocontrol._validation import PerModeError
+    from aocontrol.analysis import ConstrainedBoundError
+    from aocontrol.synthesis import ModalGainError
+
+    assert issubclass(ModalGainError, PerModeError)
+    assert issubclass(ConstrainedBoundError, PerModeError)
+    failed = {m: "LinAlgError: singular" for m in range(12)}
+    err = ModalGainError(failed, Integrator(gain=np.full(20, 0.1), fs=FS))
+    assert str(err).startswith("optimal modal gain failed for 12 of 20 modes: mode 0: LinAlg")
+    assert "(and 2 more)" in str(err) and err.failed is failed and err.result.n_modes == 20
