@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from distributed import LocalCluster
 
-    from aocontrol.study.sweep import SweepRunner, run_sweep, summary_table
+    from aocontrol.study.sweep import SweepRunner, run_sweep, sweep_table
 
     logging.basicConfig(level=logging.WARNING)
     print(
@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             cluster.close()
         # same settings, same numbers: the cluster's results equal the one process's
-        serial_rows = {r["hash"]: r for r in summary_table(tmp / "cases-serial", runner=runner)}
+        serial_rows = {r["hash"]: r for r in sweep_table(tmp / "cases-serial", runner=runner)}
         cluster_rows = {r["hash"]: r for r in t_par.table}
         same = all(
             serial_rows[h].get("strehl") == row.get("strehl") for h, row in cluster_rows.items()

@@ -15,9 +15,11 @@ from aocontrol.controllers import Integrator
 from aocontrol.sim.loop import LoopDivergedError
 from aocontrol.sim.modes import fitting_error
 from aocontrol.study.compare import (
+    CONTROLLER_ALIASES,
     CONTROLLERS,
     MODULUS_MARGIN,
     ControllerSpec,
+    _check_names,
     compare_case,
     register_controller,
     run_configuration,
@@ -47,7 +49,10 @@ def test_unknown_names_list_the_valid_ones():
 
 
 def test_registry_has_the_paper_controllers_and_refuses_duplicates():
-    assert {"reference", "integrator", "omgi", "datadriven"} <= set(CONTROLLERS)
+    assert {"reference", "omgi", "datadriven"} <= set(CONTROLLERS)
+    # One controller, one spec: "integrator" is an alias of the reference, not a second entry.
+    assert "integrator" not in CONTROLLERS and CONTROLLER_ALIASES["integrator"] == "reference"
+    assert _check_names("integrator", "single") is CONTROLLERS["reference"]
     assert not CONTROLLERS["reference"].needs_telemetry
     with pytest.raises(ValueError, match="already registered"):
         register_controller(CONTROLLERS["omgi"])

@@ -4,13 +4,14 @@ A controller joins :func:`aocontrol.study.compare.compare_case` (and the CLI and
 :func:`register_controller` with a :class:`ControllerSpec`, whose ``design`` maps
 :class:`DesignInputs` (everything from the calibration telemetry, nothing from the simulator's
 hidden disturbance) to a :class:`~aocontrol.controllers.ControllerBank`. Built in: the
-reference integrator (alias ``integrator``), ``omgi``, ``datadriven``, ``lqg`` and ``mpc``.
+reference integrator ``reference`` (also reachable by its alias ``integrator``,
+:data:`CONTROLLER_ALIASES`: one controller, one spec, one name in the results), ``omgi``,
+``datadriven``, ``lqg`` and ``mpc``.
 Re-exported by :mod:`aocontrol.study.compare`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -22,6 +23,9 @@ from aocontrol.synthesis import TelemetryPSD, datadriven, lqg, mpc, optimal_moda
 
 __all__ = [
     "CONTROLLERS",
+    "CONTROLLER_ALIASES",
+    "controller_names",
+    "get_controller",
     "MODULUS_MARGIN",
     "MPC_HORIZON",
     "ControllerSpec",
@@ -171,9 +175,47 @@ def register_controller(spec: ControllerSpec, *, replace: bool = False) -> None:
     CONTROLLERS[spec.name] = spec
 
 
-_REF = ControllerSpec("reference", _reference, needs_telemetry=False, parameters={"scan": True})
-register_controller(_REF)
-register_controller(dataclasses.replace(_REF, name="integrator"))
+#: Other names accepted for registered controllers (alias -> registered name). A run asked
+#: for by its alias is the registered controller's: its results record the registered name.
+CONTROLLER_ALIASES: dict[str, str] = {"integrator": "reference"}
+
+
+def controller_names() -> tuple[str, ...]:
+    """Every name a run may ask for: the registered names, then the aliases.
+
+    Returns
+    -------
+    tuple of str
+    """
+    return (*CONTROLLERS, *(a for a in CONTROLLER_ALIASES if a not in CONTROLLERS))
+
+
+def get_controller(name: str) -> ControllerSpec:
+    """The registered spec of ``name`` (a registered name or an alias).
+
+    Parameters
+    ----------
+    name : str
+        E.g. ``"reference"`` or its alias ``"integrator"``.
+
+    Returns
+    -------
+    ControllerSpec
+
+    Raises
+    ------
+    ValueError
+        An unknown name (the message lists the valid ones).
+    """
+    spec = CONTROLLERS.get(name) or CONTROLLERS.get(CONTROLLER_ALIASES.get(name, ""))
+    if spec is None:
+        raise ValueError(f"controller must be one of {sorted(controller_names())}, got {name!r}")
+    return spec
+
+
+register_controller(
+    ControllerSpec("reference", _reference, needs_telemetry=False, parameters={"scan": True})
+)
 register_controller(ControllerSpec("omgi", _omgi, parameters={"modulus_margin": MODULUS_MARGIN}))
 register_controller(
     ControllerSpec(

@@ -186,7 +186,7 @@ def _run(args: argparse.Namespace) -> int:
 
     compare = _compare_module()
     case = _check_case(args.case)
-    controller = _valid_name("controller", args.controller, compare.CONTROLLERS)
+    controller = _valid_name("controller", args.controller, compare.controller_names())
     scheme = _valid_name("scheme", args.scheme, compare.SCHEMES)
     if args.seconds is not None and not args.seconds > 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")

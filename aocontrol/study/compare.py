@@ -50,10 +50,13 @@ from aocontrol.sim.loop import (
     run_loop,
 )
 from aocontrol.study._registry import (
+    CONTROLLER_ALIASES,
     CONTROLLERS,
     MODULUS_MARGIN,
     ControllerSpec,
     DesignInputs,
+    controller_names,
+    get_controller,
     register_controller,
 )
 from aocontrol.study._seeds import seed_sequence, seed_streams
@@ -67,6 +70,8 @@ from aocontrol.synthesis import (
 
 __all__ = [
     "CONTROLLERS",
+    "CONTROLLER_ALIASES",
+    "controller_names",
     "GAIN_GRID",
     "SCHEMES",
     "CaseComparison",
@@ -227,9 +232,7 @@ def _summary(result: Any) -> dict:
 def _check_names(controller: str, scheme: str) -> ControllerSpec:
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {list(SCHEMES)}, got {scheme!r}")
-    if controller not in CONTROLLERS:
-        raise ValueError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-    return CONTROLLERS[controller]
+    return get_controller(controller)
 
 
 def _nperseg(n_frames: int) -> int:
