@@ -51,7 +51,7 @@ from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.loop import projection_matrix
 from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
 from aocontrol.sim.noise import photons_per_frame
-from aocontrol.sim.profiles import eso_median_profile, scale_to_tau0
+from aocontrol.sim.profiles import eso_atmosphere, eso_median_profile, scale_to_tau0
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.science import ScienceCamera
 from aocontrol.sim.turbulence import r0_from_seeing
@@ -174,12 +174,14 @@ class Scene:
         fs : float, optional
             Frame rate [Hz]; default stage 2's.
         """
-        return Atmosphere(
+        atm = self.case.atmosphere
+        return eso_atmosphere(
             self.pupil,
-            self.r0,
-            list(self.layers),
+            atm.seeing,
+            atm.tau0,
             self.stage2.fs if fs is None else fs,
-            L0=self.case.atmosphere.L0,
+            n_layers=atm.simulated_layers,
+            L0=atm.L0,
             rng=rng,
             dtype=np.float32,
         )
