@@ -52,6 +52,7 @@ __all__ = [
     "ModalDM",
     "ModalDMState",
     "clip_to_stroke",
+    "modal_stroke",
     "MIN_PIXELS_PER_PITCH",
     "SAXO_N_ACTUATORS",
     "SAXO_PLUS_N_ACTUATORS",
@@ -300,6 +301,38 @@ def clip_to_stroke(values: np.ndarray, stroke: np.ndarray | float) -> tuple[np.n
     """
     over = np.abs(values) > stroke
     return np.clip(values, -stroke, stroke), over
+
+
+def modal_stroke(m2c: object, actuator_stroke: float) -> np.ndarray:
+    """Per-mode command bound [nm] that an actuator stroke implies, from the modes' shapes.
+
+    Mode ``i`` alone at amplitude ``u_i`` drives actuator ``a`` to ``m2c[a, i] u_i``: it stays
+    within ``+-actuator_stroke`` iff ``|u_i| <= actuator_stroke / max_a |m2c[a, i]|``. The one
+    place a modal bound is derived from the DM's stroke (the MPC's command limit in the case
+    comparison); a combination of modes may still reach the stroke earlier, where the DM
+    (:class:`ModalDM` with ``actuator_stroke``) clips.
+
+    Parameters
+    ----------
+    m2c : array_like, shape (n_act, n_modes)
+        Modes to actuator commands [nm of command per nm RMS of mode].
+    actuator_stroke : float
+        Largest |actuator command| [nm], > 0.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_modes,)
+        [nm RMS per mode]; ``inf`` for a mode that moves no actuator.
+
+    Examples
+    --------
+    >>> modal_stroke([[1.0, 0.5], [-2.0, 0.25]], 100.0)
+    array([ 50., 200.])
+    """
+    m2c = check_finite_array("m2c", m2c, ndim=2)
+    stroke = check_positive("actuator_stroke", actuator_stroke)
+    peak = np.max(np.abs(m2c), axis=0)
+    return np.where(peak > 0, stroke / np.where(peak > 0, peak, 1.0), np.inf)
 
 
 @dataclass(frozen=True, eq=False)

@@ -58,8 +58,9 @@ class DesignInputs:
         Gain of the reference integrator (scanned, or the case's).
     telemetry : TelemetryPSD or None
         The full estimate (pseudo-open loop included).
-    stroke : float or None
-        Stage-2 DM actuator stroke [nm] (``None``: unlimited); the MPC's command limit.
+    stroke : ndarray of shape (n_modes,) or None
+        Per-mode command bound [nm] implied by the stage-2 DM's actuator stroke
+        (:func:`aocontrol.sim.dm.modal_stroke`; ``None``: unlimited); the MPC's command limit.
     """
 
     plant: Any
@@ -70,7 +71,7 @@ class DesignInputs:
     n_modes: int
     reference_gain: float
     telemetry: TelemetryPSD | None = None
-    stroke: float | None = None
+    stroke: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -132,10 +133,9 @@ def _lqg(inp: DesignInputs) -> ControllerBank:
 
 
 def _mpc(inp: DesignInputs) -> ControllerBank:
-    # The LQG's model and estimator, horizon 10 frames, the command limited to the DM stroke
-    # taken as a modal bound (a unit modal coefficient is 1 nm RMS over the pupil, so a mode
-    # at the stroke already exceeds it at some actuator: a loose limit; the DM still clips
-    # its actuators).
+    # The LQG's model and estimator, horizon 10 frames, each mode's command limited to the
+    # bound the DM's actuator stroke implies for it alone (inp.stroke, from m2c); modes
+    # combined may still reach the stroke at an actuator, where the DM clips.
     return mpc(
         inp.plant,
         inp.freqs,

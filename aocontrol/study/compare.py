@@ -41,6 +41,7 @@ import numpy as np
 
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import ControllerBank, Integrator
+from aocontrol.sim.dm import modal_stroke
 from aocontrol.sim.loop import (
     LoopResult,
     PhaseSource,
@@ -143,12 +144,12 @@ def _frames(scene: Scene, seconds: float) -> int:
 
 
 def _stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
-    stroke = st.spec.dm_stroke
+    stroke = st.spec.dm_stroke_nm
     return Stage(
         controller,
         st.sensor,
         st.spec.latency_frames,
-        dm_stroke=None if stroke is None else stroke * 1e9,
+        dm_stroke=stroke,
         m2c=None if stroke is None else st.basis.m2c,
         name=name,
     )
@@ -328,6 +329,7 @@ def design_inputs(
     m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
     u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
     tel, psd = prewhitened_disturbance(m, u, st.plant, st.fs)
+    stroke_nm = st.spec.dm_stroke_nm
     return DesignInputs(
         plant=st.plant,
         freqs=tel.freqs,
@@ -337,7 +339,7 @@ def design_inputs(
         n_modes=st.n_modes,
         reference_gain=float(gain),
         telemetry=tel,
-        stroke=None if st.spec.dm_stroke is None else float(st.spec.dm_stroke) * 1e9,
+        stroke=None if stroke_nm is None else modal_stroke(st.basis.m2c, stroke_nm),
     )
 
 
