@@ -110,3 +110,10 @@ def test_per_mode_errors_share_one_base():
     err = ModalGainError(failed, Integrator(gain=np.full(20, 0.1), fs=FS))
     assert str(err).startswith("optimal modal gain failed for 12 of 20 modes: mode 0: LinAlg")
     assert "(and 2 more)" in str(err) and err.failed is failed and err.result.n_modes == 20
+
+
+def test_fitting_error_names_a_wrong_basis():
+    from aocontrol.sim.modes import fitting_error
+
+    with pytest.raises(TypeError, match=r"^basis must be a ModalBasis, got ndarray"):
+        fitting_error(np.eye(3), r0=0.1)

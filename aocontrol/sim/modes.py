@@ -423,6 +423,7 @@ def fitting_error(basis: ModalBasis, r0: float, L0: float = 25.0) -> float:
     float
         Residual variance [nm^2 of OPD]; divide by ``opd_per_radian()**2`` for rad^2 at 500 nm.
     """
+    check_instance("basis", basis, ModalBasis)
     r0 = check_positive("r0", r0)
     L0 = check_positive("L0", L0)
     pupil = basis.pupil
