@@ -626,3 +626,8 @@ def frequency_response_unchecked(sys: object, freqs: np.ndarray, fs: float) -> n
         hit = np.abs(f_grid[near] - fq) <= tol
         out[hit] = data[near[hit]]
     return out
+
+
+#: Former private name of :func:`frequency_response_unchecked` (same function), kept for code
+#: inside :mod:`aocontrol.plant`'s own namespace; other packages use the documented name.
+_response = frequency_response_unchecked

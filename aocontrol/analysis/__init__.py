@@ -9,6 +9,7 @@ from aocontrol.analysis._cascade import (
     cascade_sensitivity,
     slow_stage_sensitivity,
 )
+from aocontrol.analysis._certificate import ModulusCertificate, modulus_certificate
 from aocontrol.analysis._constrained import (
     ConstrainedBound,
     ConstrainedBoundError,
@@ -45,6 +46,8 @@ __all__ = [
     "slow_stage_sensitivity",
     "LoopResponse",
     "Margins",
+    "ModulusCertificate",
+    "modulus_certificate",
     "closed_loop_poles",
     "command_transfer",
     "complementary_sensitivity",

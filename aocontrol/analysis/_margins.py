@@ -23,6 +23,7 @@ import numpy as np
 from scipy import optimize
 
 from aocontrol._validation import check_frequency_grid
+from aocontrol.analysis._certificate import modulus_certificate
 from aocontrol.analysis._loop import _as_siso_controller
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import (
@@ -57,7 +58,10 @@ class Margins:
     phase_margin : float
         ``min(180 + arg L)`` [deg] over the gain crossovers ``|L| = 1`` (``inf`` if none).
     modulus_margin : float
-        ``min |1 + L|`` over [0, fs/2] (the inverse of ``||S||_inf``).
+        ``min |1 + L|`` over [0, fs/2] (the inverse of ``||S||_inf``), certified by
+        :func:`aocontrol.analysis.modulus_certificate`: exact over the whole circle for
+        rational plant and controller (not a grid minimum: a lightly damped controller pole
+        makes a dip narrower than any grid), grid plus refinement for a measured plant.
     delay_margin : float
         Extra loop delay [frames] that would make the loop marginally stable:
         ``min phase_margin[rad] / theta_c`` over the gain crossovers (``inf`` if none).
@@ -216,21 +220,9 @@ def margins(
         if t > 0:
             dm = min(dm, np.radians(pm_t) / t)
 
-    # Modulus margin: min |1 + L|, refined around the grid minimum.
-    d = np.where(finite, np.abs(1.0 + L), np.inf)
-    i = int(np.argmin(d))
-    mm, t_mm = float(d[i]), theta[i]
-    if ev.exact:
-        lo, hi = theta[max(i - 1, 0)], theta[min(i + 1, theta.size - 1)]
-        if hi > lo:
-            res = optimize.minimize_scalar(
-                lambda t: float(np.abs(1.0 + ev(np.array([t]))[0])),
-                bounds=(lo, hi),
-                method="bounded",
-                options={"xatol": 1e-12},
-            )
-            if res.fun < mm:
-                mm, t_mm = float(res.fun), float(res.x)
+    # Modulus margin: the certificate (exact for rational systems, not a grid minimum).
+    cert = modulus_certificate(plant, K, fs=fs_)
+    mm, t_mm = cert.value, cert.frequency_hz * 2 * np.pi / fs_
 
     stable = is_stable(plant, K, fs=fs_)
     if not stable:

@@ -59,14 +59,23 @@ class ModeReport:
     converged : bool
         The last iterations lowered ``J`` by less than ``tol``.
     modulus_margin : float
-        ``min |1 + G K|`` verified on the dense grid.
+        Certified ``min |1 + G K|`` (:func:`aocontrol.analysis.modulus_certificate`: over the
+        whole unit circle for a rational plant, never above the true margin).
     stable : bool
         Closed-loop stability (:func:`aocontrol.analysis.is_stable`).
     refinements : int
         Constraint-only points added to the design grid by the dense checks.
     start : str
         ``"initial"`` (the initial controller) or ``"previous mode"`` (the design of the
-        previous mode of the same chunk, used when it is feasible and better for this mode).
+        previous mode of the same chunk, used when it is feasible and better for this mode);
+        ``"initial (design rejected: worse)"`` when the design was worse than its start on
+        the input grid or the fine check and the start was returned instead.
+    certificate : str
+        How ``modulus_margin`` was certified (exact over the circle for a rational plant).
+    pole_radius : float
+        Largest modulus of the controller's free poles (the fixed factor apart).
+    order : int
+        Controller order (the degree of ``Y``; chosen per mode with ``order="auto"``).
     """
 
     mode: int
@@ -79,6 +88,9 @@ class ModeReport:
     stable: bool
     refinements: int
     start: str
+    certificate: str = ""
+    pole_radius: float = float("nan")
+    order: int = 0
 
 
 @dataclass(frozen=True)
@@ -100,6 +112,12 @@ class DataDrivenResult:
         The same for ``initial``.
     design_freqs : ndarray, shape (n_design,)
         Design grid [Hz] (before refinements).
+    residual_variance_fine, initial_residual_variance_fine : ndarray, shape (n_modes,)
+        The same residuals on a fine check: exact ``|S|^2`` and ``|T|^2`` on 20,001 linear
+        and 2,001 log points over the input range and around every ``|S|`` peak, the PSDs
+        interpolated linearly between input points (a resonance between input points shows).
+    verification : str
+        Which certificates and grids the reported figures come from.
     """
 
     controller: IIRBank
@@ -108,6 +126,9 @@ class DataDrivenResult:
     residual_variance: np.ndarray
     initial_residual_variance: np.ndarray
     design_freqs: np.ndarray = field(repr=False)
+    residual_variance_fine: np.ndarray | None = field(default=None, repr=False)
+    initial_residual_variance_fine: np.ndarray | None = field(default=None, repr=False)
+    verification: str = ""
 
     @property
     def ok(self) -> np.ndarray:
@@ -116,13 +137,23 @@ class DataDrivenResult:
 
     @property
     def modulus_margin(self) -> np.ndarray:
-        """Verified modulus margins, shape ``(n_modes,)``."""
+        """Certified modulus margins, shape ``(n_modes,)``."""
         return np.array([r.modulus_margin for r in self.reports])
 
     @property
     def stable(self) -> np.ndarray:
         """Closed-loop stability per mode, shape ``(n_modes,)``."""
         return np.array([r.stable for r in self.reports])
+
+    @property
+    def order(self) -> np.ndarray:
+        """Controller order per mode, shape ``(n_modes,)``."""
+        return np.array([r.order for r in self.reports])
+
+    @property
+    def pole_radius(self) -> np.ndarray:
+        """Largest free controller pole modulus per mode, shape ``(n_modes,)``."""
+        return np.array([r.pole_radius for r in self.reports])
 
     @property
     def solves(self) -> np.ndarray:

@@ -41,7 +41,16 @@ from dataclasses import dataclass
 import cvxpy as cp
 import numpy as np
 
-__all__ = ["GridData", "ConvexifiedProblem", "SolveFailure", "ccp", "true_objective", "get_problem"]
+__all__ = [
+    "Certifier",
+    "Check",
+    "ConvexifiedProblem",
+    "GridData",
+    "SolveFailure",
+    "ccp",
+    "get_problem",
+    "true_objective",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -66,6 +75,8 @@ _WIND_MIN = 0.05
 # ... and |P| >= min(_P_FLOOR, |Pc|): X and Y cannot grow a common factor whose root reaches the
 # circle (K unchanged, but a hidden closed-loop mode on the circle). Y is monic: |P| ~ 1.
 _P_FLOOR = 1e-2
+# Floor of the scaled free denominator: a free pole stays about this fraction inside the radius.
+POLE_FLOOR = 1e-4
 # Worker-local cache of compiled problems, keyed by (slots, nv, stroke term).
 _PROBLEMS: OrderedDict[tuple, ConvexifiedProblem] = OrderedDict()
 _MAX_CACHED = 6
@@ -90,8 +101,9 @@ class GridData:
         ``Y = AY v + F`` and ``G X = AX v`` on the grid.
     F : ndarray of complex, shape (N,)
         Fixed denominator factor on the grid (ones when there is none).
-    mu : float
-        Modulus margin enforced on the grid.
+    mu : float or ndarray of shape (N,)
+        Modulus margin enforced on the grid (one per point allowed: a cut point's margin
+        never exceeds what the previous controller meets there, so that it stays feasible).
     stroke_weight : float
         Weight of ``||T||_inf^2`` (0 drops the term).
     """
@@ -99,8 +111,12 @@ class GridData:
     AY: np.ndarray
     AX: np.ndarray
     F: np.ndarray
-    mu: float
+    mu: float | np.ndarray
     stroke_weight: float
+
+    def mu_rows(self) -> np.ndarray:
+        """The margin of every point, shape (N,)."""
+        return np.broadcast_to(np.asarray(self.mu, dtype=float), self.F.shape)
 
     @property
     def A(self) -> np.ndarray:
@@ -108,7 +124,8 @@ class GridData:
 
     def take(self, idx: np.ndarray) -> GridData:
         """The rows ``idx`` as a new grid."""
-        return GridData(self.AY[idx], self.AX[idx], self.F[idx], self.mu, self.stroke_weight)
+        mu = self.mu if np.ndim(self.mu) == 0 else np.asarray(self.mu)[idx]
+        return GridData(self.AY[idx], self.AX[idx], self.F[idx], mu, self.stroke_weight)
 
     def join(self, other: GridData) -> GridData:
         """This grid followed by the rows of ``other``."""
@@ -116,7 +133,7 @@ class GridData:
             np.vstack([self.AY, other.AY]),
             np.vstack([self.AX, other.AX]),
             np.concatenate([self.F, other.F]),
-            self.mu,
+            np.concatenate([self.mu_rows(), other.mu_rows()]),
             self.stroke_weight,
         )
 
@@ -220,8 +237,8 @@ class ConvexifiedProblem:
             "h_yi": r1 * AY.imag,
             "h_xr": rn * AX.real,
             "h_xi": rn * AX.imag,
-            "m_yr": 2 * data.mu * AY.real,
-            "m_yi": 2 * data.mu * AY.imag,
+            "m_yr": 2 * data.mu_rows()[:, None] * AY.real,
+            "m_yi": 2 * data.mu_rows()[:, None] * AY.imag,
         }
         if self.stroke:
             sw = 2 * np.sqrt(data.stroke_weight)
@@ -232,23 +249,34 @@ class ConvexifiedProblem:
         off = self._offsets
         off["o_yr"].value = full(r1[:, 0] * data.F.real)
         off["o_yi"].value = full(r1[:, 0] * data.F.imag)
-        off["o_mr"].value = full(2 * data.mu * data.F.real)
-        off["o_mi"].value = full(2 * data.mu * data.F.imag)
+        off["o_mr"].value = full(2 * data.mu_rows() * data.F.real)
+        off["o_mi"].value = full(2 * data.mu_rows() * data.F.imag)
 
-    def set_winding(self, wind: GridData, Pw: np.ndarray) -> None:
-        """Winding constraints around ``Pw`` (previous ``P`` on the grid ``wind``).
+    def set_winding(self, blocks: list[tuple]) -> None:
+        """Linear "same winding" constraints, one block per polynomial kept zero-free.
 
-        ``Re(P conj Pw) / |Pw| >= max(_WIND_MIN |Pw|, min(_P_FLOOR, |Pw|))``: the phase of
-        ``P`` stays within ~87 deg of ``Pw`` (same winding number, so the step keeps the
-        closed loop stable) and, as ``Re(P conj Pw) / |Pw| <= |P|``, ``|P|`` stays above a floor.
-        The previous controller (``P = Pw``) satisfies both.
+        Each block ``(A, F, Pw, floor)`` is a polynomial ``Q = A v + F`` on a grid of the
+        circle, its value ``Pw`` at the previous controller and an absolute floor of ``|Q|``.
+        Rows: ``Re(Q conj Pw) / |Pw| >= max(_WIND_MIN |Pw|, min(floor, |Pw|))``: the phase
+        of ``Q`` stays
+        within ~87 deg of ``Pw`` (same winding number, so the step keeps the zeros of ``Q`` on
+        the same side of the circle) and, as ``Re(Q conj Pw) / |Pw| <= |Q|``, ``|Q|`` stays
+        above a floor. The previous controller (``Q = Pw``) satisfies both. The blocks are
+        ``P = Y + G X`` (closed-loop stability; floor ``_P_FLOOR`` keeps ``|P|`` away from 0,
+        no hidden cancellation on the circle) and, with a pole radius, the scaled free
+        denominator (controller poles inside the radius; floor ``POLE_FLOOR``, far above the
+        solver's feasibility tolerance, so a pole at the radius cannot slip out by it).
         """
-        scale = 1.0 / np.abs(Pw)  # row scaling: each row has unit size
-        self.wind_A.value = (
-            Pw.real[:, None] * wind.A.real + Pw.imag[:, None] * wind.A.imag
-        ) * scale[:, None]
-        floor = np.maximum(_WIND_MIN * np.abs(Pw), np.minimum(_P_FLOOR, np.abs(Pw)))
-        self.wind_b.value = (Pw.real * wind.F.real + Pw.imag * wind.F.imag) * scale - floor
+        rows_A, rows_b = [], []
+        for A, F, Pw, absolute in blocks:
+            scale = 1.0 / np.abs(Pw)  # row scaling: each row has unit size
+            rows_A.append((Pw.real[:, None] * A.real + Pw.imag[:, None] * A.imag) * scale[:, None])
+            floor = np.maximum(_WIND_MIN * np.abs(Pw), np.minimum(absolute, np.abs(Pw)))
+            rows_b.append((Pw.real * F.real + Pw.imag * F.imag) * scale - floor)
+        A_all, b_all = np.vstack(rows_A), np.concatenate(rows_b)
+        if A_all.shape[0] != self.n_wind:  # pragma: no cover - construction bug
+            raise AssertionError(f"{A_all.shape[0]} winding rows for {self.n_wind} slots")
+        self.wind_A.value, self.wind_b.value = A_all, b_all
 
     def solve(self, Pc: np.ndarray, scale: np.ndarray, iteration: int = 0) -> np.ndarray:
         """Solve around ``Pc`` (complex, shape (N,)) with ``g = scale * u``; return ``v``.
@@ -329,26 +357,66 @@ class CcpOutcome:
     converged: bool
     solves: int
     added: int
+    damped: int
+
+
+@dataclass(frozen=True)
+class Check:
+    """Verdict of the certificates on one candidate controller.
+
+    Attributes
+    ----------
+    ok : bool
+        Every certificate passed.
+    cut : numpy.ndarray
+        Frequencies [Hz] to add to the design grid (cutting planes: the certified minima of
+        ``|1 + G K|`` below the margin, the points where ``P`` turned most for a lost
+        stability, or ``|S|`` peaks the design grid misrepresents).
+    reason : str
+        What failed (``""`` when ``ok``): ``"margin"``, ``"stability"``, ``"poles"`` (a
+        controller pole outside the radius; no cut, the step is damped) or ``"peaks"``.
+    """
+
+    ok: bool
+    cut: np.ndarray
+    reason: str = ""
+
+
+class Certifier:
+    """What :func:`ccp` needs from the design (implemented by the data-driven synthesis)."""
+
+    def check(self, v: np.ndarray) -> Check:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def rows(self, f: np.ndarray) -> GridData:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def weights(self, f: np.ndarray) -> tuple:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def winding(self, v: np.ndarray | None) -> list:  # pragma: no cover - interface
+        raise NotImplementedError
 
 
 # Extrapolation steps tried beyond each convex step (multiples of the step, doubling).
 _EXTRAPOLATION = 2.0 ** np.arange(1, 11) - 1.0
+# Damped steps tried when a full step leaves the pole radius or loses closed-loop stability
+# through a near pole-zero cancellation that the margin does not see (fractions of the step).
+_DAMPING = 0.5 ** np.arange(1, 9)
+_DAMPED = ("poles", "stability")
 # Number of iterations over which the relative decrease is compared with ``tol``.
 _PATIENCE = 3
-# Points added to the grid per failed dense check.
+# Points added to the grid per failed check.
 _ADD_PER_CHECK = 4
 
 
 def ccp(
     problem: ConvexifiedProblem,
-    grid: GridData,
-    weights: tuple,
-    dense: GridData,
+    grid_f: np.ndarray,
+    cert: Certifier,
     v0: np.ndarray | None,
     P0: np.ndarray,
-    Pd0: np.ndarray,
-    stable: Callable[[np.ndarray], bool],
-    wind: tuple | None = None,
+    p_start: Callable[[np.ndarray], np.ndarray],
     *,
     max_iter: int,
     tol: float,
@@ -357,35 +425,33 @@ def ccp(
 ) -> CcpOutcome:
     """Iterate the convexified problem from ``P0`` until the objective stops decreasing.
 
-    Each convex solve gives ``v_new`` with a lower objective than the previous controller
-    (which is feasible). Every candidate is checked on the ``dense`` grid (modulus margin
-    ``mu |Y| <= |P|``) and for closed-loop stability (``stable``). If a check fails, the worst
-    dense points (or, for instability, those where ``P`` turned most from the previous ``P``)
-    join the design grid as constraint-only points and the step is solved again: the grid
-    could otherwise hide a sharp resonance between its points. The iterations then move along
-    long, flat valleys; to cross them ``v_new + t (v_new - v_old)`` is tried for
-    ``t = 1, 3, 7, ...`` while it passes the same checks and lowers the objective. The
-    objective history is non-increasing.
+    Each convex solve gives ``v_new`` whose convexified objective (an upper bound of the true
+    one, equal at the previous controller, which is feasible) is no higher than the previous
+    objective. Every candidate goes through the certificates (``cert.check``): the modulus
+    margin over the whole circle, closed-loop stability, the controller pole radius, and the
+    ``|S|`` peaks that fall between design points. A failed margin or stability adds the
+    failing frequencies to the design grid (cutting planes) and the step is solved again; a
+    pole outside the radius damps the step (``v_old + t (v_new - v_old)``, ``t = 1/2, 1/4,
+    ...``: the convexified objective and constraints hold along the segment). Long, flat
+    valleys are crossed by trying ``v_new + t (v_new - v_old)`` for ``t = 1, 3, 7, ...`` while
+    it passes the same checks and lowers the objective. The objective history is
+    non-increasing on a fixed grid; when the grid grows, the current objective is re-evaluated
+    on it first.
 
     Parameters
     ----------
     problem : ConvexifiedProblem
-        Compiled problem with enough slots.
-    grid : GridData
-        Design grid (H2 points first).
-    weights : tuple of ndarray
-        ``(r1, rn, h)`` on ``grid`` (zeros on constraint-only points).
-    dense : GridData
-        Verification grid (same ``mu`` as the required modulus margin).
+        Compiled problem with enough slots and winding rows.
+    grid_f : ndarray, shape (N,)
+        Design-grid frequencies [Hz].
+    cert : Certifier
+        Certificates, grid rows, objective weights and winding blocks of this mode.
     v0 : ndarray or None
         Coefficients of the initial controller if it lies in the parameter set.
-    P0, Pd0 : ndarray of complex, shapes (N,) and (n_dense,)
-        ``Y0 + G X0`` of the initial controller on ``grid`` and on ``dense``.
-    stable : callable
-        ``stable(v)`` is True if the controller ``v`` stabilises the plant.
-    wind : tuple (GridData, ndarray), optional
-        Fine grid for the linear winding constraints and the initial ``P`` on it (the
-        problem must have been built with as many winding rows).
+    P0 : ndarray of complex, shape (N,)
+        ``Y0 + G X0`` of the initial controller on the grid.
+    p_start : callable
+        ``p_start(f)``: ``Y0 + G X0`` of the initial controller at frequencies ``f`` [Hz].
     max_iter : int
         Maximum number of convex solves.
     tol : float
@@ -402,52 +468,25 @@ def ccp(
     CcpOutcome
         Best coefficients, objective history (initial first) and the accepted iterates.
     """
-    r1, rn, h = weights
-    n_h2 = r1.size
-    J0 = true_objective(grid, v0, r1, rn, h)[0] if v0 is not None else J_start
+    grid_f = np.asarray(grid_f, dtype=float)
+    grid = cert.rows(grid_f)
+    w_grid = cert.weights(grid_f)
+    J0 = true_objective(grid, v0, *w_grid)[0] if v0 is not None else J_start
     history, iterates = [J0], [v0]
     v_best, J_best, Pc = v0, J0, P0
-    converged, solves, added = False, 0, 0
+    converged, solves, added, damped = False, 0, 0, 0
 
-    def weights_on(g: GridData) -> tuple:
-        pad = np.zeros(g.F.size - n_h2)
-        return tuple(np.concatenate([w, pad]) for w in (r1, rn, h))
+    def p_prev(f: np.ndarray, rows: GridData) -> np.ndarray:
+        return rows.A @ v_best + rows.F if v_best is not None else p_start(f)
 
-    def dense_fail(v: np.ndarray, log: bool = True) -> np.ndarray:
-        Y = dense.AY @ v + dense.F
-        P = Y + dense.AX @ v
-        with np.errstate(divide="ignore", invalid="ignore"):
-            excess = np.nan_to_num(dense.mu * np.abs(Y) / np.abs(P) - 1.0, nan=1.0)
-        bad = np.flatnonzero(excess > 0)
-        if bad.size and log:
-            logger.debug(
-                "dense margin check failed at %d points (max excess %.3g)",
-                bad.size,
-                float(excess.max()),
-            )
-            return bad[np.argsort(excess[bad])[::-1]]
-        if not stable(v):
-            # A closed-loop pole crossed the circle between grid points: there P turned by
-            # more than 90 degrees from the previous (stabilising) controller's.
-            Pb = dense.A @ v_best + dense.F if v_best is not None else Pd0
-            cos = (P * np.conj(Pb)).real / (np.abs(P) * np.abs(Pb) + 1e-300)
-            if log:
-                logger.debug(
-                    "stability check failed; min cos(P, P_prev) on the dense grid %.3g",
-                    float(cos.min()),
-                )
-            return np.argsort(cos)[:_ADD_PER_CHECK]
-        return bad
-
-    problem.set_grid(grid, *weights_on(grid))
-    if wind is not None:
-        problem.set_winding(wind[0], wind[1])
+    problem.set_grid(grid, *w_grid)
+    problem.set_winding(cert.winding(v0))
     it = 0
     while it < max_iter:
         it += 1
         free = v_best is None
         try:
-            v = problem.solve(Pc, _g_scale(grid, Pc, v_best, *weights_on(grid)[:2]), it)
+            v = problem.solve(Pc, _g_scale(grid, Pc, v_best, *w_grid[:2]), it)
         except SolveFailure as exc:
             if free or "infeasible" in exc.status:
                 raise
@@ -457,25 +496,60 @@ def ccp(
             converged = True
             break
         solves += 1
-        bad = dense_fail(v)
-        if bad.size:
-            room = problem.slots - grid.F.size
-            if room <= 0:
-                logger.debug("no free grid slot left; keeping the last iterate")
+        chk = cert.check(v, v_best)
+        if not chk.ok and chk.reason in _DAMPED and not free:
+            # Damp the step: the segment from the previous controller stays feasible for the
+            # convexified problem, and short enough steps keep the poles inside the radius
+            # and the closed loop stable (its poles move continuously from stable ones).
+            for t in _DAMPING:
+                vt = v_best + t * (v - v_best)
+                ct = cert.check(vt, v_best)
+                if ct.ok or ct.reason not in _DAMPED:
+                    v, chk = vt, ct
+                    damped += 1
+                    break
+            else:
+                logger.debug("no damped step passes the %s check; stopping", chk.reason)
                 converged = True
                 break
-            # The worst point and its neighbours' worst: a few points per failed check.
-            pick = np.unique(bad[: min(_ADD_PER_CHECK, room)])
-            grid = grid.join(dense.take(pick))
-            Pc = np.concatenate(
-                [Pc, dense.A[pick] @ v_best + dense.F[pick]]
-                if v_best is not None
-                else [Pc, Pd0[pick]]
+        if not chk.ok:
+            new = chk.cut[~np.isin(chk.cut, grid_f)][:_ADD_PER_CHECK]
+            room = problem.slots - grid_f.size
+            if new.size == 0 or room <= 0:
+                logger.debug("check failed (%s) and no grid slot or point left", chk.reason)
+                if free:
+                    raise SolveFailure(f"without an iterate that passes the {chk.reason} check", it)
+                converged = True
+                break
+            new = new[:room]
+            logger.debug(
+                "%s check failed at iteration %d: %s Hz join the grid", chk.reason, it, new
             )
-            added += pick.size
-            problem.set_grid(grid, *weights_on(grid))
+            rows = cert.rows(new)
+            Pb = p_prev(new, rows)
+            if v_best is not None:
+                # The previous controller stays feasible: a cut point's margin is at most
+                # what it meets there (it passed the certificate, so at least mu).
+                Yb = rows.AY @ v_best + rows.F
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    met = np.where(np.abs(Yb) > 0, np.abs(Pb) / np.abs(Yb), np.inf)
+                rows = GridData(
+                    rows.AY,
+                    rows.AX,
+                    rows.F,
+                    np.minimum(rows.mu_rows(), met * (1 - 1e-9)),
+                    rows.stroke_weight,
+                )
+            grid_f = np.concatenate([grid_f, new])
+            grid = grid.join(rows)
+            Pc = np.concatenate([Pc, Pb])
+            added += new.size
+            w_grid = cert.weights(grid_f)
+            problem.set_grid(grid, *w_grid)
+            if v_best is not None:
+                # The objective on the refined grid (the H2 weights may have moved).
+                J_best = true_objective(grid, v_best, *w_grid)[0]
             continue
-        w_grid = weights_on(grid)
         J, P = true_objective(grid, v, *w_grid)
         if not np.isfinite(J):
             if free:
@@ -483,37 +557,48 @@ def ccp(
             converged = True
             break
         if not free and J > J_best * (1 + 1e-9) + 1e-12:
-            # The previous controller is feasible: a higher value means the iteration has
-            # stalled at the solver's accuracy.
-            logger.debug(
-                "objective rose from %.8g to %.8g at iteration %d; stopping", J_best, J, it
-            )
-            converged = True
-            break
+            # The convex step is a descent direction of the convexified model, tangent to the
+            # true objective at the previous controller; where the solver's feasibility
+            # tolerance spoils the full step (rows near a dip of |P|), a shorter one may
+            # still descend. Otherwise the iteration has stalled at the solver's accuracy.
+            for t in _DAMPING:
+                vt = v_best + t * (v - v_best)
+                Jt, Pt = true_objective(grid, vt, *w_grid)
+                if Jt < J_best * (1 - 1e-9) and cert.check(vt, v_best).ok:
+                    v, J, P = vt, Jt, Pt
+                    damped += 1
+                    break
+            else:
+                logger.debug(
+                    "objective rose from %.8g to %.8g at iteration %d; stopping", J_best, J, it
+                )
+                converged = True
+                break
         if extrapolate and not free:
             step = v - v_best
             for t in _EXTRAPOLATION:
                 ve = v + t * step
                 Je, Pe = true_objective(grid, ve, *w_grid)
                 # Same constraints as the convex steps: the grid's margin (the next problem
-                # then starts from a feasible point) and the dense checks.
+                # then starts from a feasible point) and the certificates.
                 if (
                     not Je < J
-                    or np.any(grid.mu * np.abs(grid.AY @ ve + grid.F) > np.abs(Pe))
-                    or dense_fail(ve, log=False).size
+                    or np.any(grid.mu_rows() * np.abs(grid.AY @ ve + grid.F) > np.abs(Pe))
+                    or not cert.check(ve, v_best).ok
                 ):
                     break
                 v, J, P = ve, Je, Pe
         history.append(J)
         iterates.append(v)
         v_best, J_best, Pc = v, J, P
-        if wind is not None:
-            problem.set_winding(wind[0], wind[0].A @ v + wind[0].F)
+        problem.set_winding(cert.winding(v))
         if not free and len(history) > _PATIENCE:
             past = history[-1 - _PATIENCE]
             if past - J <= tol * abs(past):
                 converged = True
                 break
     if v_best is None:
-        raise SolveFailure("without an iterate that passes the dense check", it)
-    return CcpOutcome(np.asarray(v_best), np.asarray(history), iterates, converged, solves, added)
+        raise SolveFailure("without an iterate that passes the certificates", it)
+    return CcpOutcome(
+        np.asarray(v_best), np.asarray(history), iterates, converged, solves, added, damped
+    )

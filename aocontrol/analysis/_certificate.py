@@ -1,0 +1,255 @@
+"""The modulus-margin certificate: ``min |1 + G K|`` over the whole unit circle.
+
+A grid, however dense, certifies only its points: a controller pole at radius 0.9998 makes a dip
+of ``|1 + G K|`` about ``(1 - r) fs / pi`` wide (0.2 Hz at 3 kHz), narrower than any practical
+grid step. For rational ``G`` and ``K`` the minimum is certified exactly instead:
+
+with ``w = z^-1``, ``G = Bg / Ag`` and ``K = Bk / Ak``,
+
+    |1 + G K|^2 = |C(w)|^2 / |D(w)|^2,   C = Ag Ak + Bg Bk,   D = Ag Ak.
+
+On ``w = exp(-j theta)``, ``|C|^2 = r_0 + 2 sum_k r_k cos(k theta)`` (``r`` the autocorrelation
+of the coefficients of ``C``) is a polynomial in ``x = cos(theta)`` written in the Chebyshev
+basis, ``N(x) = r_0 + 2 sum_k r_k T_k(x)``, and likewise ``M(x)`` for ``|D|^2``. The ratio
+``R = N / M`` is stationary in ``theta`` where ``sin(theta) = 0`` (the ends 0 Hz and fs/2) or
+where ``N' M - N M' = 0``, a polynomial in ``x``. Its real roots in ``[-1, 1]`` and the two
+ends are every candidate for the minimum: the smallest value of ``|1 + G K|`` among them is the
+minimum over the circle. Each candidate is polished on the exact rational expression (a bounded
+scalar minimisation around it), so root-finding round-off cannot lose a narrow dip; roots with a
+small imaginary part (a double real root split by round-off) are kept as candidates too.
+
+For a measured plant (``control.FRD``) the plant is known on its grid only: the minimum is
+taken over the FRD's points and, where the controller has lightly damped poles, over refined
+points around them (the controller exact, the plant interpolated between its measured points,
+as :func:`aocontrol.plant.frequency_response` does). What that covers is said in
+:attr:`ModulusCertificate.method`.
+
+One owner: :func:`aocontrol.analysis.margins` and the data-driven synthesis both certify the
+modulus margin here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import control
+import numpy as np
+from numpy.polynomial import chebyshev as cheb
+from numpy.polynomial import polynomial as poly
+from scipy import optimize
+
+from aocontrol.analysis._loop import _as_siso_controller
+from aocontrol.controllers import ControllerBank
+from aocontrol.plant import check_frd_coverage, plant_fs, z_inverse_coefficients
+from aocontrol.plant import frequency_response_unchecked as _response
+
+__all__ = ["ModulusCertificate", "modulus_certificate", "rational_modulus_minima"]
+
+#: Method names of a certificate.
+EXACT = "exact (stationary points of |1 + G K|^2 as polynomial roots)"
+FRD = (
+    "measured plant: its grid points, refined around the controller's lightly damped poles "
+    "with the plant interpolated between measured points"
+)
+# Roots of the stationarity polynomial within this imaginary part are kept as candidates
+# (a double real root split by round-off); extra candidates cost one evaluation each.
+_IMAG_KEEP = 1e-3
+# Half-width [rad] of the polish around each candidate (covers the root's round-off in theta:
+# near x = +-1, dx ~ 1e-12 maps to dtheta ~ 1e-6).
+_POLISH = 1e-4
+# Controller poles above this radius are "lightly damped" for the FRD refinement.
+_FRD_POLE_RADIUS = 0.9
+# Points per pole bandwidth in the FRD refinement, and bandwidths each side.
+_FRD_POINTS, _FRD_WIDTHS = 41, 8.0
+
+
+@dataclass(frozen=True)
+class ModulusCertificate:
+    """Certified modulus margin of a SISO loop ``L = G K``.
+
+    Attributes
+    ----------
+    value : float
+        ``min |1 + G K|`` over [0, fs/2] (``1 / ||S||_inf``).
+    frequency_hz : float
+        Where the minimum is reached [Hz].
+    exact : bool
+        True for rational plant and controller: the minimum over the whole circle, from the
+        stationary points (see the module docstring). False for a measured plant.
+    method : str
+        What the value covers.
+    minima_hz : numpy.ndarray, shape (n,)
+        Frequencies [Hz] of every local minimum of ``|1 + G K|`` found (the candidates).
+    minima : numpy.ndarray, shape (n,)
+        ``|1 + G K|`` at ``minima_hz``.
+    """
+
+    value: float
+    frequency_hz: float
+    exact: bool
+    method: str
+    minima_hz: np.ndarray
+    minima: np.ndarray
+
+    def below(self, margin: float) -> np.ndarray:
+        """Frequencies [Hz] of the local minima of ``|1 + G K|`` below ``margin``, worst first."""
+        bad = self.minima < margin
+        order = np.argsort(self.minima[bad])
+        return self.minima_hz[bad][order]
+
+
+def _cheb_of_abs2(c: np.ndarray) -> np.ndarray:
+    """Chebyshev coefficients in ``x = cos(theta)`` of ``|c(exp(-j theta))|^2``."""
+    r = np.correlate(c, c, mode="full")[c.size - 1 :]
+    out = 2.0 * r
+    out[0] = r[0]
+    return out
+
+
+def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local minima over ``theta in [0, pi]`` of ``|num(w)| / |den(w)|``, ``w = exp(-j theta)``.
+
+    Parameters
+    ----------
+    num, den : numpy.ndarray
+        Real polynomial coefficients in powers of ``w`` (lowest first), ``den`` not zero.
+
+    Returns
+    -------
+    theta : numpy.ndarray
+        Candidate angles [rad] (ends included, each polished on the exact expression).
+    values : numpy.ndarray
+        ``|num| / |den|`` there (``inf`` where ``den`` vanishes on the circle).
+    """
+    num = np.trim_zeros(np.asarray(num, dtype=float), "b")
+    den = np.trim_zeros(np.asarray(den, dtype=float), "b")
+    if num.size == 0:
+        num = np.zeros(1)
+    # One common scale for both: the ratio is unchanged, the coefficients stay O(1).
+    scale = max(np.max(np.abs(num)), np.max(np.abs(den)))
+    num, den = num / scale, den / scale
+    N, M = _cheb_of_abs2(num), _cheb_of_abs2(den)
+    Q = cheb.chebsub(cheb.chebmul(cheb.chebder(N), M), cheb.chebmul(N, cheb.chebder(M)))
+    Q = cheb.chebtrim(Q, 1e-15 * max(np.max(np.abs(Q)), 1e-300))
+    cands = [0.0, np.pi]
+    if Q.size > 1 and np.any(Q != 0):
+        roots = cheb.chebroots(Q)
+        keep = (np.abs(roots.imag) <= _IMAG_KEEP) & (np.abs(roots.real) <= 1.0 + _IMAG_KEEP)
+        cands.extend(np.arccos(np.clip(roots.real[keep], -1.0, 1.0)).tolist())
+
+    def value(theta: float) -> float:
+        w = np.exp(-1j * theta)
+        d = abs(poly.polyval(w, den))
+        return abs(poly.polyval(w, num)) / d if d > 0 else np.inf
+
+    theta = np.unique(np.asarray(cands))
+    vals = np.array([value(t) for t in theta])
+    for i, t in enumerate(theta):
+        lo, hi = max(t - _POLISH, 0.0), min(t + _POLISH, np.pi)
+        res = optimize.minimize_scalar(
+            value, bounds=(lo, hi), method="bounded", options={"xatol": 1e-14}
+        )
+        if res.fun < vals[i]:
+            theta[i], vals[i] = float(res.x), float(res.fun)
+    return theta, vals
+
+
+def _controller_tf(controller: object, fs: float, mode: int) -> object:
+    """The SISO controller of ``mode`` (a bank's row, or the transfer function itself)."""
+    controller = _as_siso_controller(controller, fs)
+    if isinstance(controller, ControllerBank):
+        return controller.transfer_function(mode)
+    return controller
+
+
+def modulus_certificate(
+    plant: control.TransferFunction | control.FRD,
+    controller: object,
+    *,
+    fs: float | None = None,
+    mode: int = 0,
+    extra_freqs: np.ndarray | None = None,
+) -> ModulusCertificate:
+    """Certified ``min |1 + G K|`` over [0, fs/2] (the modulus margin).
+
+    Exact for a transfer-function plant and controller (every stationary point of
+    ``|1 + G K|`` on the unit circle, from polynomial roots, each polished on the exact
+    expression); for a measured (FRD) plant, the minimum over its grid points and over refined
+    points around the controller's lightly damped poles (radius above 0.9), the plant
+    interpolated between its measured points. The closed loop's stability is not part of the
+    certificate (see :func:`aocontrol.analysis.is_stable`).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction or control.FRD
+        Discrete SISO plant.
+    controller : control.TransferFunction or ControllerBank
+        Controller; for a bank, ``mode`` selects the SISO controller.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    mode : int, default 0
+        Mode of a controller bank.
+    extra_freqs : array_like, optional
+        Measured plant only: more frequencies [Hz] in [0, fs/2] at which to evaluate (the
+        plant interpolated), e.g. a dense grid.
+
+    Returns
+    -------
+    ModulusCertificate
+
+    Raises
+    ------
+    ValueError
+        An FRD plant that does not cover [0, fs/2]; an improper or non-finite system.
+
+    Examples
+    --------
+    An integrator ``g / (1 - z^-1)`` on ``G = z^-1``: ``1 + L = (1 - (1 - g) z^-1) / (1 - z^-1)``,
+    smallest at Nyquist (``z = -1``), ``1 - g / 2``.
+
+    >>> from aocontrol.plant import loop_plant
+    >>> from aocontrol.controllers import Integrator
+    >>> cert = modulus_certificate(loop_plant(1000.0, 0.0), Integrator(0.5, fs=1000.0))
+    >>> cert.exact, round(cert.value, 12), round(cert.frequency_hz, 6)
+    (True, 0.75, 500.0)
+    """
+    fs_ = plant_fs(plant, fs)
+    K = _controller_tf(controller, fs_, mode)
+    if isinstance(plant, control.TransferFunction) and isinstance(K, control.TransferFunction):
+        bg, ag = z_inverse_coefficients(plant, "plant")
+        bk, ak = z_inverse_coefficients(K, "controller")
+        d = poly.polymul(ag, ak)
+        c = poly.polyadd(d, poly.polymul(bg, bk))
+        theta, vals = rational_modulus_minima(c, d)
+        i = int(np.argmin(vals))
+        hz = theta * fs_ / (2 * np.pi)
+        return ModulusCertificate(float(vals[i]), float(hz[i]), True, EXACT, hz, vals)
+    return _frd_certificate(plant, K, fs_, extra_freqs)
+
+
+def _frd_certificate(
+    plant: object, K: object, fs: float, extra_freqs: np.ndarray | None
+) -> ModulusCertificate:
+    """Grid of the measured system, refined around the controller's lightly damped poles."""
+    meas = plant if isinstance(plant, control.FRD) else K
+    name = "plant" if isinstance(plant, control.FRD) else "controller"
+    check_frd_coverage(name, meas, fs)
+    f = np.asarray(meas.omega, dtype=float) / (2 * np.pi)
+    f = np.clip(f, 0.0, fs / 2)
+    extra = [] if extra_freqs is None else [np.asarray(extra_freqs, dtype=float).ravel()]
+    if isinstance(K, control.TransferFunction):
+        _, ak = z_inverse_coefficients(K, "controller")
+        # Poles in z: roots of z^n A(1/z), i.e. of the reversed coefficient list.
+        poles = np.roots(ak) if ak.size > 1 else np.empty(0)
+        for p in poles[np.abs(poles) > _FRD_POLE_RADIUS]:
+            f0 = abs(np.angle(p)) * fs / (2 * np.pi)
+            bw = max((1.0 - min(abs(p), 1.0)) * fs / (2 * np.pi), 1e-9 * fs)
+            extra.append(f0 + bw * np.linspace(-_FRD_WIDTHS, _FRD_WIDTHS, _FRD_POINTS))
+    if extra:
+        f = np.unique(np.clip(np.concatenate([f, *extra]), 0.0, fs / 2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.abs(1.0 + _response(plant, f, fs) * _response(K, f, fs))
+    d = np.where(np.isnan(d), np.inf, d)
+    interior = np.flatnonzero(np.r_[True, d[1:] <= d[:-1]] & np.r_[d[:-1] <= d[1:], True])
+    i = int(np.argmin(d))
+    return ModulusCertificate(float(d[i]), float(f[i]), False, FRD, f[interior], d[interior])

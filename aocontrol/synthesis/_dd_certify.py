@@ -1,0 +1,315 @@
+"""Per-mode context, parameterisation and certificates of the data-driven synthesis (private).
+
+Private module of :mod:`aocontrol.synthesis._datadriven`: the controller ``K = X / Y`` as a
+parameter vector ``v`` (see :mod:`aocontrol.synthesis._socp`), the design and dense grids,
+and :class:`_ModeCertifier`, which certifies every candidate (modulus margin over the whole
+circle, closed-loop stability, controller pole radius, ``|S|`` peaks between design points)
+and supplies :func:`~aocontrol.synthesis._socp.ccp` with grid rows, H2 weights and the
+winding blocks.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import control
+import numpy as np
+
+from aocontrol.analysis import (
+    ModulusCertificate,
+    is_stable,
+    modulus_certificate,
+    winding_stability,
+)
+from aocontrol.analysis import winding_zeros as _winding_zeros
+from aocontrol.plant import frequency_response, tf_from_z_inverse
+from aocontrol.synthesis._dd_grids import _interp_matrix
+from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, Certifier, Check, GridData
+
+logger = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-mode design (runs in worker processes)
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Context:
+    """Data shared by every mode of one call (pickled once per chunk)."""
+
+    plant: object
+    fs: float
+    f_design: np.ndarray
+    g_design: np.ndarray
+    f_dense: np.ndarray
+    g_dense: np.ndarray
+    fixed: np.ndarray
+    nq: int
+    mu: float
+    stroke_weight: float
+    wind_index: np.ndarray
+    g_scale: float
+    plant_poly: tuple | None
+    max_iter: int
+    tol: float
+    extrapolate: bool
+    freqs: np.ndarray
+    tw: np.ndarray
+    f_h2: np.ndarray
+    pole_radius: float | None
+    orders: tuple = ()
+    auto_tol: float = 0.02
+
+
+def _grid_data(ctx: _Context, f: np.ndarray, g: np.ndarray, mu: float) -> GridData:
+    w = np.exp(-2j * np.pi * f / ctx.fs)
+    powers = w[:, None] ** np.arange(ctx.nq + 1)
+    F = np.polyval(ctx.fixed[::-1], w)
+    nv = 2 * ctx.nq + 1
+    AX = np.zeros((f.size, nv), complex)
+    AY = np.zeros((f.size, nv), complex)
+    AX[:, : ctx.nq + 1] = (g / ctx.g_scale)[:, None] * powers
+    AY[:, ctx.nq + 1 :] = F[:, None] * powers[:, 1:]
+    return GridData(AY, AX, F.astype(complex), mu, ctx.stroke_weight)
+
+
+def _to_v(ctx: _Context, b: np.ndarray, a: np.ndarray) -> np.ndarray | None:
+    """Parameter vector of ``K = b/a`` if it lies in the parameter set, else None."""
+    b = np.trim_zeros(np.asarray(b, float), "b")
+    a = np.trim_zeros(np.asarray(a, float), "b")
+    if b.size > ctx.nq + 1 or a.size > ctx.nq + ctx.fixed.size:
+        return None
+    quot, rem = np.polynomial.polynomial.polydiv(a, ctx.fixed)
+    if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a))):
+        return None
+    quot = np.concatenate([quot, np.zeros(ctx.nq + 1 - quot.size)])
+    x = np.concatenate([b, np.zeros(ctx.nq + 1 - b.size)]) * ctx.g_scale
+    return np.concatenate([x, quot[1:]])
+
+
+def _from_v(ctx: _Context, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    b = v[: ctx.nq + 1] / ctx.g_scale
+    a = np.polynomial.polynomial.polymul(ctx.fixed, np.concatenate([[1.0], v[ctx.nq + 1 :]]))
+    return b, a
+
+
+def _p_of(
+    ctx: _Context, f: np.ndarray, g: np.ndarray, b: np.ndarray, a: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``Y`` and ``P = Y + G X`` of ``K = b/a`` at ``f`` [Hz] (plant response ``g``)."""
+    w = np.exp(-2j * np.pi * f / ctx.fs)
+    Y = np.polyval(np.asarray(a)[::-1], w)
+    return Y, Y + g * np.polyval(np.asarray(b)[::-1], w)
+
+
+def _free_poles(ctx: _Context, v: np.ndarray) -> np.ndarray:
+    """Controller poles that are free in the design (roots of ``Y'``, the fixed factor apart)."""
+    y = v[ctx.nq + 1 :]
+    if y.size == 0:
+        return np.empty(0, complex)
+    # Y'(w) = 1 + sum y_i w^i, w = z^-1: the z-plane poles are the roots of z^q + y_1 z^(q-1)...
+    return np.roots(np.concatenate([[1.0], y]))
+
+
+def _stable(ctx: _Context, dense: GridData, v: np.ndarray) -> bool:
+    """Closed-loop stability of ``v``: poles (TF plant) or winding number of ``P`` (FRD)."""
+    b, a = _from_v(ctx, v)
+    if ctx.plant_poly is not None:
+        bg, ag = ctx.plant_poly
+        pp = np.polynomial.polynomial
+        char = np.trim_zeros(pp.polyadd(pp.polymul(ag, a), pp.polymul(bg, b)), "b")
+        return bool(char.size <= 1 or np.max(np.abs(np.roots(char))) < 1.0 - 1e-9)
+    # FRD: P = Y + G X has no zero in |z^-1| <= 1 iff its phase does not wind (G stable);
+    # the dense grid covers [0, fs/2] (checked in _prepare). A grid too coarse to follow the
+    # phase certifies nothing: the iterate is refused.
+    try:
+        return _winding_zeros(dense.A @ v + dense.F) == 0
+    except ValueError:
+        return False
+
+
+# Poles of the winding grid of the pole-radius constraint: uniform, and focused around the
+# controller's outermost poles (where the scaled denominator turns fastest).
+_N_POLE_UNIFORM, _N_POLE_FOCUS, _POLE_FOCUS_POLES = 128, 16, 4
+# A |S| peak between design points joins the grid when |S|^2 there exceeds this factor times
+# the design grid's (linear) interpolation of |S|^2 and |S| exceeds _PEAK_MIN_S.
+_PEAK_FACTOR, _PEAK_MIN_S = 2.0, 1.2
+
+
+class _ModeCertifier(Certifier):
+    """Certificates, grid rows and objective weights of one mode (see :func:`ccp`)."""
+
+    def __init__(self, ctx, psd, noise, v_ref, b0, a0, dense, mu_d):
+        self.ctx, self.psd, self.noise, self.v_ref = ctx, psd, noise, v_ref
+        self.b0, self.a0, self.dense, self.mu_d = b0, a0, dense, mu_d
+        self.wind = dense.take(ctx.wind_index)
+        self.h2_f = ctx.f_h2
+        self.h2_extra = np.empty(0)
+
+    # -- grid ---------------------------------------------------------------------------
+    def rows(self, f: np.ndarray) -> GridData:
+        g = frequency_response(self.ctx.plant, f, self.ctx.fs)
+        return _grid_data(self.ctx, f, g, self.mu_d)
+
+    def p_start(self, f: np.ndarray) -> np.ndarray:
+        g = frequency_response(self.ctx.plant, f, self.ctx.fs)
+        return _p_of(self.ctx, f, g, self.b0, self.a0)[1]
+
+    def weights(self, f: np.ndarray) -> tuple:
+        """``(r1, rn, h)`` on the grid ``f``: the H2 quadrature on its H2 points.
+
+        The H2 points are the design grid's and the ``|S|`` peaks added as cuts ("peaks");
+        ``|S|^2`` and ``|T|^2`` are interpolated linearly between them at the input points
+        (trapezoid rule on the input grid). Other points constrain the margin only.
+        """
+        ctx = self.ctx
+        is_h2 = np.isin(f, ctx.f_h2) | np.isin(f, self.h2_extra)
+        h2 = np.unique(f[is_h2])
+        self.h2_f = h2
+        H = _interp_matrix(h2, ctx.freqs)
+        q1 = (self.psd * ctx.tw) @ H.T
+        qn = (self.noise * ctx.tw) @ H.T
+        t = q1 + qn
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r1_h = np.where(t > 0, np.sqrt(q1 / t), 0.0)
+            rn_h = np.where(t > 0, np.sqrt(qn / t), 0.0)
+        pos = np.searchsorted(h2, f[is_h2])
+        r1, rn, h = np.zeros(f.size), np.zeros(f.size), np.zeros(f.size)
+        r1[is_h2], rn[is_h2], h[is_h2] = r1_h[pos], rn_h[pos], t[pos] / self.v_ref
+        return r1, rn, h
+
+    # -- winding blocks -----------------------------------------------------------------
+    def winding(self, v: np.ndarray | None) -> list:
+        ctx = self.ctx
+        if v is None:
+            Pw = _p_of(ctx, ctx.f_dense[ctx.wind_index], self.wind_g, self.b0, self.a0)[1]
+        else:
+            Pw = self.wind.A @ v + self.wind.F
+        blocks = [(self.wind.A, self.wind.F, Pw, _P_FLOOR)]
+        if ctx.pole_radius is not None:
+            A = self._pole_rows(v)
+            Ys = A @ v + 1.0 if v is not None else np.ones(A.shape[0], complex)
+            blocks.append((A, np.ones(A.shape[0], complex), Ys, POLE_FLOOR))
+        return blocks
+
+    @property
+    def wind_g(self) -> np.ndarray:
+        return self.ctx.g_dense[self.ctx.wind_index]
+
+    def _pole_rows(self, v: np.ndarray | None) -> np.ndarray:
+        """Rows of ``Ys(u) = Y'(u / rho)`` on the unit circle: ``Ys = A v + 1``."""
+        ctx, rho = self.ctx, self.ctx.pole_radius
+        theta = [np.linspace(0.0, np.pi, _N_POLE_UNIFORM)]
+        poles = _free_poles(ctx, v) if v is not None else np.empty(0)
+        poles = poles[np.argsort(-np.abs(poles))][:_POLE_FOCUS_POLES]
+        for i in range(_POLE_FOCUS_POLES):
+            if i < poles.size:
+                # The root of Ys lies 1 - |p| / rho from the circle: its phase turns over
+                # an arc of about that width around the pole's angle.
+                th0, width = abs(np.angle(poles[i])), max(1.0 - abs(poles[i]) / rho, 1e-12)
+            else:
+                th0, width = 0.0, 1e-3
+            theta.append(np.clip(th0 + width * np.linspace(-4, 4, _N_POLE_FOCUS), 0.0, np.pi))
+        u = np.exp(-1j * np.concatenate(theta))
+        A = np.zeros((u.size, 2 * ctx.nq + 1), complex)
+        i = np.arange(1, ctx.nq + 1)
+        A[:, ctx.nq + 1 :] = (u[:, None] / rho) ** i
+        return A
+
+    @property
+    def n_pole_rows(self) -> int:
+        return _N_POLE_UNIFORM + _N_POLE_FOCUS * _POLE_FOCUS_POLES
+
+    # -- certificates -------------------------------------------------------------------
+    def margin(self, v: np.ndarray) -> tuple[ModulusCertificate, control.TransferFunction]:
+        """The modulus-margin certificate of ``v`` (exact for a TF plant) and its controller."""
+        ctx = self.ctx
+        K = tf_from_z_inverse(*_from_v(ctx, v), 1.0 / ctx.fs)
+        if ctx.plant_poly is not None:
+            return modulus_certificate(ctx.plant, K, fs=ctx.fs), K
+        return modulus_certificate(ctx.plant, K, fs=ctx.fs, extra_freqs=ctx.f_dense), K
+
+    def check(self, v: np.ndarray, v_prev: np.ndarray | None = None) -> Check:
+        """Pole radius, closed-loop stability, certified margin and |S| peaks of ``v``."""
+        ctx = self.ctx
+        empty = np.empty(0)
+        if ctx.pole_radius is not None:
+            poles = _free_poles(ctx, v)
+            if poles.size and np.max(np.abs(poles)) > ctx.pole_radius * (1 + 1e-12):
+                return Check(False, empty, "poles")
+        # The margin first: a closed-loop pole crossing the circle makes |1 + G K| vanish
+        # there, so the certificate also locates a lost stability.
+        cert, K = self.margin(v)
+        bad = cert.below(ctx.mu)
+        if bad.size:
+            logger.debug("margin certificate failed at %s Hz (min %.4g)", bad, cert.value)
+            return Check(False, bad, "margin")
+        if not _stable(ctx, self.dense, v):
+            # A closed-loop pole crossed the circle between winding points: there P turned
+            # by more than 90 degrees from the previous (stabilising) controller's.
+            P = self.dense.A @ v + self.dense.F
+            if v_prev is not None:
+                Pb = self.dense.A @ v_prev + self.dense.F
+            else:
+                Pb = _p_of(ctx, ctx.f_dense, ctx.g_dense, self.b0, self.a0)[1]
+            cos = (P * np.conj(Pb)).real / (np.abs(P) * np.abs(Pb) + 1e-300)
+            return Check(False, ctx.f_dense[np.argsort(cos)[:16]], "stability")
+        peaks = self._misrepresented_peaks(cert, K)
+        if peaks.size:
+            # They join the grid as H2 points (margin cuts only constrain).
+            self.h2_extra = np.union1d(self.h2_extra, peaks[:4])
+            return Check(False, peaks, "peaks")
+        return Check(True, empty)
+
+    def check_final(self, v: np.ndarray) -> tuple[float, str] | None:
+        """``(certified margin, method)`` if ``v`` passes every certificate, else None."""
+        ctx = self.ctx
+        if ctx.pole_radius is not None:
+            poles = _free_poles(ctx, v)
+            if poles.size and np.max(np.abs(poles)) > ctx.pole_radius * (1 + 1e-12):
+                return None
+        b, a = _from_v(ctx, v)
+        K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
+        try:
+            if isinstance(ctx.plant, control.FRD):
+                # The winding number on the dense grid (the FRD's own grid may be too coarse
+                # to follow the phase of Y + G X near a sharp resonance of the controller).
+                stable = winding_stability(ctx.plant, K, fs=ctx.fs, freqs=ctx.f_dense)
+            else:
+                stable = is_stable(ctx.plant, K, fs=ctx.fs)
+        except ValueError:  # winding number not resolved by the grid
+            stable = False
+        cert = self.margin(v)[0]
+        if not stable or cert.value < ctx.mu * (1 - 1e-9):
+            return None
+        return cert.value, cert.method
+
+    def _misrepresented_peaks(
+        self, cert: ModulusCertificate, K: control.TransferFunction
+    ) -> np.ndarray:
+        """|S| peaks inside the input range that the H2 grid's interpolation understates.
+
+        The objective sees ``|S|^2`` interpolated linearly between H2 points: a peak between
+        them (a lightly damped closed-loop pole, which a small margin allows) would be
+        invisible to it. Such a peak joins the grid as an H2 point. Exact plants only (the
+        peaks are the certificate's local minima of ``|1 + G K|``).
+        """
+        if not cert.exact or cert.minima.size == 0:
+            return np.empty(0)
+        ctx, h2 = self.ctx, self.h2_f
+        f, s2 = cert.minima_hz, 1.0 / np.maximum(cert.minima, 1e-300) ** 2
+        inside = (f > max(ctx.freqs[0], h2[0])) & (f < min(ctx.freqs[-1], h2[-1]))
+        inside &= (s2 > _PEAK_MIN_S**2) & ~np.isin(f, h2)
+        if not inside.any():
+            return np.empty(0)
+        f, s2 = f[inside], s2[inside]
+        # |S|^2 at the neighbouring H2 points, interpolated (what the objective sees).
+        j = np.clip(np.searchsorted(h2, f) - 1, 0, h2.size - 2)
+        nb = np.concatenate([h2[j], h2[j + 1]])
+        L = frequency_response(ctx.plant, nb, ctx.fs) * frequency_response(K, nb, ctx.fs)
+        s2_nb = 1.0 / np.abs(1.0 + L) ** 2
+        t = (f - h2[j]) / (h2[j + 1] - h2[j])
+        interp = (1 - t) * s2_nb[: f.size] + t * s2_nb[f.size :]
+        worse = s2 > _PEAK_FACTOR * interp
+        order = np.argsort(-(s2 / interp)[worse])
+        return f[worse][order]
