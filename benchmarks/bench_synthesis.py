@@ -185,7 +185,7 @@ def resonant_part(plant, noise: float, n_modes: int = 6) -> None:
             psd[i] += peak / (
                 1 + ((freqs**2 - f0**2) / (2 * zeta * f0 * np.maximum(freqs, 1e-9))) ** 2
             )
-    bound = constrained_bound(plant, freqs, psd, noise, 0.5, n_taps=256).residual_variance
+    bound = constrained_bound(plant, freqs, psd, noise, 0.5, n_taps=256).variance
     for order in (ORDER, "auto"):
         t0 = time.perf_counter()
         r = dd.datadriven(plant, freqs, psd, order=order, noise_psd=noise, progress=False)
@@ -228,7 +228,7 @@ def main() -> None:
     subset = np.unique(np.linspace(0, n_modes - 1, n_subset).round().astype(int))
     setup = _setup(plant, freqs, psd[subset], noise, 1e-3)
     t0 = time.perf_counter()
-    ours = [dd._design_mode(setup.ctx, *item[1:]) for item in setup.items]
+    ours = [dd._design_chunk(setup.ctx, [item])[0] for item in setup.items]
     t_ours = (time.perf_counter() - t0) / len(subset)
     t0 = time.perf_counter()
     naive = [naive_mode(setup, item) for item in setup.items]
@@ -266,7 +266,7 @@ def main() -> None:
         st = _setup(plant, f_w, p_in[subset], noise, 0.0)
         t0 = time.perf_counter()
         for item in st.items:
-            dd._design_mode(st.ctx, *item[1:])
+            dd._design_chunk(st.ctx, [item])
         est[name] = (st.ctx.f_design.size, (time.perf_counter() - t0) / len(subset))
 
     # (c) Convergence against a tightly converged reference, each mode alone (same start: the

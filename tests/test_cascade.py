@@ -231,14 +231,40 @@ def test_bad_input(bases):
     with pytest.raises(ValueError, match="disturbance .*is not finite .* frame 0"):
         run_cascade(s1, s2, nan_src, 300, scheme="dcao", **kw)
 
-    class _Wfs:
-        n_signals = 4
+    # A diffractive sensor on another pupil than the stage's basis is refused, naming it.
+    from aocontrol.sim.wfs import PyramidWFS
 
+    other = PyramidWFS(vlt_pupil(16), 1.04e-6, n_subapertures=8, modulation=2.0)
     diff = Stage(
-        Integrator(0.3, fs=FS2, n_modes=b2.n_modes), DiffractiveSensor(_Wfs(), np.ones((10, 4)))
+        Integrator(0.3, fs=FS2, n_modes=b2.n_modes),
+        DiffractiveSensor(other, np.ones((b2.n_modes, other.n_signals))),
     )
-    with pytest.raises(ValueError, match="linear modal sensors only"):
+    with pytest.raises(ValueError, match=r"sensor.wfs.pupil must equal the stage basis's pupil"):
         run_cascade(s1, diff, src, 300, scheme="dcao", **kw)
+    with pytest.raises(ValueError, match="sensor.wfs.pupil"):
+        Stage(diff.controller, diff.sensor, basis=b2)
+    with pytest.raises(ValueError, match="reconstructor is required"):
+        DiffractiveSensor(other, None)
+
+
+@pytest.mark.parametrize("scheme", ["standalone", "dcao"])
+def test_cascade_is_bit_identical_to_the_golden_run(scheme):
+    # Oracle: arrays recorded from the engine before the one-driver refactoring
+    # (tests/_golden_loop.py), both stages noisy, stage 2 with a stroke and optical gains.
+    import _golden_loop
+
+    res = _golden_loop.cascade_run(scheme)
+    with np.load(_golden_loop.PATH) as z:
+        for i, st in enumerate(res.stages):
+            prefix = f"{scheme}{i + 1}/"
+            keys = [k for k in z.files if k.startswith(prefix)]
+            assert len(keys) >= 4
+            for key in keys:
+                name = key[len(prefix) :]
+                got = st.telemetry[name] if name in st.telemetry else getattr(st, name)
+                np.testing.assert_array_equal(np.asarray(got), z[key], err_msg=key)
+        assert res.science.strehl == z[f"{scheme}/strehl"]
+        np.testing.assert_array_equal(res.science.contrast_profile, z[f"{scheme}/contrast_profile"])
 
 
 def test_result_round_trip(bases, tmp_path):

@@ -179,6 +179,7 @@ def test_design_from_npz_writes_a_reloadable_controller(tmp_path, capsys):
     assert ratio <= 1.0 + 1e-6
     assert (tmp_path / "ctrl" / "dd_sensitivity.png").stat().st_size > 10_000
     assert (tmp_path / "ctrl" / "dd_margins.png").stat().st_size > 10_000
+    assert f"report: {tmp_path / 'ctrl' / 'dd_report.html'}" in text  # content: test_report.py
 
 
 def test_design_reads_a_results_file_with_telemetry(tmp_path, capsys):
@@ -345,6 +346,10 @@ def test_write_comparison_saves_table_csv_and_plots(tmp_path):
     for png in pngs:
         assert (tmp_path / png).stat().st_size > 10_000, png
         assert f"plot: {tmp_path / png}" in lines
+    # and the HTML report (its content: tests/test_report.py)
+    report = tmp_path / "bright1-best_report.html"
+    assert f"report: {report}" in lines
+    assert "data:image/png;base64," in report.read_text()
 
 
 def test_sweep_unreachable_scheduler_is_a_clear_error(tmp_path, capsys):

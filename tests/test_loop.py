@@ -13,7 +13,6 @@ from aocontrol.sim.loop import (
     LoopResult,
     ModalTimeSeries,
     Stage,
-    TurbulenceSource,
     run_loop,
 )
 
@@ -226,111 +225,67 @@ def test_mode_count_and_noise_rng_checked():
         Stage("integrator")
 
 
-# ---------------------------------------------------------------- the engine vs the old loop
-def _legacy():
-    """The single-stage loop as it was before the stage/runner engine (tests/_legacy_loop.py)."""
-    import importlib.util
-    import pathlib
-    import sys
+# ----------------------------------------------------------- the engine vs golden arrays
+# Oracle: arrays recorded from the engine before the one-driver refactoring (which had been
+# checked bit for bit against the loop before the stage/runner engine); regenerate with
+# tests/_golden_loop.py only for an intended change of the numbers.
+def _golden(prefix):
+    import _golden_loop
 
-    name = "aocontrol_tests_legacy_loop"
-    if name not in sys.modules:
-        path = pathlib.Path(__file__).with_name("_legacy_loop.py")
-        spec = importlib.util.spec_from_file_location(name, path)
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod  # dataclasses resolve annotations through sys.modules
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
+    with np.load(_golden_loop.PATH) as z:
+        return {k[len(prefix) :]: z[k] for k in z.files if k.startswith(prefix)}
 
 
-@pytest.mark.parametrize(
-    "config",
-    [
-        dict(latency=0.83, noise=1.5),
-        dict(latency=1.5, noise=0.0, stroke=0.8),
-        dict(latency=0.0, noise=0.5, dm_stroke=True),
-        dict(latency=2.0, noise=0.3, og=0.7, chunk=333),
-    ],
-)
-def test_engine_is_bit_identical_to_the_old_loop(config):
-    # Oracle: the loop before the restructuring (kept verbatim as a test fixture), on the same
-    # inputs: every telemetry array, statistic and saturation count equal bit for bit.
-    old = _legacy()
-    n_frames, n_modes = 1500, 6
-    rng = np.random.default_rng(3)
-    d = 2.0 * rng.standard_normal((n_frames, n_modes)).cumsum(axis=0) / 30.0
-    m2c = rng.standard_normal((9, n_modes)) if config.get("dm_stroke") else None
-    kw = dict(
-        latency_frames=config["latency"],
-        stroke=config.get("stroke"),
-        dm_stroke=1.2 if m2c is not None else None,
-        m2c=m2c,
-    )
-    gains = np.linspace(0.2, 0.6, n_modes)
-    og = config.get("og", 1.0)
-    chunk = config.get("chunk", 1000)
-    new_res = run_loop(
-        Stage(Integrator(gains, fs=FS), LinearModalSensor(og, config["noise"]), **kw),
-        ModalTimeSeries(d, fs=FS),
-        n_frames,
-        rng=7,
-        chunk=chunk,
-    )
-    old_res = old.run_loop(
-        old.Stage(Integrator(gains, fs=FS), old.LinearModalSensor(og, config["noise"]), **kw),
-        old.ModalTimeSeries(d),
-        n_frames,
-        rng=7,
-        chunk=chunk,
-    )
-    for name in old_res.telemetry:
-        np.testing.assert_array_equal(new_res.telemetry[name], old_res.telemetry[name])
-    np.testing.assert_array_equal(new_res.residual_variance, old_res.residual_variance)
-    np.testing.assert_array_equal(new_res.disturbance_variance, old_res.disturbance_variance)
-    np.testing.assert_array_equal(new_res.saturation, old_res.saturation)
-    if m2c is not None:
-        assert old_res.actuator_saturation.sum() > 0  # the actuator clipping was exercised
-        np.testing.assert_array_equal(new_res.actuator_saturation, old_res.actuator_saturation)
+def _assert_same(res, gold):
+    assert gold, "no golden arrays for this configuration"
+    for name, want in gold.items():
+        got = res.telemetry[name] if name in res.telemetry else getattr(res, name)
+        np.testing.assert_array_equal(np.asarray(got), want, err_msg=name)
+
+
+@pytest.mark.parametrize("name", ["lin_a", "lin_b", "lin_c", "lin_d"])
+def test_engine_is_bit_identical_to_the_golden_runs(name):
+    # Every telemetry array, statistic and saturation count equal bit for bit.
+    import _golden_loop
+
+    gold = _golden(f"{name}/")
+    _assert_same(_golden_loop.linear_run(_golden_loop.LINEAR[name]), gold)
+    config = _golden_loop.LINEAR[name]
     if config.get("stroke"):
-        assert old_res.saturation.sum() > 0
+        assert gold["saturation"].sum() > 0  # the clipping was exercised
+    if config.get("dm_stroke"):
+        assert gold["actuator_saturation"].sum() > 0
 
 
-def test_engine_with_science_is_bit_identical_to_the_old_loop():
-    from aocontrol.sim.atmosphere import Atmosphere, Layer
-    from aocontrol.sim.dm import DeformableMirror
-    from aocontrol.sim.modes import kl_basis
-    from aocontrol.sim.pupil import vlt_pupil
-    from aocontrol.sim.science import ScienceCamera
+def test_engine_with_science_is_bit_identical_to_the_golden_run():
+    import _golden_loop
 
-    old = _legacy()
-    pupil = vlt_pupil(24)
-    basis = kl_basis(DeformableMirror(pupil, n_actuators=9), 20, r0=0.15)
-    cam = ScienceCamera(pupil, field_of_view=6.0)
+    gold = _golden("science/")
+    res = _golden_loop.science_run()
+    for name in ("strehl", "contrast_profile"):
+        np.testing.assert_array_equal(getattr(res.science, name), gold.pop(name))
+    _assert_same(res, gold)
 
-    def atm():
-        return Atmosphere(pupil, 0.15, [Layer(0.0, 1.0, 10.0, 30.0)], FS, rng=4)
 
-    ctrl = Integrator(0.4, fs=FS, n_modes=20)
-    kw = dict(rng=1, basis=basis, science_every=7, chunk=250)
-    new_res = run_loop(
-        Stage(ctrl, LinearModalSensor(1.0, 2.0), 0.83),
-        TurbulenceSource(atm(), basis),
-        600,
-        science=cam.long_exposure(),
-        **kw,
-    )
-    old_res = old.run_loop(
-        old.Stage(ctrl, old.LinearModalSensor(1.0, 2.0), 0.83),
-        old.TurbulenceSource(atm(), basis),
-        600,
-        science=cam.long_exposure(),
-        **kw,
-    )
-    np.testing.assert_array_equal(new_res.telemetry["residuals"], old_res.telemetry["residuals"])
-    assert new_res.science.strehl == old_res.science.strehl
-    np.testing.assert_array_equal(
-        new_res.science.contrast_profile, old_res.science.contrast_profile
-    )
+def test_diffractive_loop_is_bit_identical_to_the_golden_run():
+    import _golden_loop
+
+    from aocontrol.sim.wfs import DiffractiveSensor
+
+    def factory(wfs, recon, photons, read_noise):
+        return DiffractiveSensor(wfs, recon, photons=photons, read_noise=read_noise)
+
+    _assert_same(_golden_loop.diffractive_run(factory), _golden("diffractive/"))
+
+
+def test_golden_check_can_fail():
+    # The comparison sees a change of one frame's noise: another seed differs.
+    import _golden_loop
+
+    gold = _golden("lin_a/")
+    res = _golden_loop.linear_run(dict(_golden_loop.LINEAR["lin_a"], noise=1.5000001))
+    with pytest.raises(AssertionError):
+        _assert_same(res, gold)
 
 
 # ------------------------------------------------------------------- rates and bad inputs
@@ -387,11 +342,17 @@ def test_sensor_validates_its_parameters(og, noise, match):
 
 
 def test_one_linear_sensor_class():
-    from aocontrol.sim.wfs import LinearModalWFS
+    import aocontrol.sim
+    import aocontrol.sim.wfs
 
-    assert LinearModalWFS is LinearModalSensor
-    with pytest.raises(ValueError, match="the sensor has 3 modes, the controller has 2"):
+    for module in (aocontrol.sim.wfs, aocontrol.sim):
+        with pytest.warns(DeprecationWarning, match="LinearModalWFS is deprecated"):
+            assert module.LinearModalWFS is LinearModalSensor
+    with pytest.raises(ValueError, match="the sensor has 3 modes .*the controller has 2"):
         Stage(Integrator(0.4, fs=FS, n_modes=2), LinearModalSensor(np.ones(3), np.zeros(3)))
+    # The argument whose length is wrong is named.
+    with pytest.raises(ValueError, match="optical_gain of length 2.*controller has 3"):
+        Stage(Integrator(0.4, fs=FS, n_modes=3), LinearModalSensor(optical_gain=[1, 1]))
 
 
 def test_slowly_diverging_loop_is_reported():

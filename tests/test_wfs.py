@@ -15,7 +15,7 @@ import pytest
 from aocontrol.sim.noise import add_detector_noise
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.wfs import (
-    LinearModalWFS,
+    LinearModalSensor,
     PyramidWFS,
     ShackHartmannWFS,
     calibrate,
@@ -297,7 +297,7 @@ def test_linear_modal_wfs_statistics_and_shapes():
     # frames match (STAT_TOL: 5 sigma of the estimators for 20000 frames).
     stat_tol = 0.05
     g, sigma = np.array([1.0, 0.5, 0.2]), np.array([1.0, 2.0, 0.5])
-    wfs = LinearModalWFS(optical_gain=g, noise_std=sigma)
+    wfs = LinearModalSensor(optical_gain=g, noise_std=sigma)
     x = np.array([10.0, -4.0, 3.0])
     m = wfs.measure(np.broadcast_to(x, (20000, 3)), np.random.default_rng(0))
     assert m.shape == (20000, 3)
@@ -308,7 +308,7 @@ def test_linear_modal_wfs_statistics_and_shapes():
 
 def test_same_seed_same_numbers(pyramid):
     # Invariant: randomness only through the passed Generator, bit for bit.
-    wfs = LinearModalWFS(optical_gain=np.ones(4), noise_std=np.full(4, 3.0))
+    wfs = LinearModalSensor(optical_gain=np.ones(4), noise_std=np.full(4, 3.0))
     a = wfs.measure(np.zeros((5, 4)), np.random.default_rng(42))
     b = wfs.measure(np.zeros((5, 4)), np.random.default_rng(42))
     assert np.array_equal(a, b)
@@ -322,7 +322,7 @@ def test_linear_model_from_diffractive(pyramid, calibrated):
     # Invariant: from_diffractive = calibrate + noise model at the given flux; gains 1 when
     # no residual is given.
     modes, cal = calibrated
-    lin = LinearModalWFS.from_diffractive(pyramid, modes, 1000.0, 0.3, amplitude=5.0)
+    lin = LinearModalSensor.from_diffractive(pyramid, modes, 1000.0, 0.3, amplitude=5.0)
     np.testing.assert_allclose(lin.noise_std, np.sqrt(cal.noise_variance(1000.0, 0.3)))
     np.testing.assert_array_equal(lin.optical_gain, 1.0)
 
@@ -398,11 +398,11 @@ def test_bad_inputs(pupil32: Pupil):
     with pytest.raises(ValueError, match=r"opd must end with shape \(32, 32\)"):
         PyramidWFS(pupil32, WAVELENGTH, n_subapertures=16).signals(np.zeros((16, 16)))
     with pytest.raises(ValueError, match=r"noise_std must be >= 0"):
-        LinearModalWFS(optical_gain=[1.0], noise_std=[-1.0])
+        LinearModalSensor(optical_gain=[1.0], noise_std=[-1.0])
     with pytest.raises(ValueError, match=r"same shape"):
-        LinearModalWFS(optical_gain=[1.0, 1.0], noise_std=[1.0])
+        LinearModalSensor(optical_gain=[1.0, 1.0], noise_std=[1.0])
     with pytest.raises(ValueError, match=r"residual must have shape"):
-        LinearModalWFS(optical_gain=[1.0], noise_std=[1.0]).measure(
+        LinearModalSensor(optical_gain=[1.0], noise_std=[1.0]).measure(
             np.zeros(3), np.random.default_rng(0)
         )
     with pytest.raises(ValueError, match=r"amplitude must be a finite number > 0, got 0.0"):

@@ -57,6 +57,8 @@ _IMAG_KEEP = 1e-3
 # Half-width [rad] of the polish around each candidate (covers the root's round-off in theta:
 # near x = +-1, dx ~ 1e-12 maps to dtheta ~ 1e-6).
 _POLISH = 1e-4
+# Candidates within this factor of the smallest one are polished.
+_POLISH_WITHIN = 2.0
 # Controller poles above this radius are "lightly damped" for the FRD refinement.
 _FRD_POLE_RADIUS = 0.9
 # Points per pole bandwidth in the FRD refinement, and bandwidths each side.
@@ -143,8 +145,14 @@ def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarra
         return abs(poly.polyval(w, num)) / d if d > 0 else np.inf
 
     theta = np.unique(np.asarray(cands))
-    vals = np.array([value(t) for t in theta])
-    for i, t in enumerate(theta):
+    w = np.exp(-1j * theta)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vals = np.abs(poly.polyval(w, num)) / np.abs(poly.polyval(w, den))
+    vals = np.where(np.isnan(vals), np.inf, vals)
+    # Polish the candidates that may hold the minimum (round-off in a root moves the value by
+    # far less than this factor); the others only report local minima.
+    for i in np.flatnonzero(vals <= _POLISH_WITHIN * np.min(vals)):
+        t = theta[i]
         lo, hi = max(t - _POLISH, 0.0), min(t + _POLISH, np.pi)
         res = optimize.minimize_scalar(
             value, bounds=(lo, hi), method="bounded", options={"xatol": 1e-14}

@@ -12,6 +12,7 @@ from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, Deformable
 from aocontrol.sim.loop import (
     CascadeResult,
     DiffractiveSensor,
+    DitherGainTracker,
     LinearModalSensor,
     LoopDivergedError,
     LoopResult,
@@ -44,7 +45,6 @@ from aocontrol.sim.science import (
 )
 from aocontrol.sim.vibration import TiltVibration, VibrationPeak, VibrationPSD
 from aocontrol.sim.wfs import (
-    LinearModalWFS,
     PyramidWFS,
     ShackHartmannWFS,
     WFSCalibration,
@@ -56,6 +56,7 @@ from aocontrol.sim.wfs import (
 
 __all__ = [
     "DiffractiveSensor",
+    "DitherGainTracker",
     "Atmosphere",
     "Layer",
     "eso_median_profile",
@@ -94,7 +95,6 @@ __all__ = [
     "mean_contrast",
     "PyramidWFS",
     "ShackHartmannWFS",
-    "LinearModalWFS",
     "WFSCalibration",
     "calibrate",
     "interaction_matrix",
@@ -104,3 +104,12 @@ __all__ = [
     "add_detector_noise",
     "snr",
 ]
+
+
+def __getattr__(name: str) -> object:
+    # LinearModalWFS: deprecated alias of LinearModalSensor (warns on use).
+    if name == "LinearModalWFS":
+        from aocontrol.sim.wfs.sensors import deprecated_alias
+
+        return deprecated_alias(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -33,10 +33,12 @@ Telemetry of stage 2: ``commands`` is the controller output ``u2`` (before the d
 ``d2 - P y1`` (standalone) or ``d2`` (dCAO). Stage 1's telemetry is per stage-1 frame: the
 frame means of ``d1`` and ``e1``, its measurements, commands and (held) DM shape.
 
-Only linear modal sensors (:class:`~aocontrol.sim.wfs.LinearModalSensor`) are supported in a
-cascade: a :class:`~aocontrol.sim._stage.DiffractiveSensor` would need the residual phase map
-of every frame (two syntheses and a WFS model per fast frame); calibrate it into a linear
-model with ``LinearModalSensor.from_diffractive``.
+Sensors: any sensor of the protocol of :mod:`aocontrol.sim.wfs.sensors`, called the same way
+for every kind. A sensor that reads phase maps (a :class:`~aocontrol.sim.wfs.DiffractiveSensor`,
+e.g. the stage-2 pyramid) is given the residual OPD map of its previous frame, formed only for
+it: stage 2 sees ``phi - B1 y1 - B2 y2_dm`` (the disturbance minus both DMs, fitting error
+included); stage 1 sees its frame's mean phase minus ``B1 y1`` (it is upstream of stage 2's
+DM). Linear modal sensors read the modal residuals ``e1`` and ``e2`` above.
 """
 
 from __future__ import annotations
@@ -51,8 +53,11 @@ from aocontrol.sim._result import TELEMETRY, CascadeResult
 from aocontrol.sim._runner import (
     _check_common,
     _check_finite_disturbance,
+    _ResidualMap,
     _settle,
     _StageRun,
+    drive,
+    science_frames,
 )
 from aocontrol.sim._sources import PhaseDisturbance, check_rate
 from aocontrol.sim._stage import Stage
@@ -111,15 +116,6 @@ def _rate_ratio(stage1: Stage, stage2: Stage) -> int:
     return r
 
 
-def _linear_arrays(stage: Stage, which: str) -> tuple[np.ndarray, np.ndarray]:
-    if stage.senses_phase:
-        raise ValueError(
-            f"{which} ({stage.name!r}) has a DiffractiveSensor: run_cascade supports linear "
-            "modal sensors only (use LinearModalSensor.from_diffractive to calibrate one)"
-        )
-    return stage.sensor.arrays(stage.n_modes)
-
-
 def run_cascade(
     stage1: Stage,
     stage2: Stage,
@@ -127,8 +123,8 @@ def run_cascade(
     n_frames: int,
     *,
     scheme: str,
-    basis1: Any,
-    basis2: Any,
+    basis1: Any = None,
+    basis2: Any = None,
     rng: np.random.Generator | int | None = None,
     science: Any = None,
     science_every: int = 10,
@@ -155,9 +151,9 @@ def run_cascade(
         Fast (stage-2) frames to run, a multiple of ``R``.
     scheme : {"standalone", "dcao"}
         Cascade scheme.
-    basis1, basis2 : ModalBasis-like
+    basis1, basis2 : ModalBasis-like, optional
         The stages' modal bases (``modes`` (n_modes, n_valid), ``synthesize``, ``pupil``), on
-        the disturbance's pupil pixels.
+        the disturbance's pupil pixels; default each stage's ``basis``.
     rng : numpy.random.Generator or int, optional
         Source of the measurement noise (required when a sensor is noisy); stage 1 and stage
         2 draw from two independent children (``rng.spawn(2)``).
@@ -189,7 +185,7 @@ def run_cascade(
     ------
     ValueError
         Unknown scheme, non-integer rate ratio, a disturbance at another rate or not finite,
-        mismatched bases, ``n_frames`` not a multiple of ``R``, a diffractive sensor.
+        mismatched or missing bases, ``n_frames`` not a multiple of ``R``.
     LoopDivergedError
         If either stage diverges (named, with the frame of its own rate and the modes).
     """
@@ -211,17 +207,17 @@ def run_cascade(
         )
     check_rate(disturbance, stage2.fs, f"the fast clock (stage 2, {stage2.name!r})", required=True)
     n1, n2 = stage1.n_modes, stage2.n_modes
+    basis1 = stage1.basis if basis1 is None else basis1
+    basis2 = stage2.basis if basis2 is None else basis2
     for name, basis, n, st in (("basis1", basis1, n1, stage1), ("basis2", basis2, n2, stage2)):
+        if basis is None:
+            raise ValueError(f"{name} is required (or a basis on {st.name!r})")
         if int(basis.n_modes) != n:
             raise ValueError(f"{name} has {basis.n_modes} modes, {st.name!r} controls {n}")
+        if st.basis is None:
+            st.sensor.check(n, basis)
     p_mat = projection_matrix(basis1, basis2)
     n_valid = basis1.modes.shape[1]
-    og1, ns1 = _linear_arrays(stage1, "stage1")
-    og2, ns2 = _linear_arrays(stage2, "stage2")
-    noisy1, noisy2 = bool(np.any(ns1 > 0)), bool(np.any(ns2 > 0))
-    if (noisy1 or noisy2) and rng is None:
-        raise ValueError("rng is required with a noisy sensor (reproducibility)")
-    rng1, rng2 = np.random.default_rng(rng).spawn(2)
     settle = _settle(n_frames, settle_frames)
     settle = -(-settle // ratio) * ratio
     if settle >= n_frames:
@@ -232,105 +228,103 @@ def run_cascade(
     chunk = -(-chunk // ratio) * ratio
     check_int("chunk", chunk, minimum=1)
     dcao = scheme == "dcao"
-
+    rng1, rng2 = np.random.default_rng(rng).spawn(2)
     run1 = _StageRun(
         stage1,
         n_frames=n_frames // ratio,
         record=record,
         settle=settle // ratio,
-        optical_gain=og1,
-        noise_std=ns1,
+        rng=rng1,
+        pupil=basis1.pupil,
         accumulate=False,
     )
     run2 = _StageRun(
-        stage2, n_frames=n_frames, record=record, settle=settle, optical_gain=og2, noise_std=ns2
+        stage2, n_frames=n_frames, record=record, settle=settle, rng=rng2, pupil=basis2.pupil
     )
+    for run in (run1, run2):
+        if rng is None and (run.noisy or run.tracker is not None):
+            raise ValueError(
+                "rng is required with a noisy sensor or an optical-gain tracker "
+                f"(reproducibility; stage {run.name!r})"
+            )
     # One product projects on both bases; one synthesises both DM shapes for the science.
     modes_all = np.concatenate([basis1.modes, basis2.modes], axis=0)
     proj = (modes_all.T / n_valid).astype(_PROJECTION_DTYPE)
     synth = modes_all.astype(_PROJECTION_DTYPE) if science is not None else None
-    sum_e1 = np.zeros(n1)
-    sum_d1 = np.zeros(n1)
-    e1_prev = np.zeros(n1)
-    e2_prev = np.zeros(n2)
+    stats1 = [np.zeros(n1), np.zeros(n1)]  # sums of e1^2 and d1^2 over the fast frames
+    # Residual maps, formed only for a sensor that reads them (references kept per frame).
+    resid1 = _ResidualMap(basis1.pupil, n_valid)
+    resid2 = _ResidualMap(basis2.pupil, n_valid)
+    shape1 = _HeldShape(basis1)
 
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    def form1(block: np.ndarray, y1: np.ndarray) -> np.ndarray:
+        # Stage 1's WFS integrates its frame: the mean phase minus its (held) DM shape.
+        return block.mean(axis=0, dtype=float) - basis1.synthesize(y1)
 
-        bar = tqdm(total=n_frames, desc=f"{scheme} cascade", unit="frame")
-    k = 0
-    try:
-        while k < n_frames:
-            m = min(chunk, n_frames - k)
-            ns = m // ratio
-            phase = np.asarray(disturbance.phase_vectors(m))
-            if phase.shape != (m, n_valid):
-                raise ValueError(
-                    f"the disturbance gave phase of shape {phase.shape}, expected ({m}, "
-                    f"{n_valid}) (frames, valid pupil pixels of the bases)"
+    def form2(phase_j: np.ndarray, j1: int, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
+        return phase_j - shape1(j1, y1) - basis2.synthesize(y2)
+
+    def advance(k: int, m: int) -> None:
+        ns = m // ratio
+        phase = np.asarray(disturbance.phase_vectors(m))
+        if phase.shape != (m, n_valid):
+            raise ValueError(
+                f"the disturbance gave phase of shape {phase.shape}, expected ({m}, "
+                f"{n_valid}) (frames, valid pupil pixels of the bases)"
+            )
+        coeffs = (phase.astype(_PROJECTION_DTYPE, copy=False) @ proj).astype(float)
+        _check_finite_disturbance(coeffs, k, "disturbance (phase)")
+        d1, d2 = coeffs[:, :n1], coeffs[:, n1:]
+
+        # Stage 1 at its own rate on the frame means of its disturbance.
+        d1_avg = d1.reshape(ns, ratio, n1).mean(axis=1)
+        run1.begin_chunk(d1_avg, ns)
+        y1s = np.empty((ns, n1))
+        for j in range(ns):
+            y1s[j] = run1.step(j, d1_avg[j], resid1)
+            resid1.set(form1, phase[j * ratio : (j + 1) * ratio], y1s[j])
+        run1.end_chunk(d1_avg, k // ratio)
+        first_stat = max(settle - k, 0)
+        if first_stat < m:
+            # Fast-frame residual of stage 1, its DM shape held over each of its frames.
+            e1 = (d1.reshape(ns, ratio, n1) - y1s[:, None, :]).reshape(m, n1)[first_stat:]
+            stats1[0] += np.einsum("ij,ij->j", e1, e1)
+            stats1[1] += np.einsum("ij,ij->j", d1[first_stat:], d1[first_stat:])
+
+        # Stage 2 at the fast rate on the residual of stage 1 in its modes.
+        py1s = y1s @ p_mat.T
+        r2 = (d2.reshape(ns, ratio, n2) - py1s[:, None, :]).reshape(m, n2)
+        d2_rec = d2 if dcao else r2
+        run2.begin_chunk(d2_rec, m)
+        want_sci = science is not None
+        y2s = np.empty((m, n2)) if want_sci else None
+        j1_0 = k // ratio
+        if dcao:
+            neg = -py1s
+            for j in range(m):
+                y2 = run2.step(j, d2[j], resid2, r_j=r2[j], offset=neg[j // ratio])
+                resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
+                if want_sci:
+                    y2s[j] = y2
+        else:
+            for j in range(m):
+                y2 = run2.step(j, r2[j], resid2)
+                resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
+                if want_sci:
+                    y2s[j] = y2
+        run2.end_chunk(d2_rec, k)
+
+        if want_sci:
+            idx = science_frames(k, m, settle, science_every)
+            if idx.size:
+                shape = np.concatenate([y1s[idx // ratio], y2s[idx]], axis=1).astype(
+                    _PROJECTION_DTYPE
                 )
-            coeffs = (phase.astype(_PROJECTION_DTYPE, copy=False) @ proj).astype(float)
-            _check_finite_disturbance(coeffs, k, "disturbance (phase)")
-            d1, d2 = coeffs[:, :n1], coeffs[:, n1:]
+                resid = phase[idx] - (shape @ synth)
+                science.add(basis2.pupil.to_map(resid))
 
-            # Stage 1 at its own rate on the frame means of its disturbance.
-            d1_avg = d1.reshape(ns, ratio, n1).mean(axis=1)
-            noise1 = rng1.standard_normal((ns, n1)) * ns1 if noisy1 else np.zeros((ns, n1))
-            run1.begin_chunk(d1_avg, ns)
-            y1s = np.empty((ns, n1))
-            for j in range(ns):
-                e1_prev, y1s[j] = run1.frame(og1 * e1_prev + noise1[j], d1_avg[j], j)
-            run1.end_chunk(d1_avg, k // ratio)
-            first_stat = max(settle - k, 0)
-            if first_stat < m:
-                # Fast-frame residual of stage 1, its DM shape held over each of its frames.
-                e1 = (d1.reshape(ns, ratio, n1) - y1s[:, None, :]).reshape(m, n1)[first_stat:]
-                sum_e1 += np.einsum("ij,ij->j", e1, e1)
-                sum_d1 += np.einsum("ij,ij->j", d1[first_stat:], d1[first_stat:])
-
-            # Stage 2 at the fast rate on the residual of stage 1 in its modes.
-            py1s = y1s @ p_mat.T
-            r2 = (d2.reshape(ns, ratio, n2) - py1s[:, None, :]).reshape(m, n2)
-            d2_rec = d2 if dcao else r2
-            noise2 = rng2.standard_normal((m, n2)) * ns2 if noisy2 else np.zeros((m, n2))
-            run2.begin_chunk(d2_rec, m)
-            want_sci = science is not None
-            y2s = np.empty((m, n2)) if want_sci else None
-            if dcao:
-                neg = -py1s
-                for j in range(m):
-                    e2_prev, y2 = run2.frame(
-                        og2 * e2_prev + noise2[j], d2[j], j, r_j=r2[j], offset=neg[j // ratio]
-                    )
-                    if want_sci:
-                        y2s[j] = y2
-            else:
-                for j in range(m):
-                    e2_prev, y2 = run2.frame(og2 * e2_prev + noise2[j], r2[j], j)
-                    if want_sci:
-                        y2s[j] = y2
-            run2.end_chunk(d2_rec, k)
-
-            if want_sci:
-                frames = k + np.arange(m)
-                idx = np.flatnonzero((frames >= settle) & (frames % science_every == 0))
-                if idx.size:
-                    shape = np.concatenate([y1s[idx // ratio], y2s[idx]], axis=1).astype(
-                        _PROJECTION_DTYPE
-                    )
-                    resid = phase[idx] - (shape @ synth)
-                    science.add(basis2.pupil.to_map(resid))
-            k += m
-            if bar is not None:
-                bar.update(m)
-        run1.finish()
-        run2.finish()
-    finally:
-        if bar is not None:
-            bar.close()
-        stage1.controller.reset()
-        stage2.controller.reset()
+    drive(n_frames, chunk, advance, (run1, run2), progress=progress, desc=f"{scheme} cascade")
+    sum_e1, sum_d1 = stats1
 
     n_stat = n_frames - settle
     res1 = run1.result(stage1.fs, n_frames // ratio, n_stat, None, metadata)
@@ -353,3 +347,19 @@ def run_cascade(
     return CascadeResult(
         scheme=scheme, stages=(res1, res2), science=result_science, metadata=meta, fs=stage2.fs
     )
+
+
+class _HeldShape:
+    """Stage 1's DM shape on the pupil pixels, synthesised once per stage-1 frame (it is held
+    over the frame's fast frames)."""
+
+    def __init__(self, basis: Any) -> None:
+        self.basis = basis
+        self.key = -1
+        self.value: np.ndarray | None = None
+
+    def __call__(self, j1: int, y1: np.ndarray) -> np.ndarray:
+        if j1 != self.key:
+            self.key = j1
+            self.value = self.basis.synthesize(y1)
+        return self.value

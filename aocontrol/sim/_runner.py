@@ -1,15 +1,21 @@
-"""The runner of the simulator: per-frame state of a stage, one- and two-stage loops.
+"""The runner of the simulator: per-frame state of a stage and the one chunked driver.
 
 :class:`_StageRun` is the mutable per-run state created from a frozen
-:class:`~aocontrol.sim._stage.Stage` (controller state, the plant's delay line, DM
-saturation counters, telemetry buffers, statistics, divergence guards); it advances one frame
-of the stage's own rate. :func:`run_loop` drives one stage, :func:`run_cascade`
-(:mod:`aocontrol.sim._cascade`) two on the fast clock.
+:class:`~aocontrol.sim._stage.Stage` (the sensor's run state, controller state, the plant's
+delay line, DM saturation counters, the optical-gain tracker, telemetry buffers, statistics,
+divergence guards); :meth:`_StageRun.step` advances one frame of the stage's own rate: the
+sensor reads the residual of the previous frame through the sensor protocol
+(:mod:`aocontrol.sim.wfs.sensors`, the same call for every kind of sensor), the controller
+steps, the DM moves. :func:`drive` is the one chunked driver (chunks, progress, the end-of-run
+checks, the controllers' reset) shared by :func:`run_loop` (one stage) and
+:func:`~aocontrol.sim._cascade.run_cascade` (two stages on the fast clock), which differ only
+in how a chunk's disturbance reaches the stages.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -21,7 +27,7 @@ from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
 
-__all__ = ["run_loop"]
+__all__ = ["run_loop", "drive"]
 
 logger = logging.getLogger(__name__)
 
@@ -44,8 +50,6 @@ _POLE_RADIUS_TOL = 1e-9
 _GROWTH_FACTOR = 2.0
 _GROWTH_CHUNKS = 3
 _GROWTH_RATIO = 30.0
-# Flat-wavefront measurements used to estimate a diffractive sensor's noise level.
-_NOISE_PROBES = 8
 
 
 def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarray | None:
@@ -131,8 +135,8 @@ class _StageRun:
         n_frames: int,
         record: tuple[str, ...],
         settle: int,
-        optical_gain: np.ndarray,
-        noise_std: np.ndarray,
+        rng: np.random.Generator,
+        pupil: Any = None,
         accumulate: bool = True,
     ) -> None:
         n = stage.n_modes
@@ -153,6 +157,16 @@ class _StageRun:
         self.sum_e2 = np.zeros(n)
         self.sum_d2 = np.zeros(n)
         self.dmax = np.zeros(n)
+        # The sensor's run state (sensor protocol): the one call per frame for every kind.
+        self.sensor = stage.sensor.start(n, rng, pupil)
+        self.needs_phase = bool(self.sensor.needs_phase)
+        optical_gain = np.asarray(self.sensor.optical_gain, dtype=float)
+        noise_std = np.asarray(self.sensor.noise_std, dtype=float)
+        self.noisy = bool(np.any(noise_std > 0))
+        self.tracker = (
+            None if stage.gain_tracker is None else stage.gain_tracker.start(n, rng.spawn(1)[0])
+        )
+        self.e_prev = np.zeros(n)
         self.og = optical_gain
         self.noise_std = noise_std
         self.noise_scale = 10.0 * float(np.max(noise_std / optical_gain))
@@ -183,6 +197,9 @@ class _StageRun:
         # Scale of a healthy residual: the largest disturbance or noise (through T) of any
         # mode (modes couple through stroke clipping and diffractive sensing).
         scale = self.dmax.max() + self.noise_scale
+        self.sensor.begin_chunk(m_chunk)
+        if self.tracker is not None:
+            self.tracker.begin_chunk(m_chunk)
         self.limit = _DIVERGENCE_FACTOR * scale + 1.0
         self.limit_unstable = _UNSTABLE_FACTOR * scale + 1.0
         self.out = {
@@ -233,6 +250,23 @@ class _StageRun:
             del self.energy[0]
 
     # -- one frame of the stage's rate --------------------------------------------------------
+    def step(
+        self,
+        j: int,
+        d_j: np.ndarray,
+        opd: Callable[[], np.ndarray],
+        r_j: np.ndarray | None = None,
+        offset: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Frame ``j`` of the chunk: the sensor reads the previous residual (``opd()`` forms
+        its map on demand), then :meth:`frame`; returns the DM shape ``y``."""
+        m = self.sensor.read(j, self.e_prev, opd)
+        if self.tracker is not None:
+            self.tracker.observe(m)
+            m = m / self.tracker.gain
+        self.e_prev, y = self.frame(m, d_j, j, r_j, offset)
+        return y
+
     def frame(
         self,
         m: np.ndarray,
@@ -256,6 +290,8 @@ class _StageRun:
         y = (1.0 - self.frac) * hist[(k - self.k0) % depth]
         if self.frac:
             y = y + self.frac * hist[(k - self.k0 - 1) % depth]
+        if self.tracker is not None:  # the dither: an offset of the mirror (_gain_tracking)
+            y = y + self.tracker.dither(j)
         if offset is not None:
             y = y + offset
             if self.clip:
@@ -328,6 +364,7 @@ class _StageRun:
                 latency_frames=self.stage.latency_frames,
                 controller=repr(self.ctrl),
                 controller_counters=getattr(self, "controller_counters", {}),
+                **({} if self.tracker is None else self.tracker.metadata()),
             ),
             actuator_saturation=st.actuator_saturation,
         )
@@ -384,6 +421,88 @@ def _check_finite_disturbance(d: np.ndarray, first: int, what: str = "disturbanc
         )
 
 
+class _ResidualMap:
+    """The residual OPD map of the last frame, formed only when a sensor asks (callable).
+
+    ``set(form, *args)`` after each frame (references only); calling the object returns
+    ``pupil.to_map(form(*args))`` (valid pupil pixels to the map), or the flat map before the
+    first frame.
+    """
+
+    def __init__(self, pupil: Any, n_valid: int) -> None:
+        self.pupil = pupil
+        self.n_valid = n_valid
+        self.form: Callable[..., np.ndarray] | None = None
+        self.args: tuple = ()
+
+    def set(self, form: Callable[..., np.ndarray], *args: Any) -> None:
+        self.form = form
+        self.args = args
+
+    def __call__(self) -> np.ndarray:
+        if self.form is None:
+            return self.pupil.to_map(np.zeros(self.n_valid))
+        return self.pupil.to_map(self.form(*self.args))
+
+
+def drive(
+    n_frames: int,
+    chunk: int,
+    advance: Callable[[int, int], None],
+    runs: tuple[_StageRun, ...],
+    *,
+    progress: bool = False,
+    desc: str = "loop",
+) -> None:
+    """The one chunked driver: ``advance(first, m)`` for chunks of ``m <= chunk`` frames.
+
+    Shows a progress bar when asked, runs the end-of-run checks of every stage
+    (:meth:`_StageRun.finish`) and resets every stage's controller, also on an error.
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames of the driving clock.
+    chunk : int
+        Frames per call of ``advance``.
+    advance : callable ``(first, m) -> None``
+        Runs frames ``first ... first + m - 1``.
+    runs : tuple of _StageRun
+        The stages' run states.
+    progress : bool
+        Show a tqdm progress bar.
+    desc : str
+        Label of the progress bar.
+    """
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n_frames, desc=desc, unit="frame")
+    k = 0
+    try:
+        while k < n_frames:
+            m = min(chunk, n_frames - k)
+            advance(k, m)
+            k += m
+            if bar is not None:
+                bar.update(m)
+        for run in runs:
+            run.finish()
+    finally:
+        if bar is not None:
+            bar.close()
+        for run in runs:
+            run.stage.controller.reset()
+
+
+def science_frames(first: int, m: int, settle: int, every: int) -> np.ndarray:
+    """Chunk rows (of frames ``first ... first + m - 1``) that feed the science camera: every
+    ``every``-th frame of the clock, once settled."""
+    frames = first + np.arange(m)
+    return np.flatnonzero((frames >= settle) & (frames % every == 0))
+
+
 def run_loop(
     stage: Stage,
     disturbance: DisturbanceSource,
@@ -411,13 +530,15 @@ def run_loop(
     n_frames : int
         Frames to run.
     rng : numpy.random.Generator or int
-        Source of the measurement noise (required when the sensor is noisy).
+        Source of the measurement noise and of an optical-gain tracker's dither (required
+        when the sensor is noisy or the stage tracks its optical gains).
     science : object with ``add(maps (n, n_pix, n_pix))`` and ``result()``, optional
         Long-exposure accumulator; fed every ``science_every`` frames with the residual phase
         ``phase - DM shape`` (needs ``basis`` and phase maps from the source).
     basis : object with ``synthesize(coeffs) -> (..., n_valid)`` and ``pupil``, optional
-        Needed for the science camera and for a :class:`DiffractiveSensor` (which measures
-        the residual map ``phase - DM shape`` every frame).
+        Default ``stage.basis``. Needed for the science camera and for a sensor that reads
+        phase maps (a :class:`~aocontrol.sim.wfs.DiffractiveSensor`, which measures the
+        residual map ``phase - DM shape`` of every frame).
     science_every : int
         Frames between two science frames.
     record : tuple of str
@@ -452,92 +573,58 @@ def run_loop(
     if disturbance.n_modes != n:
         raise ValueError(f"disturbance has {disturbance.n_modes} modes, the controller {n}")
     check_rate(disturbance, stage.fs, f"stage {stage.name!r}", required=False)
+    basis = stage.basis if basis is None else basis
     if science is not None and basis is None:
         raise ValueError("a science camera needs basis= to form the DM shape")
-    diffractive = stage.senses_phase
-    if diffractive and basis is None:
-        raise ValueError("a DiffractiveSensor needs basis= to form the residual phase map")
-    sensor = stage.sensor
-    if diffractive:
-        og, noise_std = np.ones(n), np.zeros(n)
-        noisy = sensor.noisy
-    else:
-        og, noise_std = sensor.arrays(n)
-        noisy = bool(np.any(noise_std > 0))
-    if noisy and rng is None:
-        raise ValueError("rng is required with a noisy sensor (reproducibility)")
-    rng = np.random.default_rng(rng)
-    if diffractive and noisy:
-        # Modal noise level of the diffractive sensor (for the divergence guard only), from a
-        # few measurements of a flat wavefront with a child generator: the loop's own noise
-        # stream is unchanged.
-        probe_rng = rng.spawn(1)[0]
-        flat = basis.pupil.to_map(np.zeros(basis.pupil.n_valid))
-        probe = np.array([sensor.measure(flat, probe_rng) for _ in range(_NOISE_PROBES)])
-        noise_std = probe.std(axis=0)
-    settle = _settle(n_frames, settle_frames)
+    if basis is not None and stage.basis is None:
+        stage.sensor.check(n, basis)
     run = _StageRun(
         stage,
         n_frames=n_frames,
         record=record,
-        settle=settle,
-        optical_gain=og,
-        noise_std=noise_std,
+        settle=0,
+        rng=np.random.default_rng(rng),
+        pupil=None if basis is None else basis.pupil,
     )
-    resid_map = None
-    e_prev = np.zeros(n)
+    if rng is None and (run.noisy or run.tracker is not None):
+        raise ValueError(
+            "rng is required with a noisy sensor or an optical-gain tracker (reproducibility)"
+        )
+    if run.needs_phase and basis is None:
+        raise ValueError(
+            "a sensor that reads phase maps (a DiffractiveSensor) needs basis= (or the "
+            "stage's basis) to form the residual phase map"
+        )
+    settle = run.settle = _settle(n_frames, settle_frames)
+    resid = None if basis is None else _ResidualMap(basis.pupil, basis.pupil.n_valid)
 
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    def form(phase: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return phase - basis.synthesize(y)
 
-        bar = tqdm(total=n_frames, desc=f"{stage.name} loop", unit="frame")
-    k = 0
-    try:
-        while k < n_frames:
-            m_chunk = min(chunk, n_frames - k)
-            d, maps = disturbance.next(m_chunk)
-            d = np.asarray(d, dtype=float)
-            _check_finite_disturbance(d, k)
-            if (science is not None or diffractive) and maps is None:
-                raise ValueError(
-                    "the disturbance source gives no phase maps (needed by the "
-                    "science camera and a DiffractiveSensor)"
-                )
-            if diffractive and resid_map is None:
-                resid_map = basis.pupil.to_map(np.zeros(maps.shape[1]))
-            linear_noise = noisy and not diffractive  # a DiffractiveSensor draws its own
-            noise = (
-                rng.standard_normal((m_chunk, n)) * noise_std
-                if linear_noise
-                else np.zeros((m_chunk, n))
+    def advance(first: int, m_chunk: int) -> None:
+        d, maps = disturbance.next(m_chunk)
+        d = np.asarray(d, dtype=float)
+        _check_finite_disturbance(d, first)
+        if (science is not None or run.needs_phase) and maps is None:
+            raise ValueError(
+                "the disturbance source gives no phase maps (needed by the science camera "
+                "and a sensor that reads phase maps)"
             )
-            run.begin_chunk(d, m_chunk)
-            sci_idx, sci_dm = [], []
-            for j in range(m_chunk):
-                if diffractive:
-                    m = sensor.measure(resid_map, rng)
-                else:
-                    m = og * e_prev + noise[j]
-                e, y = run.frame(m, d[j], j)
-                if science is not None and k >= settle and k % science_every == 0:
-                    sci_idx.append(j)
-                    sci_dm.append(y)
-                e_prev = e
-                if diffractive:
-                    resid_map = basis.pupil.to_map(maps[j] - basis.synthesize(y))
-                k += 1
-            run.end_chunk(d, k - m_chunk)
-            if sci_idx:
-                dm_shape = basis.synthesize(np.asarray(sci_dm))
-                science.add(basis.pupil.to_map(maps[np.asarray(sci_idx)] - dm_shape))
-            if bar is not None:
-                bar.update(m_chunk)
-        run.finish()
-    finally:
-        if bar is not None:
-            bar.close()
-        stage.controller.reset()
+        run.begin_chunk(d, m_chunk)
+        ys = np.empty((m_chunk, n)) if science is not None else None
+        have_maps = maps is not None and resid is not None
+        for j in range(m_chunk):
+            y = run.step(j, d[j], resid)
+            if have_maps:  # references only: the map is formed if the sensor asks
+                resid.set(form, maps[j], y)
+            if ys is not None:
+                ys[j] = y
+        run.end_chunk(d, first)
+        if science is not None:
+            idx = science_frames(first, m_chunk, settle, science_every)
+            if idx.size:
+                science.add(basis.pupil.to_map(maps[idx] - basis.synthesize(ys[idx])))
 
+    drive(n_frames, chunk, advance, (run,), progress=progress, desc=f"{stage.name} loop")
     result_science = science.result() if science is not None else None
     return run.result(stage.fs, n_frames, n_frames - settle, result_science, metadata)

@@ -1,141 +1,27 @@
-"""A simulator stage (frozen configuration) and the sensor protocol.
+"""A simulator stage (frozen configuration): controller, sensor, basis, delay, DM stroke.
 
 A :class:`Stage` is validated once and never mutated; the runner of
 :mod:`aocontrol.sim.loop` creates the per-frame state of a run from it (controller state,
-delay line, DM saturation counters, telemetry buffers).
+delay line, DM saturation counters, the sensor's run state, telemetry buffers).
 
-Sensor protocol (:class:`Sensor`): ``n_modes`` (``None`` for any count),
-``senses_phase`` (``False``: ``measure`` takes the modal residual ``(n_modes,)``; ``True``:
-it takes the residual OPD map ``(n_pix, n_pix)``), ``measure(residual, rng) -> (n_modes,)``
-[nm]. :class:`~aocontrol.sim.wfs.LinearModalSensor` and :class:`DiffractiveSensor` implement it.
+The sensor is any object implementing the sensor protocol of
+:mod:`aocontrol.sim.wfs.sensors` (:class:`~aocontrol.sim.wfs.LinearModalSensor`,
+:class:`~aocontrol.sim.wfs.DiffractiveSensor`); the runner calls it the same way whatever its
+kind.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any
 
-import numpy as np
-
-from aocontrol._validation import check_nonnegative, check_positive
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import split_latency
+from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim.dm import ModalDM
-from aocontrol.sim.wfs.calibration import LinearModalSensor
+from aocontrol.sim.wfs.sensors import DiffractiveSensor, LinearModalSensor, Sensor
 
 __all__ = ["Sensor", "DiffractiveSensor", "Stage"]
-
-
-@runtime_checkable
-class Sensor(Protocol):
-    """A wavefront sensor of a stage: the residual (modal or a phase map) -> modal measurement.
-
-    Parameters
-    ----------
-    *args, **kwargs
-        Not used: a protocol is not instantiated; any object with the members below
-        satisfies it (``isinstance`` checks them at run time).
-    """
-
-    senses_phase: bool
-
-    @property
-    def n_modes(self) -> int | None:
-        """Modes measured (``None``: any count)."""
-
-    def measure(self, residual: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Modal measurement ``(n_modes,)`` [nm] of one residual."""
-
-
-@dataclass(frozen=True)
-class DiffractiveSensor:
-    """A diffractive WFS in the loop: ``m = R s(residual phase map)`` with detector noise.
-
-    Each frame the residual OPD map (turbulence minus DM shape, fitting error included) goes
-    through the WFS model (pyramid or Shack-Hartmann), with Poisson and read-out noise on the
-    detector pixels when ``photons`` is given, then through the reconstructor.
-
-    Parameters
-    ----------
-    wfs : object with ``signals(opd)`` and ``measure(opd, photons, read_noise, rng)``
-        E.g. :class:`aocontrol.sim.wfs.PyramidWFS`; signals are reference-subtracted.
-    reconstructor : ndarray, shape (n_modes, n_signals)
-        Signals to modal measurements [nm] (e.g. :func:`aocontrol.sim.wfs.reconstructor`).
-    photons : float, optional
-        Photo-electrons per frame in the WFS; ``None`` for a noise-free sensor.
-    read_noise : float
-        Read-out noise [e- RMS per pixel].
-    """
-
-    wfs: Any
-    reconstructor: Any
-    photons: float | None = None
-    read_noise: float = 0.0
-
-    #: Sensor protocol: this sensor measures residual phase maps.
-    senses_phase: ClassVar[bool] = True
-
-    def __post_init__(self) -> None:
-        r = np.asarray(self.reconstructor, dtype=float)
-        if r.ndim != 2 or not np.all(np.isfinite(r)):
-            raise ValueError(
-                f"reconstructor must be a finite (n_modes, n_signals) matrix, got shape {r.shape}"
-            )
-        n_signals = getattr(self.wfs, "n_signals", r.shape[1])
-        if r.shape[1] != n_signals:
-            raise ValueError(
-                f"reconstructor has {r.shape[1]} columns, the WFS gives {n_signals} signals"
-            )
-        object.__setattr__(self, "reconstructor", r)
-        if self.photons is not None:
-            check_positive("photons", self.photons)
-        check_nonnegative("read_noise", self.read_noise)
-
-    @property
-    def n_modes(self) -> int:
-        """Modes reconstructed."""
-        return int(self.reconstructor.shape[0])
-
-    @property
-    def noisy(self) -> bool:
-        """Whether detector noise is simulated (``photons`` given)."""
-        return self.photons is not None
-
-    def measure(self, residual: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Modal measurement ``(n_modes,)`` [nm] of one residual OPD map.
-
-        Parameters
-        ----------
-        residual : ndarray (n_pix, n_pix)
-            Residual OPD map [nm].
-        rng : numpy.random.Generator
-            Source of the detector noise.
-
-        Returns
-        -------
-        ndarray (n_modes,)
-        """
-        if self.photons is None:
-            sig = self.wfs.signals(residual)
-        else:
-            sig = self.wfs.measure(residual, self.photons, self.read_noise, rng)
-        return self.reconstructor @ sig
-
-    def measure_map(self, opd: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Same as :meth:`measure` (former name).
-
-        Parameters
-        ----------
-        opd : ndarray (n_pix, n_pix)
-            Residual OPD map [nm].
-        rng : numpy.random.Generator
-            Source of the detector noise.
-
-        Returns
-        -------
-        ndarray (n_modes,)
-        """
-        return self.measure(opd, rng)
 
 
 @dataclass(frozen=True)
@@ -146,8 +32,10 @@ class Stage:
     ----------
     controller : ControllerBank
         Runs at the stage rate ``controller.fs`` [Hz].
-    sensor : LinearModalSensor or DiffractiveSensor
-        Default: a noise-free linear sensor of optical gain 1.
+    sensor : Sensor
+        Any sensor implementing the protocol of :mod:`aocontrol.sim.wfs.sensors`
+        (:class:`LinearModalSensor`, :class:`DiffractiveSensor`). Default: a noise-free
+        linear sensor of optical gain 1.
     latency_frames : float
         RTC latency beyond the one-frame WFS integration [frames] (as in ``loop_plant``), in
         ``[0, aocontrol.plant.MAX_LATENCY_FRAMES]``.
@@ -160,9 +48,16 @@ class Stage:
         of the modal simulator: the part of the clipped shape outside the controlled modes is
         dropped.
     m2c : ndarray (n_act, n_modes), optional
-        Modes-to-commands matrix of the DM (``ModalBasis.m2c``).
+        Modes-to-commands matrix of the DM; default ``basis.m2c`` when a basis is given.
     name : str
         Name used in messages and results.
+    basis : ModalBasis-like, optional
+        The stage's modal basis (``n_modes``, ``modes`` (n_modes, n_valid), ``synthesize``,
+        ``pupil``, ``m2c``): the runner forms phase maps with it (science camera, diffractive
+        sensor) and a cascade projects between the stages' bases. Needed by a sensor that
+        reads phase maps unless passed to the runner.
+    gain_tracker : DitherGainTracker, optional
+        Online optical-gain tracking and compensation (:mod:`aocontrol.sim._gain_tracking`).
 
     Attributes
     ----------
@@ -179,6 +74,8 @@ class Stage:
     dm_stroke: float | None = None
     m2c: Any = None
     name: str = "stage"
+    basis: Any = field(default=None, repr=False, compare=False)
+    gain_tracker: DitherGainTracker | None = None
     dm: ModalDM = field(init=False, repr=False, compare=False)
     delay: tuple = field(init=False, repr=False, compare=False)
 
@@ -191,17 +88,27 @@ class Stage:
             raise TypeError(f"name must be a str, got {type(self.name).__name__}")
         n = self.controller.n_modes
         object.__setattr__(self, "delay", split_latency(self.latency_frames))
-        if isinstance(self.sensor, LinearModalSensor):
-            self.sensor.arrays(n)
-        elif isinstance(self.sensor, DiffractiveSensor):
-            if self.sensor.n_modes != n:
-                raise ValueError(
-                    f"the sensor reconstructs {self.sensor.n_modes} modes, the controller has {n}"
+        if self.basis is not None:
+            nb = getattr(self.basis, "n_modes", None)
+            if nb is None or not hasattr(self.basis, "modes"):
+                raise TypeError(
+                    "basis must be a ModalBasis-like object (n_modes, modes, synthesize, "
+                    f"pupil), got {type(self.basis).__name__}"
                 )
-        else:
+            if int(nb) != n:
+                raise ValueError(f"basis has {nb} modes, the controller of {self.name!r} has {n}")
+            if self.m2c is None and self.dm_stroke is not None:
+                object.__setattr__(self, "m2c", getattr(self.basis, "m2c", None))
+        if not isinstance(self.sensor, Sensor):
             raise TypeError(
-                "sensor must be a LinearModalSensor (alias LinearModalWFS) or a "
-                f"DiffractiveSensor, got {type(self.sensor).__name__}"
+                "sensor must implement the sensor protocol (check, start; e.g. a "
+                f"LinearModalSensor or a DiffractiveSensor), got {type(self.sensor).__name__}"
+            )
+        self.sensor.check(n, self.basis)
+        if self.gain_tracker is not None and not isinstance(self.gain_tracker, DitherGainTracker):
+            raise TypeError(
+                "gain_tracker must be a DitherGainTracker or None, got "
+                f"{type(self.gain_tracker).__name__}"
             )
         dm = ModalDM(n, stroke=self.stroke, actuator_stroke=self.dm_stroke, m2c=self.m2c)
         object.__setattr__(self, "dm", dm)
@@ -220,5 +127,5 @@ class Stage:
 
     @property
     def senses_phase(self) -> bool:
-        """Whether the sensor needs residual phase maps (a :class:`DiffractiveSensor`)."""
-        return bool(self.sensor.senses_phase)
+        """Whether the sensor reads residual phase maps (e.g. a :class:`DiffractiveSensor`)."""
+        return bool(getattr(self.sensor, "senses_phase", False))

@@ -27,6 +27,7 @@ SEED_PURPOSES: dict[str, int] = {
     "calibration": 8,
     "gain_scan": 9,
     "optical_gain_screens": 10,
+    "two_pass": 11,
 }
 
 

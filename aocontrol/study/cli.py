@@ -38,9 +38,6 @@ RUN_SCHEMES = ("single", "standalone", "dcao")
 DESIGN_CONTROLLERS = ("datadriven", "omgi", "integrator", "lqg")
 # Fewest telemetry frames for a PSD estimate worth designing on (8 Welch segments of 16).
 _MIN_TELEMETRY_FRAMES = 64
-#: Comparison of ``demo``: one scheme, short exposures in quick mode (about 2 minutes).
-DEMO_SCHEME = "standalone"
-DEMO_SECONDS = 0.2
 # Per-mode margins are printed up to this many modes, a min/median/max summary beyond.
 _MAX_MODE_ROWS = 12
 
@@ -201,6 +198,8 @@ def _run(args: argparse.Namespace) -> int:
             overrides=None,
             quick=args.quick,
             progress=not args.no_progress,
+            sensor=args.sensor,
+            optical_gain=args.optical_gain,
             **options,
         )
     except RuntimeError as exc:
@@ -259,7 +258,12 @@ def _compare(args: argparse.Namespace) -> int:
     out = _out_dir(args.out)
     try:
         comparison = compare.compare_case(
-            case, quick=args.quick, results_dir=out, progress=not args.no_progress
+            case,
+            quick=args.quick,
+            results_dir=out,
+            progress=not args.no_progress,
+            sensor=args.sensor,
+            optical_gain=args.optical_gain,
         )
     except RuntimeError as exc:
         raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
@@ -311,7 +315,31 @@ def write_comparison(comparison: Any, out: str) -> list[str]:
             writer.writerow([getattr(c, f) for f in fields])
     lines += [f"table: {txt}", f"table: {csv_path}"]
     lines += [f"plot: {p}" for p in _comparison_plots(comparison, out)]
+    lines.append(f"report: {_comparison_report(comparison, out)}")
     return lines
+
+
+def _comparison_report(comparison: Any, out: str) -> str:
+    """The comparison's self-contained HTML report, ``<out>/<case>_report.html``."""
+    from aocontrol.study.report import comparison_report
+
+    _plot_module()  # selects the file backend
+    return comparison_report(comparison, os.path.join(out, f"{comparison.case}_report.html"))
+
+
+def _design_report(design: Any, path: str, info: dict | None = None) -> str:
+    """The design's self-contained HTML report at ``path``.
+
+    ``design``: a ``report.DesignReportData``, or the result of
+    ``synthesis.design_from_telemetry`` (converted by ``report.design_report_data`` with the
+    header lines ``info``).
+    """
+    from aocontrol.study.report import DesignReportData, design_report, design_report_data
+
+    _plot_module()  # selects the file backend
+    if not isinstance(design, DesignReportData):
+        design = design_report_data(design, info=info)
+    return design_report(design, path)
 
 
 def _comparison_plots(comparison: Any, out: str) -> list[str]:
@@ -573,6 +601,28 @@ def _design(args: argparse.Namespace) -> int:
     print(f"controller file: {path} (reload with aocontrol.load_controller)")
     print(f"plot: {fig_path}")
     print(f"plot: {margins_path}")
+    from aocontrol.analysis import wiener_bound
+    from aocontrol.study.report import DesignReportData
+
+    data = DesignReportData(
+        plant,
+        freqs,
+        psd,
+        noise,
+        {controller: bank, "optimal-gain integrator": reference},
+        predicted_rms={controller: rms, "optimal-gain integrator": rms_ref},
+        margins={controller: mar},
+        bounds={"Wiener bound": np.sqrt(np.atleast_1d(wiener_bound(plant, freqs, psd, noise)))},
+        modulus_margin=args.modulus_margin,
+        title=f"aocontrol design: {controller}",
+        info={
+            "telemetry": args.telemetry,
+            "frames": m.shape[0],
+            "fs": f"{fs:g} Hz",
+            "latency": f"{latency:g} frame",
+        },
+    )
+    print(f"report: {_design_report(data, stem + '_report.html')}")
     return 0
 
 
@@ -621,21 +671,15 @@ def _demo(args: argparse.Namespace) -> int:
     print(f"Rejection plot written to {res.plot_path}")
     if args.no_comparison:
         return 0
-    compare = _compare_module()
+    from aocontrol.study import demo
+
     case = _check_case(args.case)
     print(
-        f"\nShort comparison on {case} (quick mode: reduced modes, "
-        f"{DEMO_SECONDS:g} s exposures, scheme {DEMO_SCHEME}):"
+        f"\nShort comparison on {case} (stage 2: {demo.DEMO_STAGE2_MODES} modes, "
+        f"{demo.DEMO_SECONDS:g} s exposures, scheme {demo.DEMO_SCHEME}; about a minute):"
     )
     try:
-        comparison = compare.compare_case(
-            case,
-            schemes=(DEMO_SCHEME,),
-            seconds=DEMO_SECONDS,
-            quick=True,
-            results_dir=_out_dir(args.output),
-            progress=False,
-        )
+        comparison = demo.demo_comparison(_out_dir(args.output), case=case)
     except RuntimeError as exc:
         raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
     for line in write_comparison(comparison, args.output):
@@ -660,6 +704,22 @@ def _parser() -> argparse.ArgumentParser:
 
     def no_progress(p: argparse.ArgumentParser) -> None:
         p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+
+    def sensor_options(p: argparse.ArgumentParser) -> None:
+        from aocontrol.study.cases import OPTICAL_GAIN_SETTINGS, SENSORS
+
+        p.add_argument(
+            "--sensor",
+            choices=SENSORS,
+            default=None,
+            help="stage-2 sensor in the loop (default: the case's, linear)",
+        )
+        p.add_argument(
+            "--optical-gain",
+            choices=OPTICAL_GAIN_SETTINGS,
+            default=None,
+            help="stage-2 optical-gain handling (default: the case's, calibrated)",
+        )
 
     add("cases", _cases, "list the science cases and their parameters")
 
@@ -687,12 +747,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results", help="folder of the results file and plots")
     p.add_argument("--quick", action="store_true", help="reduced modes and pupil (smoke runs)")
     p.add_argument("--telemetry", action="store_true", help="also store the telemetry")
+    sensor_options(p)
     no_progress(p)
 
-    p = add("compare", _compare, "the paper's comparison table of one case, with its plots")
+    p = add("compare", _compare, "the paper's comparison of one case: table, plots, HTML report")
     p.add_argument("case", help="science case name (see 'aocontrol cases')")
     p.add_argument("--quick", action="store_true", help="short, reduced runs")
     p.add_argument("--out", default="compare-output", help="folder of the table and plots")
+    sensor_options(p)
     no_progress(p)
 
     p = add("design", _design, "design a controller bank from closed-loop telemetry")
@@ -750,7 +812,7 @@ def _parser() -> argparse.ArgumentParser:
         "on a science case (table and contrast plot)",
     )
     p.add_argument("--output", default="demo-output", help="folder for the plots and tables")
-    p.add_argument("--case", default="bright1-best", help="science case of the comparison")
+    p.add_argument("--case", default="red1-fast", help="science case of the comparison")
     p.add_argument(
         "--no-comparison", action="store_true", help="only the one-mode design (seconds)"
     )

@@ -61,6 +61,7 @@ from aocontrol.study._registry import (
     register_controller,
 )
 from aocontrol.study._seeds import seed_sequence, seed_streams
+from aocontrol.study._two_pass import two_pass_scene
 from aocontrol.study.cases import Case, apply_overrides, load_case
 from aocontrol.study.scene import Scene, StageScene, build_scene
 from aocontrol.synthesis import (
@@ -85,6 +86,7 @@ __all__ = [
     "run_configuration",
     "prewhitened_disturbance",
     "table_from_files",
+    "two_pass_scene",
 ]
 
 logger = logging.getLogger(__name__)
@@ -144,14 +146,17 @@ def _frames(scene: Scene, seconds: float) -> int:
 
 
 def _stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
+    # The sensor in the loop and its optical-gain handling: the case's stage settings.
     stroke = st.spec.dm_stroke_nm
+    sensor, tracker = st.loop_sensor()
     return Stage(
         controller,
-        st.sensor,
+        sensor,
         st.spec.latency_frames,
         dm_stroke=stroke,
-        m2c=None if stroke is None else st.basis.m2c,
         name=name,
+        basis=st.basis,
+        gain_tracker=tracker,
     )
 
 
@@ -163,7 +168,7 @@ def _source(scene: Scene, rng: np.random.Generator, scheme: str) -> Any:
     return PhaseSource(atm, vib) if vib else atm
 
 
-def _simulate(
+def simulate_scene(
     scene: Scene,
     controller: ControllerBank,
     scheme: str,
@@ -171,17 +176,51 @@ def _simulate(
     seed: int,
     purpose: str,
     *,
-    science: bool = True,
+    science: Any = True,
     record: tuple[str, ...] = ("measurements", "commands", "residuals"),
     progress: bool = False,
     metadata: dict | None = None,
 ) -> Any:
+    """One run of a scene: stage 2 with ``controller`` (and stage 1's integrator in a cascade).
+
+    Internal to the study layer (the comparison's runs and the two-pass calibration share
+    it; not in ``__all__``). The atmosphere and the noise draw from the ``purpose`` stream
+    of ``seed`` (:func:`aocontrol.study._seeds.seed_sequence`).
+
+    Parameters
+    ----------
+    scene : Scene
+    controller : ControllerBank
+        Stage 2's controller.
+    scheme : str
+        One of :data:`SCHEMES`.
+    seconds : float
+        Length after the start-up [s].
+    seed : int
+        User seed.
+    purpose : str
+        Its stream (``"exposure"``, ``"calibration"``, ``"gain_scan"``, ``"two_pass"``).
+    science : bool or accumulator, default True
+        The science camera (True), none (False), or an object with ``add(maps)`` and
+        ``result()``.
+    record : tuple of str
+        Telemetry recorded.
+    progress : bool
+        Progress bar.
+    metadata : dict, optional
+        Stored in the result.
+
+    Returns
+    -------
+    LoopResult or CascadeResult
+    """
     sci = scene.case.science
     settle = _frames(scene, sci.startup)
     n = settle + _frames(scene, seconds)
     seeds = seed_sequence(seed, purpose)
     atm_rng, noise_rng = (np.random.default_rng(s) for s in seeds.spawn(2))
-    camera = scene.camera().long_exposure() if science else None
+    # science: True for the camera, False for none, or an accumulator (add(maps), result()).
+    camera = scene.camera().long_exposure() if science is True else (science or None)
     s2 = _stage(scene.stage2, controller, "stage 2")
     if scheme == "single":
         return run_loop(
@@ -228,6 +267,16 @@ def _summary(result: Any) -> dict:
         "mean_contrast_4_6": float(sci.mean_contrast_4_6) if sci is not None else math.nan,
         "residual_rms_nm": float(_stage2_result(result).residual_rms),
     }
+
+
+def _sensor_overrides(sensor: str | None, optical_gain: str | None) -> dict:
+    """Case overrides of stage 2's sensor settings (validated by the case loader)."""
+    out = {}
+    if sensor is not None:
+        out["stage2.sensor"] = sensor
+    if optical_gain is not None:
+        out["stage2.optical_gain"] = optical_gain
+    return out
 
 
 def _check_names(controller: str, scheme: str) -> ControllerSpec:
@@ -323,7 +372,7 @@ def design_inputs(
     """
     st = scene.stage2
     ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
-    res = _simulate(scene, ref, scheme, seconds, seed, "calibration", science=False)
+    res = simulate_scene(scene, ref, scheme, seconds, seed, "calibration", science=False)
     r2 = _stage2_result(res)
     k = r2.settle_frames
     m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
@@ -354,6 +403,8 @@ def run_configuration(
     quick: bool = False,
     progress: bool = False,
     design: DesignInputs | None = None,
+    sensor: str | None = None,
+    optical_gain: str | None = None,
 ) -> RunOutcome:
     """Run one configuration: a case, a stage-2 controller and a scheme.
 
@@ -381,6 +432,11 @@ def run_configuration(
         Progress bar on the exposure.
     design : DesignInputs, optional
         Reuse these design inputs instead of a new calibration run.
+    sensor : {"linear", "diffractive"}, optional
+        Stage 2's sensor in the loop (default the case's ``[stage2] sensor``, "linear").
+    optical_gain : {"none", "calibrated", "tracked", "two-pass"}, optional
+        Stage 2's optical-gain handling (default the case's, "calibrated"); "two-pass" first
+        runs :func:`two_pass_scene` (its ``"two_pass"`` stream of ``seed``).
 
     Returns
     -------
@@ -397,9 +453,13 @@ def run_configuration(
     if not (isinstance(seconds, (int, float)) and seconds > 0):
         raise ValueError(f"seconds must be > 0, got {seconds!r}")
     base = load_case(case)
+    overrides = dict(overrides or {}, **_sensor_overrides(sensor, optical_gain))
     c = apply_overrides(base, overrides)
     scene = build_scene(c, quick=quick)
     gain = c.stage2.gain
+    if c.stage2.optical_gain == "two-pass":
+        cal = calibration_seconds(scene, quick)
+        scene = two_pass_scene(scene, scheme, gain, seconds=cal, seed=seed)
     if design is None and spec.needs_telemetry:
         cal = calibration_seconds(scene, quick)
         design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed)
@@ -427,14 +487,17 @@ def run_configuration(
         "seconds": float(seconds),
         "seed": int(seed),
         "seed_streams": seed_streams(
-            seed, ("exposure",) if not spec.needs_telemetry else ("exposure", "calibration")
+            seed,
+            ("exposure",)
+            + (("calibration",) if spec.needs_telemetry else ())
+            + (("two_pass",) if c.stage2.optical_gain == "two-pass" else ()),
         ),
         "quick": bool(quick),
         "scene": scene.settings(),
         "version": _version(),
     }
     t0 = time.perf_counter()
-    res = _simulate(
+    res = simulate_scene(
         scene, ctrl, scheme, seconds, seed, "exposure", progress=progress, metadata=settings
     )
     summary = _summary(res)
@@ -502,6 +565,9 @@ class CaseComparison:
         of the calibration telemetry) at the stage-2 input.
     seconds : dict
         Wall time per part [s].
+    designs : dict
+        ``{scheme: DesignInputs}``: the stage-2 plant and the calibration telemetry's PSDs
+        each scheme's controllers were designed from (margins and rejection of the report).
     """
 
     case: str
@@ -510,6 +576,7 @@ class CaseComparison:
     scan: dict
     vibration: dict | None = None
     seconds: dict = field(default_factory=dict)
+    designs: dict = field(default_factory=dict, repr=False)
 
     def cell(self, controller: str, scheme: str) -> Cell:
         """The cell of ``controller`` in ``scheme``."""
@@ -596,6 +663,8 @@ def compare_case(
     gain_grid: Sequence[float] | None = None,
     results_dir: str | os.PathLike | None = None,
     progress: bool = False,
+    sensor: str | None = None,
+    optical_gain: str | None = None,
 ) -> CaseComparison:
     """The paper's protocol on one case (module docstring).
 
@@ -620,6 +689,9 @@ def compare_case(
         Write one results file per configuration there (:mod:`aocontrol.study.results`).
     progress : bool
         Log progress at INFO level and show bars on the exposures.
+    sensor, optical_gain : str, optional
+        Stage 2's sensor and optical-gain handling (:func:`run_configuration`); the gain scan,
+        calibration run and exposures all use them.
 
     Returns
     -------
@@ -629,7 +701,7 @@ def compare_case(
         _check_names(name, "single")
     for s in schemes:
         _check_names("reference", s)
-    c = load_case(case)
+    c = apply_overrides(load_case(case), _sensor_overrides(sensor, optical_gain))
     scene = build_scene(c, quick=quick)
     exposure = seconds if seconds is not None else (0.5 if quick else c.science.exposure)
     scan_s = _QUICK_SCAN_SECONDS if quick else _SCAN_SECONDS
@@ -645,7 +717,7 @@ def compare_case(
         scan = []
         for g in grid:
             ref = Integrator(g, fs=scene.stage2.fs, n_modes=scene.stage2.n_modes)
-            r = _simulate(scene, ref, scheme, scan_s, seed, "gain_scan", record=())
+            r = simulate_scene(scene, ref, scheme, scan_s, seed, "gain_scan", record=())
             scan.append((g, float(r.science.mean_contrast_4_6)))
         best = min(scan, key=lambda x: x[1])[0]
         gains[scheme], scans[scheme] = best, scan
@@ -694,7 +766,7 @@ def compare_case(
     vib = None
     if c.vibration is not None:
         vib = _vibration_report(scene, schemes[0], controllers, designs, ctrls, results)
-    return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing)
+    return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing, designs)
 
 
 def _vibration_report(

@@ -12,13 +12,15 @@ separations in lambda/D, contrast relative to the star's peak.
 
 from __future__ import annotations
 
+import io
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import matplotlib
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 __all__ = [
     "plot_rejection",
@@ -28,6 +30,10 @@ __all__ = [
     "plot_images",
     "plot_margins",
     "plot_vibration",
+    "plot_modal_margins",
+    "plot_modal_residuals",
+    "plot_rejection_modes",
+    "figure_png",
     "save_figure",
     "use_file_backend",
 ]
@@ -40,6 +46,8 @@ _DB_AXIS_FLOOR = -80.0
 # Contrast axis: its bottom is this factor times the lowest contrast beyond the inner radius
 # [lambda/D] (inside it the perfect coronagraph leaves ~1e-14, which would flatten the halo).
 _CONTRAST_INNER_LD = 1.0
+# Disturbance-PSD axis of the rejection plot: at most this far below the PSD's peak.
+_PSD_AXIS_RANGE = 1e-7
 _CONTRAST_AXIS_MARGIN = 0.3
 
 
@@ -124,6 +132,11 @@ def plot_rejection(
         )
         ax2.set_ylabel(r"disturbance PSD [nm$^2$/Hz]")
         ax2.legend(loc="lower right", fontsize="small")
+        peak = float(np.nanmax(np.asarray(psd)[keep], initial=0.0))
+        if peak > 0 and ax2.get_ylim()[0] < peak * _PSD_AXIS_RANGE:
+            # An estimate floored where it fell below the noise dives by decades: keep the
+            # axis on the part that the rejection acts on.
+            ax2.set_ylim(bottom=peak * _PSD_AXIS_RANGE)
     ax.legend(loc="upper left", fontsize="small")
     if title:
         ax.set_title(title)
@@ -509,6 +522,165 @@ def plot_vibration(
     if title:
         fig.suptitle(title)
     return _finish(fig, path)
+
+
+def plot_rejection_modes(
+    freqs: np.ndarray,
+    sensitivities: Mapping[str, Mapping[str, np.ndarray]],
+    psds: Mapping[str, np.ndarray],
+    *,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """One :func:`plot_rejection` panel per mode: ``|S|^2`` of each controller over its PSD.
+
+    Parameters
+    ----------
+    freqs : ndarray, shape (n,)
+        Frequencies [Hz].
+    sensitivities : mapping panel label -> (mapping controller label -> complex ndarray (n,))
+        ``S`` of each controller for the mode of each panel (e.g. ``{"mode 0": {...}}``).
+    psds : mapping panel label -> ndarray (n,)
+        Disturbance PSD of each panel's mode, one-sided [nm^2/Hz] (same keys).
+    title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    if not sensitivities:
+        raise ValueError("sensitivities must hold at least one mode")
+    n = len(sensitivities)
+    cols = 1 if n == 1 else 2
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(
+        rows, cols, figsize=(7.0 * cols, 4.0 * rows), constrained_layout=True, squeeze=False
+    )
+    for ax, (label, sens) in zip(axes.flat[:n], sensitivities.items(), strict=True):
+        plot_rejection(freqs, sens, psd=psds.get(label), ax=ax, title=label)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title)
+    return _finish(fig, path)
+
+
+def plot_modal_margins(
+    modal_margins: Mapping[str, Sequence[Any]],
+    *,
+    required_modulus_margin: float | None = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Margins over the modes of controller banks: modulus margin and delay margin per mode.
+
+    Unstable modes are marked with a red cross on both panels (their margins mean nothing).
+
+    Parameters
+    ----------
+    modal_margins : mapping label -> sequence of Margins
+        :class:`aocontrol.analysis.Margins` of every mode (index = mode) of each bank.
+    required_modulus_margin : float, optional
+        Draw the design requirement on the modulus-margin panel.
+    title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    if not modal_margins:
+        raise ValueError("modal_margins must hold at least one controller")
+    fig, (ax_m, ax_d) = plt.subplots(1, 2, figsize=(12.0, 4.0), constrained_layout=True)
+    for label, mar in modal_margins.items():
+        modes = np.arange(len(mar))
+        mm = np.array([m.modulus_margin for m in mar], dtype=float)
+        dm = np.array([m.delay_margin for m in mar], dtype=float)
+        bad = ~np.array([m.stable for m in mar], dtype=bool)
+        ax_m.plot(modes, mm, ".-", ms=3, lw=0.8, label=label)
+        ax_d.plot(modes, np.where(np.isfinite(dm), dm, np.nan), ".-", ms=3, lw=0.8)
+        if bad.any():
+            for ax, y in ((ax_m, mm), (ax_d, dm)):
+                ax.plot(modes[bad], np.nan_to_num(y[bad], posinf=1.0), "x", color="r", ms=7)
+    if required_modulus_margin is not None:
+        ax_m.axhline(required_modulus_margin, color="r", ls=":", lw=1.0, label="required")
+    ax_m.set_ylabel("modulus margin [1]")
+    ax_d.set_ylabel("delay margin [frames]")
+    for ax in (ax_m, ax_d):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_xlabel("mode")
+        ax.grid(True, which="both", alpha=0.3)
+    ax_m.legend(fontsize="small")
+    if title:
+        fig.suptitle(title)
+    return _finish(fig, path)
+
+
+def plot_modal_residuals(
+    residuals: Mapping[str, np.ndarray],
+    *,
+    bounds: Mapping[str, np.ndarray] | None = None,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Residual RMS per mode of several controllers, with lower bounds dashed (log axis).
+
+    Parameters
+    ----------
+    residuals : mapping label -> ndarray (n_modes,)
+        Residual of each controller per mode [nm RMS].
+    bounds : mapping label -> ndarray (n_modes,), optional
+        Bounds per mode [nm RMS] (e.g. the Wiener and margin-constrained bounds).
+    title : str, optional
+        Axes title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    fig, ax = _axes(None, figsize=(8.0, 4.5))
+    for label, r in residuals.items():
+        r = np.asarray(r, dtype=float)
+        ax.semilogy(np.arange(r.size), r, ".-", ms=3, lw=0.8, label=label)
+    for label, b in (bounds or {}).items():
+        b = np.asarray(b, dtype=float)
+        ax.semilogy(np.arange(b.size), b, ls="--", lw=1.0, color="0.4", label=label)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("mode")
+    ax.set_ylabel("residual [nm RMS]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    if title:
+        ax.set_title(title)
+    return _finish(fig, path)
+
+
+def figure_png(fig: Any, *, dpi: int = 96) -> bytes:
+    """The PNG bytes of ``fig`` (then closed): figures embedded in an HTML report.
+
+    Parameters
+    ----------
+    fig : matplotlib Figure
+        Figure to encode.
+    dpi : int
+        Resolution [dots per inch].
+
+    Returns
+    -------
+    bytes
+        A complete PNG file.
+    """
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return buf.getvalue()
 
 
 def use_file_backend() -> None:

@@ -9,7 +9,7 @@ Physics of the sensors
   the pupil).
 - Stage 2, pyramid: the diffractive model (:class:`aocontrol.sim.wfs.PyramidWFS`, 3 lambda/D,
   20 modulation points) is calibrated on the stage-2 KL modes
-  (as :meth:`aocontrol.sim.wfs.LinearModalWFS.from_diffractive` does, with exact-derivative
+  (as :meth:`aocontrol.sim.wfs.LinearModalSensor.from_diffractive` does, with exact-derivative
   interaction matrices): noise propagation per mode from
   the photon and read noise on its pixels, and optical gains around residual screens with the
   fitting-error spectrum (:func:`aocontrol.sim.wfs.fitting_residual_screens`) of RMS the
@@ -19,15 +19,19 @@ Physics of the sensors
   gain and noise ``sigma / g`` per mode. Approximation: the gains are those of the fitting
   error alone (servo-lag and noise residuals are smaller in the bright cases, not in the red
   ones, where the true gains are lower).
-- Stage 1, Shack-Hartmann: the reconstructor is that of the geometric model on the stage-1 KL
-  modes (:func:`aocontrol.sim.wfs.calibrate`); the noise of each slope comes from the
-  diffractive model of :mod:`aocontrol.sim.wfs.shack_hartmann` (centre of gravity of a spot
-  sampled at lambda/(2d) per pixel, i.e. 0.356" at 0.69 um for the 0.36" of SAXO; the model
-  needs >= 4 pupil samples per subaperture, hence 8x8 pixels instead of SAXO's 6x6) linearised
-  around the flat-wavefront spots; slopes of different subapertures are independent and x/y
-  uncorrelated for a symmetric spot, so the modal variance is ``sum_j R_ij^2 var_j``, with the
-  flux-normalisation correction of :meth:`aocontrol.sim.wfs.WFSCalibration.noise_variance`.
-  The EMCCD excess-noise factor is not modelled (the case's read noise is the effective one).
+- Sensor in the loop and optical gains (the case's ``[stage2] sensor`` and ``optical_gain``,
+  :meth:`StageScene.loop_sensor`): ``linear`` (above, the fast default) or ``diffractive``
+  (the pyramid model itself every frame, photon and read noise on its pixels, then the
+  reconstructor calibrated around a flat wavefront, as COMPASS does); optical gains ``none``
+  (raw reconstructor: the loop sees the true gains), ``calibrated`` (the compensation above)
+  or ``tracked`` (modal dither, :class:`aocontrol.sim.DitherGainTracker`, starting from the
+  calibrated gains). Stage 1 stays linear.
+- Stage 1, Shack-Hartmann: :func:`aocontrol.sim.wfs.shack_hartmann_calibration`, the
+  reconstructor of the geometric model on the stage-1 KL modes and the slope noise of the
+  diffractive model (spot sampled at lambda/(2d) per pixel, i.e. 0.356" at 0.69 um for the
+  0.36" of SAXO; the model needs >= 4 pupil samples per subaperture, hence 8x8 pixels instead
+  of SAXO's 6x6). The EMCCD excess-noise factor is not modelled (the case's read noise is the
+  effective one).
 
 Calibrations (DMs, bases, reconstructors, noise coefficients, optical gains) are cached in
 memory per (sampling, seeing, stage geometry, quick): a gain scan, the calibration runs and
@@ -48,7 +52,7 @@ import numpy as np
 from aocontrol.plant import loop_plant
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.dm import DeformableMirror
-from aocontrol.sim.loop import projection_matrix
+from aocontrol.sim.loop import DitherGainTracker, projection_matrix
 from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
 from aocontrol.sim.noise import photons_per_frame
 from aocontrol.sim.profiles import eso_atmosphere, eso_median_profile, scale_to_tau0
@@ -57,13 +61,14 @@ from aocontrol.sim.science import ScienceCamera
 from aocontrol.sim.turbulence import r0_from_seeing
 from aocontrol.sim.vibration import TiltVibration, VibrationPSD, tilt_vibration_psd
 from aocontrol.sim.wfs import (
-    LinearModalWFS,
+    DiffractiveSensor,
+    LinearModalSensor,
     PyramidWFS,
-    ShackHartmannWFS,
     WFSCalibration,
     calibrate,
     fitting_residual_screens,
     optical_gains,
+    shack_hartmann_calibration,
 )
 from aocontrol.study._seeds import seed_sequence
 from aocontrol.study.cases import Case, StageSpec, apply_overrides, load_case
@@ -80,8 +85,14 @@ _OG_SCREENS = 2
 # Push-pull amplitude of the calibrations [nm RMS]: small against the 1.04-um wavelength
 # (linear regime) and large against rounding.
 _CAL_AMPLITUDE = 10.0
-# Signals per block when building the Shack-Hartmann's per-slope noise coefficients.
-_SH_BLOCK = 128
+# Optical-gain tracking ("tracked"): dithered modes (log-spaced in order, where the gains
+# vary fastest), dither amplitude [nm] (cost: n_probes * a^2 of residual variance, ~60 nm^2,
+# a few per cent of a faint case's residual), update period [s] and memory (updates: a 2-s
+# horizon). An estimate is used once its relative error is < 10 % (DitherGainTracker).
+_DITHER_PROBES = 16
+_DITHER_NM = 2.0
+_DITHER_UPDATE_S = 0.1
+_DITHER_MEMORY = 20.0
 _CACHE: dict[str, Scene] = {}
 _GEOMETRY_CACHE: dict[str, dict] = {}
 
@@ -101,12 +112,16 @@ class StageScene:
         ``loop_plant(fs, latency_frames)``.
     photons : float
         Photo-electrons per frame on the WFS.
-    sensor : LinearModalWFS
+    sensor : LinearModalSensor
         Unit optical gain (compensated), noise per mode [nm RMS per frame].
     optical_gain : ndarray, shape (n_modes,)
         Calibrated optical gains (compensated by the reconstructor; 1 for the Shack-Hartmann).
     raw_noise_std : ndarray, shape (n_modes,)
         Noise per mode before the optical-gain compensation [nm RMS per frame].
+    wfs : PyramidWFS, optional
+        The diffractive model (``None`` for the Shack-Hartmann, which stays linear).
+    calibration : WFSCalibration, optional
+        Its calibration around a flat wavefront (reconstructor, noise coefficients).
     """
 
     spec: StageSpec
@@ -114,9 +129,11 @@ class StageScene:
     basis: ModalBasis
     plant: Any
     photons: float
-    sensor: LinearModalWFS
+    sensor: LinearModalSensor
     optical_gain: np.ndarray
     raw_noise_std: np.ndarray
+    wfs: Any = None
+    calibration: WFSCalibration | None = None
 
     @property
     def fs(self) -> float:
@@ -132,6 +149,91 @@ class StageScene:
     def noise_std(self) -> np.ndarray:
         """Measurement noise per mode seen by the controller [nm RMS per frame]."""
         return np.asarray(self.sensor.noise_std)
+
+    def with_optical_gains(self, optical_gain: np.ndarray) -> StageScene:
+        """The same stage with other calibrated optical gains (the compensated linear sensor
+        rebuilt from them).
+
+        Parameters
+        ----------
+        optical_gain : ndarray (n_modes,)
+            Optical gains, > 0.
+        """
+        og = np.asarray(optical_gain, dtype=float)
+        if og.shape != (self.n_modes,) or not np.all(og > 0):
+            raise ValueError(
+                f"optical_gain must be {self.n_modes} values > 0, got shape {og.shape}"
+            )
+        sensor = LinearModalSensor(np.ones(self.n_modes), self.raw_noise_std / og)
+        return dataclasses.replace(self, optical_gain=og, sensor=sensor)
+
+    def loop_sensor(
+        self, sensor: str | None = None, optical_gain: str | None = None
+    ) -> tuple[Any, DitherGainTracker | None]:
+        """The sensor in the loop and the optical-gain tracker, per the case's settings.
+
+        Parameters
+        ----------
+        sensor : {"linear", "diffractive"}, optional
+            Default ``spec.sensor``.
+        optical_gain : {"none", "calibrated", "tracked", "two-pass"}, optional
+            Default ``spec.optical_gain`` ("two-pass" compensates :attr:`optical_gain` like
+            "calibrated": the scene's gains are then those of
+            :func:`aocontrol.study.compare.two_pass_scene`).
+
+        Returns
+        -------
+        sensor : LinearModalSensor or DiffractiveSensor
+        tracker : DitherGainTracker or None
+            Only for ``"tracked"`` (starting from the calibrated gains).
+
+        Raises
+        ------
+        ValueError
+            An unknown setting, or ``"diffractive"`` for a stage without a diffractive model.
+        """
+        from aocontrol.study.cases import OPTICAL_GAIN_SETTINGS, SENSORS
+
+        kind = self.spec.sensor if sensor is None else sensor
+        handling = self.spec.optical_gain if optical_gain is None else optical_gain
+        if kind not in SENSORS:
+            raise ValueError(f"sensor must be one of {list(SENSORS)}, got {kind!r}")
+        if handling not in OPTICAL_GAIN_SETTINGS:
+            raise ValueError(
+                f"optical_gain must be one of {list(OPTICAL_GAIN_SETTINGS)}, got {handling!r}"
+            )
+        tracker = None
+        if handling == "tracked":
+            n = self.n_modes
+            probes = np.unique(np.geomspace(1, n, min(n, _DITHER_PROBES)).round().astype(int) - 1)
+            tracker = DitherGainTracker(
+                amplitude=_DITHER_NM,
+                update_every=max(10, int(round(_DITHER_UPDATE_S * self.fs))),
+                memory=_DITHER_MEMORY,
+                modes=probes,
+                initial=np.clip(self.optical_gain, 0.05, 3.0),
+            )
+        if kind == "linear":
+            if handling in ("calibrated", "two-pass"):  # two-pass: self.optical_gain is the
+                return self.sensor, None  # closed-loop one (two_pass_scene)
+            # the loop sees the (calibrated) gains: raw reconstructor
+            return LinearModalSensor(self.optical_gain, self.raw_noise_std), tracker
+        if self.wfs is None or self.calibration is None:
+            raise ValueError(
+                f"sensor='diffractive' needs a pyramid stage, this one has {self.spec.wfs!r}"
+            )
+        return (
+            DiffractiveSensor(
+                self.wfs,
+                self.calibration.recon,
+                photons=self.photons,
+                read_noise=self.spec.read_noise,
+                gain_compensation=(
+                    self.optical_gain if handling in ("calibrated", "two-pass") else None
+                ),
+            ),
+            tracker,
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -314,6 +416,7 @@ def build_scene(
 def _geometry_key(c: Case, quick: bool, rng: int) -> str:
     """The case values the calibrations depend on (not the flux, rates, gains or tau0)."""
     flux = ("fs", "band", "read_noise", "throughput", "gain", "latency_frames", "dm_stroke")
+    flux += ("sensor", "optical_gain")
     stages = [
         {k: v for k, v in dataclasses.asdict(s).items() if k not in flux}
         for s in (c.stage1, c.stage2)
@@ -368,18 +471,21 @@ def _geometry(c: Case, quick: bool, rng: int, cache: bool) -> dict:
                 method="derivative",
             )
         else:
-            model = _shack_hartmann_model(pupil, spec, basis)
+            model = shack_hartmann_calibration(
+                pupil, spec.wavelength, spec.n_subapertures, basis, _CAL_AMPLITUDE
+            )
             og = np.ones(basis.n_modes)
+            wfs = None
         if not np.all(og > 0):
             raise ValueError(f"{spec.wfs} optical gains must be > 0, got min {og.min()!r}")
-        out[name] = (dm, basis, model, np.asarray(og, dtype=float))
+        out[name] = (dm, basis, model, np.asarray(og, dtype=float), wfs)
     if cache:
         _GEOMETRY_CACHE[key] = out
     return out
 
 
 def _stage_scene(case: Case, spec: StageSpec, magnitude: float, geo: tuple) -> StageScene:
-    dm, basis, model, og = geo
+    dm, basis, model, og, wfs = geo
     photons = photons_per_frame(
         magnitude,
         spec.band,
@@ -389,7 +495,10 @@ def _stage_scene(case: Case, spec: StageSpec, magnitude: float, geo: tuple) -> S
         throughput=spec.throughput,
     )
     raw = np.sqrt(model.noise_variance(photons, spec.read_noise))
-    sensor = LinearModalWFS(optical_gain=np.ones(basis.n_modes), noise_std=raw / og)
+    # Modal gain compensation in the reconstructor: unit gain, noise raw / og.
+    sensor = LinearModalSensor.from_calibration(
+        model, photons, spec.read_noise, optical_gain=og, compensate=True
+    )
     return StageScene(
         spec=spec,
         dm=dm,
@@ -399,47 +508,6 @@ def _stage_scene(case: Case, spec: StageSpec, magnitude: float, geo: tuple) -> S
         sensor=sensor,
         optical_gain=og,
         raw_noise_std=raw,
+        wfs=wfs,
+        calibration=model,
     )
-
-
-def _shack_hartmann_model(pupil: Pupil, spec: StageSpec, basis: ModalBasis) -> WFSCalibration:
-    """Reconstructor and modal noise coefficients of the Shack-Hartmann (module docstring)."""
-    geo = ShackHartmannWFS(pupil, spec.wavelength, spec.n_subapertures, model="geometric")
-    cal = calibrate(geo, basis, _CAL_AMPLITUDE)
-    p = 4  # samples per subaperture of the diffractive model (its minimum)
-    fine = Pupil(
-        diameter=pupil.diameter, n_pix=p * spec.n_subapertures, obstruction=pupil.obstruction
-    )
-    dif = ShackHartmannWFS(
-        fine, spec.wavelength, spec.n_subapertures, model="diffractive", oversampling=2
-    )
-    frame = dif.reference_frame
-    pix = dif.pixel_values(frame)
-    ph = np.empty(dif.n_signals)
-    ro = np.empty(dif.n_signals)
-    eye = np.eye(dif.n_signals)
-    for start in range(0, dif.n_signals, _SH_BLOCK):
-        rows = eye[start : start + _SH_BLOCK]
-        j2 = dif.pixel_jacobian_product(frame, rows) ** 2
-        ph[start : start + rows.shape[0]] = j2 @ pix
-        ro[start : start + rows.shape[0]] = j2.sum(axis=1)
-    if dif.n_signals == geo.n_signals and np.array_equal(
-        dif.valid_subapertures, geo.valid_subapertures
-    ):
-        ph_s, ro_s = ph, ro
-    else:  # sampling changed the valid set at the edge: the median slope of the fine model
-        logger.info("Shack-Hartmann: valid subapertures differ; median slope noise used")
-        ph_s = np.full(geo.n_signals, np.median(ph))
-        ro_s = np.full(geo.n_signals, np.median(ro))
-    r2 = cal.recon**2
-    n_norm, f_norm = dif.normalisation
-    model = WFSCalibration(
-        imat=cal.imat,
-        recon=cal.recon,
-        photon_coeff=r2 @ ph_s,
-        read_coeff=r2 @ ro_s,
-        amplitude=_CAL_AMPLITUDE,
-        norm_pixels=n_norm,
-        norm_fraction=f_norm,
-    )
-    return model

@@ -1,15 +1,17 @@
-"""Wavefront sensors: diffractive pyramid, Shack-Hartmann, calibration, linear modal model.
+"""Wavefront sensors: diffractive pyramid, Shack-Hartmann, calibration, the loop's sensors.
 
 The diffractive models (:class:`PyramidWFS`, :class:`ShackHartmannWFS`) take OPD maps in nm on
 a :class:`~aocontrol.sim.pupil.Pupil` grid and return signal vectors; they serve to calibrate
 (interaction matrix, reconstructor, optical gains, noise propagation per mode) the
-:class:`LinearModalSensor` (alias ``LinearModalWFS``) that the fast modal loop uses:
-``measurement = gain * residual + noise``.
+:class:`LinearModalSensor` that the fast modal loop uses (``measurement = gain * residual +
+noise``), or run in the loop themselves as a :class:`DiffractiveSensor`. Both implement the one
+sensor protocol (:class:`Sensor`, :mod:`aocontrol.sim.wfs.sensors`). ``LinearModalWFS`` is a
+deprecated alias of :class:`LinearModalSensor`.
 """
 
+from typing import Any
+
 from aocontrol.sim.wfs.calibration import (
-    LinearModalSensor,
-    LinearModalWFS,
     WFSCalibration,
     calibrate,
     fitting_residual_screens,
@@ -20,11 +22,13 @@ from aocontrol.sim.wfs.calibration import (
     white_noise_propagation,
 )
 from aocontrol.sim.wfs.pyramid import PyramidWFS, default_modulation_points
-from aocontrol.sim.wfs.shack_hartmann import ShackHartmannWFS
+from aocontrol.sim.wfs.sensors import DiffractiveSensor, LinearModalSensor, Sensor, SensorRun
+from aocontrol.sim.wfs.shack_hartmann import ShackHartmannWFS, shack_hartmann_calibration
 
 __all__ = [
     "PyramidWFS",
     "ShackHartmannWFS",
+    "shack_hartmann_calibration",
     "default_modulation_points",
     "interaction_matrix",
     "reconstructor",
@@ -35,5 +39,15 @@ __all__ = [
     "calibrate",
     "WFSCalibration",
     "LinearModalSensor",
-    "LinearModalWFS",
+    "DiffractiveSensor",
+    "Sensor",
+    "SensorRun",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "LinearModalWFS":
+        from aocontrol.sim.wfs.sensors import deprecated_alias
+
+        return deprecated_alias(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

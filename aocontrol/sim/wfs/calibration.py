@@ -1,5 +1,7 @@
-"""WFS calibration: interaction matrix, reconstructor, optical gains, noise propagation, and
-the linear modal WFS model of the fast loop.
+"""WFS calibration: interaction matrix, reconstructor, optical gains, noise propagation.
+
+(The linear modal sensor of the fast loop is :class:`aocontrol.sim.wfs.LinearModalSensor`, in
+:mod:`aocontrol.sim.wfs.sensors`.)
 
 Modal conventions (DESIGN.md): a modal basis is ``modes`` of shape ``(n_modes, n_valid)``
 over the valid pupil pixels, orthonormal over the pupil with a unit coefficient = 1 nm RMS
@@ -24,8 +26,8 @@ c_ro,i sigma_ro^2 / N^2`` [nm^2] for ``N`` photo-electrons per frame.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,8 +44,6 @@ __all__ = [
     "white_noise_propagation",
     "WFSCalibration",
     "calibrate",
-    "LinearModalSensor",
-    "LinearModalWFS",
 ]
 
 logger = logging.getLogger(__name__)
@@ -422,187 +422,14 @@ def calibrate(
     )
 
 
-@dataclass(frozen=True, eq=False)
-class LinearModalSensor:
-    """The linear modal WFS of the fast loop: ``measurement = optical_gain * residual + noise``.
+def __getattr__(name: str) -> Any:
+    # The linear sensor moved to aocontrol.sim.wfs.sensors (former import path kept).
+    if name == "LinearModalSensor":
+        from aocontrol.sim.wfs.sensors import LinearModalSensor
 
-    The one linear modal sensor class of the project (``LinearModalWFS`` is the same class):
-    the simulator's stages take it directly, and :meth:`from_diffractive` /
-    :meth:`from_calibration` derive it from a diffractive WFS model. It implements the sensor
-    protocol of :mod:`aocontrol.sim.loop` (``measure(residual, rng)``, ``senses_phase``
-    False: it senses modal coefficients, not phase maps).
+        return LinearModalSensor
+    if name == "LinearModalWFS":
+        from aocontrol.sim.wfs.sensors import deprecated_alias
 
-    Parameters
-    ----------
-    optical_gain : float or array_like, shape (n_modes,)
-        Per-mode optical gain (dimensionless, finite and > 0; 1 = diffraction-limited
-        calibration). A scalar applies to every mode.
-    noise_std : float or array_like, shape (n_modes,)
-        Per-mode measurement noise standard deviation [nm RMS] (finite, >= 0), white,
-        independent between modes and frames. A scalar applies to every mode.
-    calibration : WFSCalibration, optional
-        The calibration it was derived from (kept for reference, not compared).
-
-    Raises
-    ------
-    ValueError
-        If a value is not finite, an optical gain is <= 0, a noise level < 0, or both
-        arguments are arrays of different lengths.
-
-    Notes
-    -----
-    The modal noise of a real WFS is slightly correlated between modes; this model keeps its
-    per-mode variance only.
-
-    Examples
-    --------
-    >>> wfs = LinearModalSensor(optical_gain=[1.0, 0.5], noise_std=[0.0, 0.0])
-    >>> wfs.measure(np.array([2.0, 2.0]), np.random.default_rng(0))
-    array([2., 1.])
-    """
-
-    optical_gain: Any = 1.0
-    noise_std: Any = 0.0
-    calibration: WFSCalibration | None = field(default=None, repr=False, compare=False)
-
-    #: Sensor protocol: this sensor measures modal residuals, not phase maps.
-    senses_phase: ClassVar[bool] = False
-
-    def __post_init__(self) -> None:
-        g = check_finite_array("optical_gain", self.optical_gain, ndim=(0, 1)).copy()
-        s = check_finite_array("noise_std", self.noise_std, ndim=(0, 1)).copy()
-        if g.ndim == 1 and s.ndim == 1 and g.shape != s.shape:
-            raise ValueError(
-                f"optical_gain and noise_std must have the same shape (n_modes,), "
-                f"got {g.shape} and {s.shape}"
-            )
-        if g.size == 0 or s.size == 0:
-            raise ValueError("optical_gain and noise_std must not be empty")
-        if np.any(g <= 0):
-            raise ValueError(
-                f"optical_gain must be finite and > 0 for every mode, found min {g.min()!r}"
-            )
-        if np.any(s < 0):
-            raise ValueError(f"noise_std must be >= 0 [nm], found min {s.min()!r}")
-        g.setflags(write=False)
-        s.setflags(write=False)
-        object.__setattr__(self, "optical_gain", g)
-        object.__setattr__(self, "noise_std", s)
-
-    @property
-    def n_modes(self) -> int | None:
-        """Number of modes, or ``None`` when both parameters are scalars (any count)."""
-        sizes = {a.size for a in (self.optical_gain, self.noise_std) if a.ndim == 1}
-        return sizes.pop() if sizes else None
-
-    def arrays(self, n_modes: int) -> tuple[np.ndarray, np.ndarray]:
-        """Optical gains and noise levels broadcast to ``n_modes``.
-
-        Parameters
-        ----------
-        n_modes : int
-            Modes of the stage using the sensor.
-
-        Returns
-        -------
-        optical_gain, noise_std : ndarray, shape (n_modes,)
-            Dimensionless gains and noise standard deviations [nm].
-
-        Raises
-        ------
-        ValueError
-            If the sensor has a different number of modes.
-        """
-        n_modes = check_int("n_modes", n_modes, minimum=1)
-        if self.n_modes is not None and self.n_modes != n_modes:
-            raise ValueError(f"the sensor has {self.n_modes} modes, the controller has {n_modes}")
-        og = np.broadcast_to(self.optical_gain, (n_modes,))
-        ns = np.broadcast_to(self.noise_std, (n_modes,))
-        return og, ns
-
-    def measure(self, residual: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Modal measurements [nm] of residual coefficients.
-
-        Parameters
-        ----------
-        residual : array_like, shape (n_modes,) or (n_frames, n_modes)
-            Residual modal coefficients [nm RMS].
-        rng : numpy.random.Generator
-            Source of the measurement noise.
-
-        Returns
-        -------
-        ndarray, same shape as ``residual``
-            ``optical_gain * residual + noise_std * N(0, 1)`` [nm].
-        """
-        x = np.asarray(residual, dtype=float)
-        n = self.n_modes
-        if x.ndim not in (1, 2) or (n is not None and x.shape[-1] != n):
-            raise ValueError(
-                f"residual must have shape (n_modes,) or (n_frames, n_modes) with "
-                f"n_modes={n}, got {x.shape}"
-            )
-        if not isinstance(rng, np.random.Generator):
-            raise TypeError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
-        return self.optical_gain * x + self.noise_std * rng.standard_normal(x.shape)
-
-    @classmethod
-    def from_calibration(
-        cls,
-        calibration: WFSCalibration,
-        photons_per_frame: float,
-        read_noise: float,
-        optical_gain: np.ndarray | None = None,
-    ) -> LinearModalSensor:
-        """Linear model from a :class:`WFSCalibration` at a given flux and read noise.
-
-        ``photons_per_frame`` [e-] and ``read_noise`` [e- RMS per pixel] as for
-        :meth:`WFSCalibration.noise_variance`; ``optical_gain`` defaults to 1 for every mode.
-        """
-        var = calibration.noise_variance(photons_per_frame, read_noise)
-        g = np.ones(calibration.n_modes) if optical_gain is None else optical_gain
-        return cls(optical_gain=g, noise_std=np.sqrt(var), calibration=calibration)
-
-    @classmethod
-    def from_diffractive(
-        cls,
-        wfs: Any,
-        basis_or_modes: Any,
-        photons_per_frame: float,
-        read_noise: float,
-        *,
-        amplitude: float = 10.0,
-        residual_opd: np.ndarray | None = None,
-        n_modes: int | None = None,
-        max_condition: float | None = None,
-    ) -> LinearModalSensor:
-        """Calibrate a diffractive WFS and return the equivalent linear modal model.
-
-        Parameters
-        ----------
-        wfs : PyramidWFS or diffractive ShackHartmannWFS
-        basis_or_modes : ModalBasis-like or array (n_modes, n_valid)
-        photons_per_frame : float
-            Photo-electrons per frame (e.g. :func:`aocontrol.sim.noise.photons_per_frame`).
-        read_noise : float
-            [e- RMS per pixel].
-        amplitude : float
-            Push-pull amplitude [nm RMS].
-        residual_opd : array (n_screens, n_pix, n_pix), optional
-            Residual screens for the optical gains (default: gains of 1).
-        n_modes, max_condition
-            Passed to :func:`reconstructor`.
-        """
-        cal = calibrate(
-            wfs, basis_or_modes, amplitude, n_modes=n_modes, max_condition=max_condition
-        )
-        gains = None
-        if residual_opd is not None:
-            gains = optical_gains(
-                wfs, basis_or_modes, residual_opd, amplitude=amplitude, recon=cal.recon
-            )
-        return cls.from_calibration(cal, photons_per_frame, read_noise, optical_gain=gains)
-
-
-#: The same class under the name used by the WFS calibration code.
-LinearModalWFS = LinearModalSensor
+        return deprecated_alias(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

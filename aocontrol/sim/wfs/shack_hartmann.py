@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.fft
@@ -34,7 +35,10 @@ from aocontrol.sim.noise import add_detector_noise
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.wfs._common import bin_matrix, check_opd, opd_to_phase
 
-__all__ = ["ShackHartmannWFS"]
+__all__ = ["ShackHartmannWFS", "shack_hartmann_calibration"]
+
+# Signals per block when building the per-slope noise coefficients.
+_SH_BLOCK = 128
 
 logger = logging.getLogger(__name__)
 
@@ -287,3 +291,78 @@ class ShackHartmannWFS:
         n_ph = check_positive("photons", photons)
         frames = add_detector_noise(self.detector_image(opd) * n_ph, read_noise, rng)
         return self.signals_from_frame(frames)
+
+
+def shack_hartmann_calibration(
+    pupil: Pupil,
+    wavelength: float,
+    n_subapertures: int,
+    basis: Any,
+    amplitude: float = 10.0,
+) -> Any:
+    """Reconstructor of the geometric Shack-Hartmann and modal noise of the diffractive one.
+
+    The reconstructor is that of the geometric model on ``basis``
+    (:func:`aocontrol.sim.wfs.calibrate`); the noise of each slope comes from the diffractive
+    model (centre of gravity of a spot sampled at lambda/(2d) per pixel; the model needs >= 4
+    pupil samples per subaperture, hence a pupil of ``4 n_subapertures`` samples for it)
+    linearised around the flat-wavefront spots. Slopes of different subapertures are
+    independent and x/y uncorrelated for a symmetric spot, so the modal variance is
+    ``sum_j R_ij^2 var_j``, with the flux-normalisation correction of
+    :meth:`aocontrol.sim.wfs.WFSCalibration.noise_variance`. The EMCCD excess-noise factor is
+    not modelled (use an effective read noise).
+
+    Parameters
+    ----------
+    pupil : Pupil
+        Pupil of the basis.
+    wavelength : float
+        Sensing wavelength [m].
+    n_subapertures : int
+        Lenslets across the diameter.
+    basis : ModalBasis-like
+        Modes to reconstruct (``modes`` (n_modes, n_valid) on ``pupil``).
+    amplitude : float
+        Push-pull amplitude of the geometric calibration [nm RMS].
+
+    Returns
+    -------
+    WFSCalibration
+        With ``photon_coeff`` and ``read_coeff`` per mode.
+    """
+    from aocontrol.sim.wfs.calibration import WFSCalibration, calibrate
+
+    geo = ShackHartmannWFS(pupil, wavelength, n_subapertures, model="geometric")
+    cal = calibrate(geo, basis, amplitude)
+    p = 4  # samples per subaperture of the diffractive model (its minimum)
+    fine = Pupil(diameter=pupil.diameter, n_pix=p * n_subapertures, obstruction=pupil.obstruction)
+    dif = ShackHartmannWFS(fine, wavelength, n_subapertures, model="diffractive", oversampling=2)
+    frame = dif.reference_frame
+    pix = dif.pixel_values(frame)
+    ph = np.empty(dif.n_signals)
+    ro = np.empty(dif.n_signals)
+    eye = np.eye(dif.n_signals)
+    for start in range(0, dif.n_signals, _SH_BLOCK):
+        rows = eye[start : start + _SH_BLOCK]
+        j2 = dif.pixel_jacobian_product(frame, rows) ** 2
+        ph[start : start + rows.shape[0]] = j2 @ pix
+        ro[start : start + rows.shape[0]] = j2.sum(axis=1)
+    if dif.n_signals == geo.n_signals and np.array_equal(
+        dif.valid_subapertures, geo.valid_subapertures
+    ):
+        ph_s, ro_s = ph, ro
+    else:  # sampling changed the valid set at the edge: the median slope of the fine model
+        logger.info("Shack-Hartmann: valid subapertures differ; median slope noise used")
+        ph_s = np.full(geo.n_signals, np.median(ph))
+        ro_s = np.full(geo.n_signals, np.median(ro))
+    r2 = cal.recon**2
+    n_norm, f_norm = dif.normalisation
+    return WFSCalibration(
+        imat=cal.imat,
+        recon=cal.recon,
+        photon_coeff=r2 @ ph_s,
+        read_coeff=r2 @ ro_s,
+        amplitude=float(amplitude),
+        norm_pixels=n_norm,
+        norm_fraction=f_norm,
+    )

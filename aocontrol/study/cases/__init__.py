@@ -46,6 +46,8 @@ __all__ = [
     "ScienceSpec",
     "SimulationSpec",
     "StageSpec",
+    "SENSORS",
+    "OPTICAL_GAIN_SETTINGS",
     "StarSpec",
     "VibrationSpec",
     "apply_overrides",
@@ -166,6 +168,15 @@ class StageSpec:
         Shack-Hartmann detector pixels across a subaperture (0 for a pyramid).
     pixel_scale : float
         Shack-Hartmann pixel scale [arcsec] (0 for a pyramid).
+    sensor : {"linear", "diffractive"}
+        The sensor in the loop: the linear modal model (the fast default) or the diffractive
+        pyramid model (a pyramid stage only; the Shack-Hartmann of stage 1 stays linear).
+    optical_gain : {"none", "calibrated", "tracked", "two-pass"}
+        Optical-gain handling: the raw reconstructor (the loop sees the true gains), the
+        compensation calibrated once around the fitting error, tracked online (modal
+        dither, :class:`aocontrol.sim.DitherGainTracker`), or calibrated around the
+        closed-loop residual of a first run (``two-pass``,
+        :func:`aocontrol.study.compare.two_pass_scene`).
     """
 
     fs: float
@@ -184,6 +195,8 @@ class StageSpec:
     n_modulation_points: int = 0
     pixels_per_subaperture: int = 0
     pixel_scale: float = 0.0
+    sensor: str = "linear"
+    optical_gain: str = "calibrated"
 
     @property
     def dm_stroke_nm(self) -> float | None:
@@ -378,7 +391,12 @@ _STAGE_SCHEMA: dict[str, tuple[str, bool]] = {
     "n_modulation_points": ("int", False),
     "pixels_per_subaperture": ("int", False),
     "pixel_scale": ("q:angle", False),
+    "sensor": ("str", False),
+    "optical_gain": ("str", False),
 }
+#: Sensors in the loop and optical-gain settings of a stage (keys ``sensor``, ``optical_gain``).
+SENSORS = ("linear", "diffractive")
+OPTICAL_GAIN_SETTINGS = ("none", "calibrated", "tracked", "two-pass")
 _SCHEMA["stage1"] = _STAGE_SCHEMA
 _SCHEMA["stage2"] = _STAGE_SCHEMA
 _TOP = {"name", "title", "base", "description"}
@@ -511,6 +529,19 @@ def _stage(source: str, name: str, t: dict[str, Any], sim: dict[str, Any]) -> St
         raise bad("throughput", f"must be in (0, 1], got {t['throughput']}")
     if not 0 < t["gain"] < 2:
         raise bad("gain", f"must be in (0, 2), got {t['gain']}")
+    if t.get("sensor", "linear") not in SENSORS:
+        raise bad("sensor", f"must be one of {list(SENSORS)}, got {t['sensor']!r}")
+    if t.get("sensor") == "diffractive" and t["wfs"] != "pyramid":
+        raise bad(
+            "sensor",
+            f"'diffractive' needs a pyramid WFS (this stage has {t['wfs']!r}: the "
+            "Shack-Hartmann stays a linear modal model)",
+        )
+    if t.get("optical_gain", "calibrated") not in OPTICAL_GAIN_SETTINGS:
+        raise bad(
+            "optical_gain",
+            f"must be one of {list(OPTICAL_GAIN_SETTINGS)}, got {t['optical_gain']!r}",
+        )
     if t["wfs"] == "pyramid":
         for key in ("modulation", "n_modulation_points"):
             if key not in t:
