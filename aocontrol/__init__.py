@@ -16,6 +16,8 @@ telemetry shaped ``(n_frames, n_modes)``; randomness only through a passed
 from aocontrol.controllers import load_controller
 from aocontrol.plant import frequency_response, loop_plant, measured_plant
 
+#: The one source of the version: pyproject.toml reads it (``[tool.setuptools.dynamic]``),
+#: results files and saved controllers record it.
 __version__ = "0.1.0"
 __all__ = [
     "frequency_response",

@@ -14,13 +14,17 @@ __all__ = [
     "check_positive",
     "check_nonnegative",
     "check_finite_array",
+    "check_instance",
+    "as_float_array",
     "check_frequency_grid",
     "check_psd",
+    "check_nonnegative_psd",
     "check_in_range",
     "check_int",
     "mode_psds",
     "check_broadcast",
     "is_programming_error",
+    "PerModeError",
     "PROGRAMMING_ERRORS",
     "MAX_MODES",
 ]
@@ -110,14 +114,46 @@ def check_int(
     return value
 
 
+def check_instance(name: str, value: object, cls: type | tuple[type, ...]) -> object:
+    """Return ``value`` if it is an instance of ``cls``, else a ``TypeError`` naming ``name``.
+
+    The type check at a public boundary that takes an object (a mirror, a pupil, a basis):
+    a wrong object is named there, not met later as an ``AttributeError`` deep inside.
+
+    Examples
+    --------
+    >>> check_instance("dm", "dm", int)
+    Traceback (most recent call last):
+    ...
+    TypeError: dm must be a int, got str 'dm'
+    """
+    if not isinstance(value, cls):
+        names = " or ".join(c.__name__ for c in (cls if isinstance(cls, tuple) else (cls,)))
+        raise TypeError(f"{name} must be a {names}, got {type(value).__name__} {_short(value)}")
+    return value
+
+
+def as_float_array(name: str, value: object, dtype: type = float) -> np.ndarray:
+    """``numpy.asarray(value, dtype)``, a conversion failure named as a ``TypeError``.
+
+    No other check (the real-time path calls it every frame: finiteness is its own policy).
+
+    Raises
+    ------
+    TypeError
+        ``"measurement must be array-like of numbers, got ['a', 'b']"``.
+    """
+    try:
+        return np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be array-like of numbers, got {_short(value)}") from exc
+
+
 def check_finite_array(
     name: str, value: object, *, ndim: int | tuple[int, ...] | None = None, dtype: type = float
 ) -> np.ndarray:
     """Return ``value`` as an array, requiring finite entries (and ``ndim`` if given)."""
-    try:
-        arr = np.asarray(value, dtype=dtype)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name} must be array-like of numbers, got {_short(value)}") from exc
+    arr = as_float_array(name, value, dtype)
     if ndim is not None:
         allowed = (ndim,) if isinstance(ndim, int) else ndim
         if arr.ndim not in allowed:
@@ -162,12 +198,38 @@ def check_frequency_grid(
     return arr
 
 
+def check_nonnegative_psd(name: str, arr: np.ndarray) -> np.ndarray:
+    """Return ``arr`` unless it has a negative value (a PSD is >= 0), naming ``name``.
+
+    The one sign check of every PSD the toolbox accepts (disturbance and noise alike).
+
+    Raises
+    ------
+    ValueError
+        ``"psd must be >= 0 everywhere (a PSD), found min -1.0 at index (3,)"``.
+    """
+    if np.any(arr < 0):
+        where = np.unravel_index(int(np.argmin(arr)), arr.shape) if arr.ndim else ()
+        raise ValueError(
+            f"{name} must be >= 0 everywhere (a PSD), found min {float(arr.min())!r}"
+            + (f" at index {tuple(int(i) for i in where)}" if arr.ndim else "")
+        )
+    return arr
+
+
 def check_psd(
-    name: str, psd: object, n_freqs: int, *, allow_scalar: bool = False, allow_all_zero: bool = True
+    name: str,
+    psd: object,
+    n_freqs: int,
+    *,
+    allow_scalar: bool = False,
+    allow_all_zero: bool = True,
+    ndim: int | tuple[int, ...] | None = (1, 2),
 ) -> np.ndarray:
     """Return a one-sided PSD [units^2/Hz] of shape ``(n_freqs,)`` or ``(n_modes, n_freqs)``.
 
-    A scalar (white PSD) is accepted when ``allow_scalar`` and returned as a 0-d array.
+    A scalar (white PSD) is accepted when ``allow_scalar`` and returned as a 0-d array;
+    ``ndim=None`` accepts any leading shape ``(..., n_freqs)``.
 
     Raises
     ------
@@ -175,14 +237,17 @@ def check_psd(
         NaN/inf or negative values, a last axis that does not match the frequency grid,
         or (unless ``allow_all_zero``) a PSD that is zero everywhere.
     """
-    arr = check_finite_array(name, psd, ndim=(0, 1, 2) if allow_scalar else (1, 2))
+    if ndim is not None and allow_scalar:
+        ndim = (0, *((ndim,) if isinstance(ndim, int) else ndim))
+    arr = check_finite_array(name, psd, ndim=ndim)
     if arr.ndim >= 1 and arr.shape[-1] != n_freqs:
         raise ValueError(
             f"{name} must have {n_freqs} values along its last axis (one per frequency), "
             f"got shape {arr.shape}"
         )
-    if np.any(arr < 0):
-        raise ValueError(f"{name} must be >= 0 everywhere (a PSD), found min {arr.min()!r}")
+    if arr.ndim == 0 and not allow_scalar:
+        raise ValueError(f"{name} must be an array with {n_freqs} values, got a scalar")
+    check_nonnegative_psd(name, arr)
     if not allow_all_zero:
         zero_rows = ~np.any(arr > 0, axis=-1) if arr.ndim >= 1 else np.array(arr == 0)
         if np.any(zero_rows):
@@ -213,8 +278,7 @@ def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray,
     """
     psd = check_psd("psd", psd, n_freqs)
     noise = check_finite_array("noise_psd", noise_psd, ndim=(0, 1, 2))
-    if np.any(noise < 0):
-        raise ValueError(f"noise_psd must be >= 0 everywhere (a PSD), found min {noise.min()!r}")
+    check_nonnegative_psd("noise_psd", noise)
     n_modes = psd.shape[0] if psd.ndim == 2 else None
     if noise.ndim == 1 and noise.size != n_freqs:
         if n_modes is None or noise.size != n_modes:
@@ -236,6 +300,52 @@ def mode_psds(psd: object, noise_psd: object, n_freqs: int) -> tuple[np.ndarray,
     psd2 = np.broadcast_to(psd, (n_modes, n_freqs))
     noise2 = np.broadcast_to(noise if noise.ndim else noise[None, None], (n_modes, n_freqs))
     return psd2, noise2, squeeze
+
+
+class PerModeError(RuntimeError):
+    """Base of the errors of per-mode computations that failed for some modes only.
+
+    A per-mode design or bound keeps every mode that succeeded: the error carries them in
+    ``result`` and names the failed modes with their reasons in ``failed`` (the first ten in
+    the message). Subclasses: :class:`aocontrol.synthesis.ModalGainError`,
+    :class:`aocontrol.analysis.ConstrainedBoundError` (and the data-driven synthesis'
+    ``DataDrivenError``, same fields); ``except PerModeError`` catches them all.
+
+    Parameters
+    ----------
+    failed : dict of int to str
+        Mode index -> reason (exception type and message).
+    result : object
+        The result over every mode (what the failed modes hold is the subclass' to say).
+    n_modes : int
+        Number of modes of the computation.
+    operation : str
+        What failed, for the message (e.g. ``"optimal modal gain"``).
+    note : str, default ". The other modes are in this error's .result"
+        End of the message.
+
+    Attributes
+    ----------
+    failed : dict of int to str
+    result : object
+    """
+
+    def __init__(
+        self,
+        failed: dict[int, str],
+        result: object,
+        *,
+        n_modes: int,
+        operation: str,
+        note: str = ". The other modes are in this error's .result",
+    ) -> None:
+        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
+        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
+        super().__init__(
+            f"{operation} failed for {len(failed)} of {n_modes} modes: {lines}{more}{note}"
+        )
+        self.failed = failed
+        self.result = result
 
 
 def is_programming_error(exc: BaseException) -> bool:

@@ -59,6 +59,7 @@ from aocontrol._validation import (
     check_in_range,
     check_int,
     check_positive,
+    check_psd,
 )
 
 __all__ = [
@@ -451,12 +452,13 @@ def psd_variance(freqs: object, psd: object) -> np.ndarray:
     freqs : array_like, shape (n_freqs,)
         Increasing frequencies [Hz].
     psd : array_like, shape (..., n_freqs)
-        One-sided PSD [units^2/Hz].
+        One-sided PSD [units^2/Hz], >= 0.
+
+    Raises
+    ------
+    ValueError
+        A negative or non-finite PSD, or a last axis that is not ``n_freqs`` long.
     """
     freqs = check_frequency_grid("freqs", freqs, np.inf)
-    psd = check_finite_array("psd", psd)
-    if psd.shape[-1:] != freqs.shape:
-        raise ValueError(
-            f"psd must have {freqs.size} values along its last axis, got shape {psd.shape}"
-        )
+    psd = check_psd("psd", psd, freqs.size, ndim=None)
     return np.trapezoid(psd, freqs, axis=-1)

@@ -50,6 +50,7 @@ __all__ = [
     "split_latency",
     "MAX_LATENCY_FRAMES",
     "FRD_END_GAP_FRACTION",
+    "FREQ_RTOL",
 ]
 
 # Relative tolerance to decide that a fractional delay is an integer (numerical noise of
@@ -66,6 +67,11 @@ MAX_LATENCY_FRAMES = 1000.0
 #: resolution assumption as the interior of the grid (phase steps checked < pi/3), a larger
 #: one is a band that was never measured.
 FRD_END_GAP_FRACTION = 0.5
+#: Relative tolerance (a fraction of ``fs``) for every comparison of frequencies that went
+#: through a round trip between Hz and rad/s (an FRD stores ``omega = 2 pi f``; ``f`` read back
+#: as ``omega / 2 pi`` may exceed ``fs/2`` by an ulp). The one owner of that tolerance: the
+#: coverage check, the FRD's measured range and the public ``[0, fs/2]`` check all use it.
+FREQ_RTOL = 1e-9
 
 
 def split_latency(latency_frames: float) -> tuple[int, float]:
@@ -457,6 +463,19 @@ def _frd_hz(sys: control.FRD) -> np.ndarray:
     return np.asarray(sys.omega, dtype=float) / (2 * np.pi)
 
 
+def _covers_ends(f: np.ndarray, fs: float) -> tuple[bool, bool]:
+    """Whether a grid [Hz] (increasing, >= 2 points) reaches 0 Hz and fs/2 (coverage rule).
+
+    An end is reached when the gap to it is at most ``FRD_END_GAP_FRACTION`` of the end grid
+    step, plus ``FREQ_RTOL * fs`` for the Hz <-> rad/s rounding; a point past the end by
+    rounding (``f[-1] > fs/2`` by an ulp) reaches it too.
+    """
+    tol = FREQ_RTOL * fs
+    covers_zero = f[0] <= FRD_END_GAP_FRACTION * (f[1] - f[0]) + tol
+    covers_nyquist = fs / 2 - f[-1] <= FRD_END_GAP_FRACTION * (f[-1] - f[-2]) + tol
+    return bool(covers_zero), bool(covers_nyquist)
+
+
 def check_frd_coverage(name: str, freqs: object, fs: float) -> None:
     """Require a frequency grid (an FRD's, or the one a winding number uses) to span [0, fs/2].
 
@@ -488,10 +507,11 @@ def check_frd_coverage(name: str, freqs: object, fs: float) -> None:
             f"{name} must cover [0, fs/2] = [0, {nyq:g}] Hz to certify stability, got "
             f"{f.size} frequency point(s)"
         )
+    covers_zero, covers_nyquist = _covers_ends(f, fs)
     missing = []
-    if f[0] > FRD_END_GAP_FRACTION * (f[1] - f[0]) + 1e-12 * nyq:
+    if not covers_zero:
         missing.append(f"[0, {f[0]:.6g}] Hz")
-    if nyq - f[-1] > FRD_END_GAP_FRACTION * (f[-1] - f[-2]) + 1e-12 * nyq:
+    if not covers_nyquist:
         missing.append(f"[{f[-1]:.6g}, {nyq:.6g}] Hz")
     if missing:
         raise ValueError(
@@ -536,17 +556,32 @@ def frequency_response(sys: object, freqs: object, fs: float | None = None) -> n
     freqs = check_finite_array("freqs", freqs, ndim=(0, 1))
     scalar = freqs.ndim == 0
     freqs = np.atleast_1d(freqs)
-    if np.any(freqs < 0) or np.any(freqs > fs / 2 * (1 + 1e-12)):
+    if np.any(freqs < 0) or np.any(freqs > fs / 2 + FREQ_RTOL * fs):
         raise ValueError(f"freqs must lie in [0, fs/2] = [0, {fs / 2}] Hz")
-    out = _response(sys, freqs, fs)
+    out = frequency_response_unchecked(sys, freqs, fs)
     return out[0] if scalar else out
 
 
-def _response(sys: object, freqs: np.ndarray, fs: float) -> np.ndarray:
+def frequency_response_unchecked(sys: object, freqs: np.ndarray, fs: float) -> np.ndarray:
     """:func:`frequency_response` of an already validated system on a 1-D grid [Hz].
 
-    For inner loops (root refinement, bisection) that evaluate the same checked system many
-    times; the public function validates, this one only computes.
+    Internal to aocontrol (shared by the analysis and the synthesis; not in ``__all__``):
+    for inner loops (root refinement, bisection) that evaluate the same checked system many
+    times. The public function validates, this one only computes: the caller must have
+    checked ``sys`` (:func:`check_system`) and ``freqs`` (1-D, in ``[0, fs/2]``).
+
+    Parameters
+    ----------
+    sys : control.TransferFunction or control.FRD
+        Validated discrete SISO system.
+    freqs : numpy.ndarray, shape (n,)
+        Frequencies [Hz].
+    fs : float
+        Loop rate [Hz].
+
+    Returns
+    -------
+    numpy.ndarray of complex, shape (n,)
     """
     if isinstance(sys, control.TransferFunction):
         z = np.exp(2j * np.pi * freqs / fs)
@@ -562,15 +597,19 @@ def _response(sys: object, freqs: np.ndarray, fs: float) -> np.ndarray:
         omega, data = _frd_data(sys)
         f_grid = omega / (2 * np.pi)
         lo, hi = f_grid[0], f_grid[-1]
-        tol = 1e-9 * fs
+        tol = FREQ_RTOL * fs
         # An FRD that covers an end of [0, fs/2] (check_frd_coverage) is held constant over
-        # the gap of less than half a grid step to it; elsewhere its range is strict.
+        # the gap of less than half a grid step to it; elsewhere its range is strict. Either
+        # way the range is widened by the Hz <-> rad/s rounding tolerance: a grid stored as
+        # omega may read back a last point an ulp above fs/2, and a request built from
+        # ``fs / 2`` must still fall inside it.
         lo_ok, hi_ok = lo - tol, hi + tol
         if f_grid.size > 1:
-            if lo <= FRD_END_GAP_FRACTION * (f_grid[1] - f_grid[0]) + 1e-12 * fs:
-                lo_ok = 0.0
-            if fs / 2 - hi <= FRD_END_GAP_FRACTION * (f_grid[-1] - f_grid[-2]) + 1e-12 * fs:
-                hi_ok = fs / 2
+            covers_zero, covers_nyquist = _covers_ends(f_grid, fs)
+            if covers_zero:
+                lo_ok = min(lo_ok, 0.0)
+            if covers_nyquist:
+                hi_ok = max(hi_ok, fs / 2 + tol)
         if np.any(freqs < lo_ok) or np.any(freqs > hi_ok):
             raise ValueError(
                 f"freqs must lie within the FRD's measured range [{lo}, {hi}] Hz, got "
@@ -587,3 +626,8 @@ def _response(sys: object, freqs: np.ndarray, fs: float) -> np.ndarray:
         hit = np.abs(f_grid[near] - fq) <= tol
         out[hit] = data[near[hit]]
     return out
+
+
+#: Former private name of :func:`frequency_response_unchecked` (same function), kept for code
+#: inside :mod:`aocontrol.plant`'s own namespace; other packages use the documented name.
+_response = frequency_response_unchecked

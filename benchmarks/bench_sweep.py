@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     import logging
 
     from aocontrol.study.scene import clear_scene_cache
-    from aocontrol.study.sweep import SweepRunner, local_cluster, run_sweep, summary_table
+    from aocontrol.study.sweep import SweepRunner, local_cluster, run_sweep, sweep_table
 
     logging.basicConfig(level=logging.WARNING)
     print(
@@ -211,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
         # same settings, same numbers: the cluster's results equal the one process's, to
         # rounding (the workers' BLAS has one thread, this process's every core, which splits
         # some reductions differently)
-        serial_rows = {r["hash"]: r for r in summary_table(tmp / "cases-serial", runner=runner)}
+        serial_rows = {r["hash"]: r for r in sweep_table(tmp / "cases-serial", runner=runner)}
         cluster_rows = {r["hash"]: r for r in t_par.table}
         worst = max(
             abs(serial_rows[h][k] - row[k]) / abs(row[k])

@@ -3,6 +3,7 @@
 import control
 import numpy as np
 import pytest
+from conftest import integrator_stability_limit
 
 from aocontrol import frequency_response, loop_plant, measured_plant
 from aocontrol.analysis import (
@@ -30,15 +31,10 @@ QUADRATURE = 1e-5
 NEAR_MARGINAL = 1e-3
 
 
-def _stability_limit(d: int) -> float:
-    # Integrator g/(1 - z^-1) with total delay z^-d is stable iff g < 2 sin(pi / (2 (2d - 1))).
-    return 2 * np.sin(np.pi / (2 * (2 * d - 1)))
-
-
 @pytest.mark.parametrize("d", [1, 2, 3, 4])
-def test_integrator_stability_limit(d):
+def test_integratorintegrator_stability_limit(d):
     plant = loop_plant(FS, latency_frames=d - 1)
-    g = _stability_limit(d)
+    g = integrator_stability_limit(d)
     assert is_stable(plant, Integrator(0.99 * g, fs=FS))
     assert not is_stable(plant, Integrator(1.01 * g, fs=FS))
     # The gain margin of an integrator of gain g0 is the stability limit / g0.
@@ -166,7 +162,7 @@ def test_frd_plant_gives_same_analysis_as_tf(latency):
     # FRD crossings are interpolated linearly between 0.05 Hz-spaced points.
     for name in ("gain_margin", "phase_margin", "modulus_margin", "delay_margin"):
         assert getattr(mf, name) == pytest.approx(getattr(mt, name), rel=1e-4), name
-    unstable = Integrator(_stability_limit(int(np.ceil(1 + latency))) * 1.5, fs=fs)
+    unstable = Integrator(integrator_stability_limit(int(np.ceil(1 + latency))) * 1.5, fs=fs)
     assert is_stable(frd, unstable) == is_stable(plant, unstable) is False
     fr = np.linspace(1, 1400, 50)
     np.testing.assert_allclose(sensitivity(frd, ctrl, fr), sensitivity(plant, ctrl, fr), atol=1e-6)

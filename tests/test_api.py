@@ -106,3 +106,20 @@ def test_checker_flags_an_undocumented_parameter():
 
     documented = _documented_names(FunctionDoc(f)["Parameters"])
     assert [p for p in _signature_params(f) if p not in documented] == ["beta"]
+
+
+def test_version_has_one_source():
+    # pyproject.toml reads aocontrol.__version__ (no second literal to forget), and the
+    # results' settings record the same value.
+    import pathlib
+
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    from aocontrol.study.compare import _version
+
+    meta = tomllib.loads((pathlib.Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert "version" not in meta["project"] and "version" in meta["project"]["dynamic"]
+    assert meta["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "aocontrol.__version__"}
+    assert _version() == aocontrol.__version__

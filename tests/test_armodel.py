@@ -279,3 +279,30 @@ def test_unresolved_low_frequency_turbulence_is_not_a_resonance():
     # Unresolved below the grid, the model keeps the data's variance (its 0-Hz bin included);
     # the variance of the unshrunk fit was 0.02-0.15x or up to 1e5x the data's.
     np.testing.assert_allclose(model.turbulence_variance, np.trapezoid(psd, f, axis=1), rtol=1e-9)
+
+
+def test_fit_on_bright1_worst_calibration_telemetry_is_warning_free():
+    # Regression (issue 18): on bright 1 worst (540 modes, 3 kHz, calibration telemetry of
+    # the reference integrator, Welch with 1024-frame segments, noise removed and floored at
+    # 1e-6 of it), mode 57 drove trial poles onto z = 1 and the Whittle refinement divided
+    # by zero, then multiplied inf by 0. The stored PSDs (tests/data, float32) are seven of
+    # those modes: tip, tilt, focus-like, mode 57, and three higher orders. Every
+    # floating-point warning is an error here (numpy's and scipy's too, not only
+    # aocontrol's), and the model must hold the data's variance: its total within
+    # VARIANCE_RTOL of the PSD's integral (the moment the fit matches when it shrinks a pole,
+    # and the Whittle fit's within a few per cent otherwise).
+    import pathlib
+    import warnings
+
+    VARIANCE_RTOL = 0.1
+    data = np.load(pathlib.Path(__file__).parent / "data" / "bright1_worst_calibration_psd.npz")
+    fs = float(data["fs"])
+    f = np.arange(int(data["nperseg"]) // 2 + 1) * fs / int(data["nperseg"])
+    psd = data["psd"].astype(float)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        warnings.simplefilter("ignore", UserWarning)  # the unresolved-pole notice (tip/tilt)
+        fit = fit_disturbance_model(f, psd, fs, noise_psd=data["noise_psd"], n_vibrations=2)
+    assert np.all(np.isfinite(fit.variance))
+    measured = np.trapezoid(psd, f, axis=1)
+    np.testing.assert_allclose(fit.variance, measured, rtol=VARIANCE_RTOL)

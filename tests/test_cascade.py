@@ -280,7 +280,8 @@ def test_result_round_trip(bases, tmp_path):
         basis2=b2,
         metadata={"case": "unit"},
     )
-    res.save(tmp_path / "c.npz")
+    with pytest.warns(DeprecationWarning, match="save_result"):
+        res.save(tmp_path / "c.npz")
     back = CascadeResult.load(tmp_path / "c.npz")
     assert back.scheme == "dcao" and back.metadata["case"] == "unit" and back.fs == FS2
     for i in range(2):

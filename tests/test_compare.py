@@ -15,9 +15,11 @@ from aocontrol.controllers import Integrator
 from aocontrol.sim.loop import LoopDivergedError
 from aocontrol.sim.modes import fitting_error
 from aocontrol.study.compare import (
+    CONTROLLER_ALIASES,
     CONTROLLERS,
     MODULUS_MARGIN,
     ControllerSpec,
+    _check_names,
     compare_case,
     register_controller,
     run_configuration,
@@ -47,7 +49,10 @@ def test_unknown_names_list_the_valid_ones():
 
 
 def test_registry_has_the_paper_controllers_and_refuses_duplicates():
-    assert {"reference", "integrator", "omgi", "datadriven"} <= set(CONTROLLERS)
+    assert {"reference", "omgi", "datadriven"} <= set(CONTROLLERS)
+    # One controller, one spec: "integrator" is an alias of the reference, not a second entry.
+    assert "integrator" not in CONTROLLERS and CONTROLLER_ALIASES["integrator"] == "reference"
+    assert _check_names("integrator", "single") is CONTROLLERS["reference"]
     assert not CONTROLLERS["reference"].needs_telemetry
     with pytest.raises(ValueError, match="already registered"):
         register_controller(CONTROLLERS["omgi"])
@@ -185,3 +190,38 @@ def test_unstable_controller_stops_naming_the_stage_and_writes_nothing(tmp_path)
         )
     assert info.value.stage == "stage 2" and info.value.modes.size > 0
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_results_files_record_the_seed_streams(quick_comparison):
+    # Each run names the streams it drew from, SeedSequence([seed, purpose code]): the
+    # exposure, the gain scan that chose the reference gain and, for a designed controller,
+    # the calibration run. The file holds the same record as the run.
+    from aocontrol.study._seeds import SEED_PURPOSES
+    from aocontrol.study.results import read_settings
+
+    for c in quick_comparison.cells:
+        streams = c.settings["seed_streams"]
+        expected = {"exposure", "gain_scan"} | (
+            set() if c.controller in ("reference", "half-gain") else {"calibration"}
+        )
+        assert set(streams) == expected, (c.controller, streams)
+        assert all(v == [0, SEED_PURPOSES[k]] for k, v in streams.items())
+        assert read_settings(c.path)["seed_streams"] == streams
+
+
+def test_seed_purposes_never_share_a_stream():
+    # The old offsets (calibration seed + 1000, scan seed + 2000) made seed 0's calibration
+    # run seed 1000's exposure. Named purposes: distinct streams for every (seed, purpose).
+    from aocontrol.study._seeds import SEED_PURPOSES, seed_sequence
+
+    codes = list(SEED_PURPOSES.values())
+    assert len(set(codes)) == len(codes)
+    first = {
+        (seed, p): np.random.default_rng(seed_sequence(seed, p)).integers(2**62)
+        for seed in (0, 1, 1000, 2000)
+        for p in SEED_PURPOSES
+    }
+    assert len(set(first.values())) == len(first)
+    with pytest.raises(ValueError, match="purpose must be one of"):
+        seed_sequence(0, "exposure ")

@@ -322,3 +322,26 @@ def test_saxo_size_kl_basis_is_orthonormal_and_ordered():
     assert np.max(np.abs(gram - np.eye(1200))) < EXACT_TOL
     assert np.all(np.diff(basis.variances[2:]) <= 0)
     assert np.all(basis.variances > 0)
+
+
+def test_modal_stroke_is_where_a_mode_alone_reaches_the_actuator_stroke():
+    # Oracle: mode i at its bound drives its largest actuator exactly to the stroke, and no
+    # actuator beyond it (the definition); a mode moving no actuator is unbounded.
+    from aocontrol.sim.dm import modal_stroke
+
+    rng = np.random.default_rng(4)
+    m2c = rng.standard_normal((30, 6))
+    m2c[:, 5] = 0.0
+    bound = modal_stroke(m2c, 3200.0)
+    peaks = np.max(np.abs(m2c[:, :5] * bound[:5]), axis=0)
+    np.testing.assert_allclose(peaks, 3200.0, rtol=1e-14)
+    assert bound[5] == np.inf
+    with pytest.raises(ValueError, match="actuator_stroke must be"):
+        modal_stroke(m2c, -1.0)
+
+
+def test_case_stroke_is_converted_to_nm_in_one_place():
+    from aocontrol.study.cases import load_case
+
+    st = load_case("bright1-best").stage2
+    assert st.dm_stroke == pytest.approx(3.2e-6) and st.dm_stroke_nm == pytest.approx(3200.0)

@@ -1,7 +1,14 @@
-"""Architecture: imports point down only (control <- sim <- study); matplotlib only in plot.
+"""Architecture: imports point down only (control <- sim <- study); matplotlib only in plot;
+no private name imported from another package.
 
 Relative imports (``from ..sim import loop``) are resolved to absolute module names, so the
 layering rule cannot be broken unseen; a synthetic module shows the check detects them.
+
+Private names: a leading underscore means "free to change" within the namespace that owns it.
+``aocontrol.analysis._margins`` is owned by ``aocontrol.analysis`` (any module of the analysis
+may import it, nothing outside); ``aocontrol.plant._x`` by the module ``aocontrol.plant``;
+``aocontrol._validation`` by ``aocontrol`` (the project's shared checks). What another package
+needs is promoted to a documented name (e.g. ``aocontrol.analysis.winding_zeros``).
 """
 
 from __future__ import annotations
@@ -86,6 +93,59 @@ def test_control_layer_imports_no_sim_or_study(path):
 def test_sim_layer_imports_no_study(path):
     bad = _violations(path, ("aocontrol.study",))
     assert not bad, f"{path} imports {bad}"
+
+
+def _private_owner(name: str) -> str | None:
+    """The namespace owning the first private component of a dotted name, or None."""
+    parts = name.split(".")
+    for i, part in enumerate(parts):
+        if part.startswith("_") and not (part.startswith("__") and part.endswith("__")):
+            return ".".join(parts[:i])
+    return None
+
+
+def _private_breaches(path: pathlib.Path, root: pathlib.Path = ROOT) -> set[str]:
+    """Private names ``path`` imports from outside the namespace that owns them."""
+    module, _ = _module_name(path, root)
+    out = set()
+    for name in _imports(path, root):
+        owner = _private_owner(name)
+        if owner is not None and not (module == owner or module.startswith(owner + ".")):
+            out.add(name)
+    return out
+
+
+@pytest.mark.parametrize("path", list(_files(["."])), ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_private_name_imported_from_another_package(path):
+    bad = _private_breaches(path)
+    assert not bad, f"{path} imports private names of another package: {sorted(bad)}"
+
+
+@pytest.mark.parametrize(
+    ("source", "expected"),
+    [
+        ("from aocontrol.analysis._margins import is_stable\n", "aocontrol.analysis._margins"),
+        ("from ..analysis._psd import welch_psd\n", "aocontrol.analysis._psd"),
+        ("from aocontrol.plant import _response\n", "aocontrol.plant._response"),
+        ("import aocontrol.controllers._lqg\n", "aocontrol.controllers._lqg"),
+    ],
+)
+def test_private_import_from_another_package_is_detected(tmp_path, source, expected):
+    # A synthetic synthesis module that reaches into another package's private names: the
+    # check must see it; its own package's private modules and the shared checks are fine.
+    root = tmp_path / "aocontrol"
+    pkg = root / "synthesis"
+    pkg.mkdir(parents=True)
+    (root / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    bad = pkg / "_bad.py"
+    bad.write_text(source)
+    assert expected in _private_breaches(bad, root=root)
+    bad.write_text(
+        "from ._armodel import _ar2_psd\nfrom aocontrol._validation import check_int\n"
+        "from aocontrol.analysis import winding_zeros\n"
+    )
+    assert not _private_breaches(bad, root=root)
 
 
 def test_only_plot_module_imports_matplotlib():

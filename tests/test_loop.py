@@ -163,7 +163,8 @@ def test_save_and_load_round_trip(tmp_path):
         metadata={"case": "unit-test", "gain": 0.4},
     )
     path = tmp_path / "run.npz"
-    res.save(path)
+    with pytest.warns(DeprecationWarning, match="convert_npz"):  # the older form, still read
+        res.save(path)
     back = LoopResult.load(path)
     assert back.metadata["case"] == "unit-test"
     np.testing.assert_array_equal(back.telemetry["residuals"], res.telemetry["residuals"])
@@ -176,7 +177,8 @@ def test_save_is_all_or_nothing(tmp_path, monkeypatch):
     # temporary file): the previous result stays intact and no temporary file is left.
     res = run_loop(Stage(Integrator(0.4, fs=FS)), ModalTimeSeries(_white(200, 1)), 200)
     target = tmp_path / "run.npz"
-    res.save(target)
+    with pytest.warns(DeprecationWarning):
+        res.save(target)
     before = target.read_bytes()
 
     def failing_savez(fh, **arrays):
@@ -184,7 +186,7 @@ def test_save_is_all_or_nothing(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(np, "savez_compressed", failing_savez)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(OSError, match="disk full"), pytest.warns(DeprecationWarning):
         res.save(target)
     assert target.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.npz"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import integrator_stability_limit
 
 from aocontrol.analysis import is_stable, margins, residual_variance, white_noise_psd
 from aocontrol.controllers import Integrator
@@ -82,7 +83,7 @@ def test_gain_limit_matches_integer_delay_formula(d):
     # Oracle: g/(1 - z^-1) with G = z^-d is stable iff g < 2 sin(pi / (2 (2d - 1))).
     tol = 2e-6  # the limit is backed off by 1e-6
     limit = integrator_gain_limit(loop_plant(FS, d - 1.0))
-    assert abs(limit / (2 * np.sin(np.pi / (2 * (2 * d - 1)))) - 1) < tol
+    assert abs(limit / integrator_stability_limit(d) - 1) < tol
 
 
 def test_gains_stay_below_stability_limit_for_high_snr():

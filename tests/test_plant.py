@@ -154,3 +154,30 @@ def test_check_system_reads_dt_types_not_values():
     assert check_system("plant", control.tf([1.0], [1.0, 0.0], True), 50.0) == 50.0
     with pytest.raises(ValueError, match="controller must be a discrete-time transfer function"):
         check_system("controller", control.tf([1.0], [1.0, 1.0]), 50.0)
+
+
+@pytest.mark.parametrize("fs", [0.6608, 1.0, 9.388e5])
+@pytest.mark.parametrize("grid", ["linear", "log", "random"])
+def test_frd_over_exactly_zero_to_nyquist_is_accepted(fs, grid):
+    # An FRD measured on exactly [0, fs/2] stores omega = 2 pi f; read back as omega / 2 pi its
+    # last point may exceed fs/2 by an ulp (0.3304000000000001 at fs = 0.6608). The analysis
+    # grid ends at fs/2 and must still fall inside the measured range (one tolerance, FREQ_RTOL).
+    # Oracle: the FRD samples the TF plant, so the verdict and the margin are the TF's.
+    from aocontrol.analysis import is_stable, margins
+    from aocontrol.controllers import Integrator
+
+    nyq = fs / 2
+    if grid == "linear":
+        f = np.linspace(0.0, nyq, 300)
+    elif grid == "log":
+        f = np.concatenate([[0.0], np.geomspace(1e-4 * nyq, nyq, 299)])
+    else:
+        f = np.sort(np.random.default_rng(3).uniform(0.0, nyq, 300))
+        f[0], f[-1] = 0.0, nyq
+    G = loop_plant(fs, 1.0)
+    P = measured_plant(f, frequency_response(G, f), fs)
+    C = Integrator(gain=0.3, fs=fs)
+    assert is_stable(P, C) and is_stable(G, C)
+    # The modulus margin from a 300-point FRD against the exact TF: the grid's resolution.
+    assert margins(P, C).modulus_margin == pytest.approx(margins(G, C).modulus_margin, rel=1e-3)
+    assert frequency_response(P, [nyq]) == pytest.approx(frequency_response(G, [nyq]), abs=1e-9)

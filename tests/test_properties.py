@@ -14,6 +14,7 @@ from __future__ import annotations
 import control
 import numpy as np
 import pytest
+from conftest import integrator_stability_limit
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
@@ -35,11 +36,6 @@ def _profile(n: int) -> settings:
     )
 
 
-def _limit(d: int) -> float:
-    # Integrator g / (1 - z^-1) with a total delay of d frames: stable iff g < this.
-    return 2 * np.sin(np.pi / (2 * (2 * d - 1)))
-
-
 # A verdict within this relative distance of the closed-form limit is not sampled: the
 # closed-loop pole is then within ~1e-3 of the unit circle.
 LIMIT_GUARD = 0.02
@@ -58,7 +54,7 @@ finite = st.floats(-3.0, 3.0, allow_nan=False, allow_infinity=False)
 def test_integrator_verdict_matches_closed_form_limit(d, factor):
     assume(abs(factor - 1.0) > LIMIT_GUARD)
     plant = loop_plant(FS, d - 1)
-    ctrl = Integrator(factor * _limit(d), fs=FS)
+    ctrl = Integrator(factor * integrator_stability_limit(d), fs=FS)
     assert is_stable(plant, ctrl) is (factor < 1.0)
     # Same verdict from the winding number on a measured copy of the plant.
     f = np.linspace(0.0, FS / 2, 4001)
@@ -229,5 +225,5 @@ def test_any_sampling_period_including_one_second(fs):
     ctrl = control.tf([0.5, 0.0], [1.0, -1.0], 1.0 / fs)  # 0.5 / (1 - z^-1)
     assert is_stable(plant, ctrl)
     m = margins(plant, ctrl)
-    assert m.gain_margin == pytest.approx(_limit(2) / 0.5, rel=1e-8)
+    assert m.gain_margin == pytest.approx(integrator_stability_limit(2) / 0.5, rel=1e-8)
     assert m.phase_crossover_hz / fs == pytest.approx(1.0 / 6.0, rel=1e-8)

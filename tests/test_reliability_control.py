@@ -11,6 +11,7 @@ from __future__ import annotations
 import control
 import numpy as np
 import pytest
+from conftest import integrator_stability_limit
 
 from aocontrol import frequency_response, loop_plant, measured_plant
 from aocontrol.analysis import (
@@ -35,11 +36,6 @@ from aocontrol.synthesis import (
 )
 
 FS = 1000.0
-
-
-def _limit(d: int) -> float:
-    # Integrator g/(1 - z^-1) with a total delay of d frames is stable iff g < this.
-    return 2 * np.sin(np.pi / (2 * (2 * d - 1)))
 
 
 def _frd(plant, f):
@@ -149,7 +145,7 @@ def test_one_second_sampling_period_is_accepted():
     ctrl = Integrator(0.5, fs=1.0)
     assert is_stable(plant, ctrl)
     m = margins(plant, ctrl.transfer_function())
-    assert m.gain_margin == pytest.approx(_limit(2) / 0.5, rel=1e-8)
+    assert m.gain_margin == pytest.approx(integrator_stability_limit(2) / 0.5, rel=1e-8)
     assert m.phase_crossover_hz == pytest.approx(
         margins(loop_plant(FS, 1.0), Integrator(0.5, fs=FS)).phase_crossover_hz / FS, rel=1e-8
     )
@@ -307,7 +303,7 @@ def test_nan_objective_does_not_win_the_gain_search():
     except ModalGainError as exc:
         assert 1 in exc.failed
         K = exc.result
-    assert np.all(np.isfinite(K.gain)) and K.gain.max() < _limit(2)
+    assert np.all(np.isfinite(K.gain)) and K.gain.max() < integrator_stability_limit(2)
 
 
 # -- messages that blame the right argument ---------------------------------------------------

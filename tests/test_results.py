@@ -179,7 +179,8 @@ def test_interrupted_write_leaves_no_file(tmp_path, monkeypatch):
 
 def test_npz_results_are_read_and_converted(tmp_path):
     res = _loop()
-    res.save(tmp_path / "old.npz")
+    with pytest.warns(DeprecationWarning, match="convert_npz"):
+        res.save(tmp_path / "old.npz")
     direct = load_result(tmp_path / "old.npz")
     assert isinstance(direct.science, ScienceResult)
     path = convert_npz(tmp_path / "old.npz", tmp_path / "new.h5")

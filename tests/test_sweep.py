@@ -33,6 +33,7 @@ from aocontrol.study.sweep import (
     run_hash,
     run_sweep,
     summary_table,
+    sweep_table,
 )
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -211,13 +212,16 @@ def test_killed_sweep_resumes_without_losing_or_duplicating(tmp_path, scheduler_
         [f"{h}.h5" for h in expected] + ["summary.csv"]
     )
     # the summary table is rebuilt from the files: one row per run with its figure
-    rows = summary_table(out, runner=make_runner(markers), csv_path=None)
+    rows = sweep_table(out, runner=make_runner(markers), csv_path=None)
     assert [r["hash"] for r in rows] == expected
     by_hash = {r.hash: r.settings for r in runs}
     for row in rows:
         assert row["value"] == expected_value(by_hash[row["hash"]])
         assert row["case"] == by_hash[row["hash"]]["case"]
     assert (out / "summary.csv").read_text().count("\n") == len(expected) + 1
+    # The old name stays, deprecated (it clashed with results.summary_table(paths)).
+    with pytest.warns(DeprecationWarning, match="use sweep_table"):
+        assert summary_table(out, runner=make_runner(markers), csv_path=None) == rows
 
 
 @pytest.mark.slow

@@ -32,6 +32,7 @@ from aocontrol.analysis._margins import (
     margins,
     winding_stability,
 )
+from aocontrol.analysis._margins import _winding_zeros as winding_zeros
 from aocontrol.analysis._psd import welch_psd
 from aocontrol.analysis._residual import residual_psd, residual_variance
 from aocontrol.analysis._wiener import wiener_bound
@@ -62,4 +63,5 @@ __all__ = [
     "white_noise_psd",
     "wiener_bound",
     "winding_stability",
+    "winding_zeros",
 ]

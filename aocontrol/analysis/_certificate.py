@@ -40,7 +40,8 @@ from scipy import optimize
 
 from aocontrol.analysis._loop import _as_siso_controller
 from aocontrol.controllers import ControllerBank
-from aocontrol.plant import _response, check_frd_coverage, plant_fs, z_inverse_coefficients
+from aocontrol.plant import check_frd_coverage, plant_fs, z_inverse_coefficients
+from aocontrol.plant import frequency_response_unchecked as _response
 
 __all__ = ["ModulusCertificate", "modulus_certificate", "rational_modulus_minima"]
 

@@ -41,7 +41,13 @@ import control
 import cvxpy as cp
 import numpy as np
 
-from aocontrol._validation import check_frequency_grid, check_in_range, check_int, mode_psds
+from aocontrol._validation import (
+    PerModeError,
+    check_frequency_grid,
+    check_in_range,
+    check_int,
+    mode_psds,
+)
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import frequency_response, plant_fs, z_inverse_coefficients
 
@@ -72,7 +78,7 @@ _CUT_TOL = 1e-7
 _SCALE_FLOOR = 1e-12
 
 
-class ConstrainedBoundError(RuntimeError):
+class ConstrainedBoundError(PerModeError):
     """The bound could not be computed for some modes; the others are kept.
 
     Parameters
@@ -85,14 +91,9 @@ class ConstrainedBoundError(RuntimeError):
     """
 
     def __init__(self, failed: dict[int, str], result: ConstrainedBound) -> None:
-        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
-        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
         super().__init__(
-            f"constrained_bound failed for {len(failed)} of {result.variance.size} modes: "
-            f"{lines}{more}. The other modes are in this error's .result"
+            failed, result, n_modes=result.variance.size, operation="constrained_bound"
         )
-        self.failed = failed
-        self.result = result
 
 
 @dataclass(frozen=True)

@@ -27,11 +27,11 @@ from aocontrol.analysis._certificate import modulus_certificate
 from aocontrol.analysis._loop import _as_siso_controller
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import (
-    _response,
     check_frd_coverage,
     plant_fs,
     z_inverse_coefficients,
 )
+from aocontrol.plant import frequency_response_unchecked as _response
 
 __all__ = ["Margins", "margins", "is_stable", "closed_loop_poles", "winding_stability"]
 

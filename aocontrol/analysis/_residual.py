@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 
+import control
 import numpy as np
 
 from aocontrol._validation import check_broadcast, check_frequency_grid, mode_psds
@@ -101,12 +102,20 @@ def residual_variance(
         As in :func:`residual_psd`.
     check_stability : bool, default True
         Return ``inf`` for an unstable closed loop (closed-loop poles, or the winding number
-        for an FRD plant, which must then cover [0, fs/2]).
+        for an FRD plant, which must then cover [0, fs/2]). Needs a controller with a
+        transfer function: an FRD controller is refused (its unstable poles, an integrator's
+        among them, are not in its response); pass ``check_stability=False`` to integrate
+        its residual without a verdict.
 
     Returns
     -------
     float for a SISO TF/FRD controller and a 1-D ``psd``; ndarray of shape (n_modes,) for a
     ControllerBank (even with one mode) or a 2-D ``psd``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`residual_psd`; and an FRD ``controller`` with ``check_stability`` True.
 
     Examples
     --------
@@ -121,6 +130,13 @@ def residual_variance(
     0.333333
     """
     fs_ = plant_fs(plant, fs)
+    if check_stability and isinstance(controller, control.FRD):
+        raise ValueError(
+            "controller is a control.FRD: closed-loop stability cannot be certified from a "
+            "controller's frequency response (its unstable poles are not in it); give its "
+            "transfer function or a ControllerBank, or pass check_stability=False to "
+            "integrate the residual without a stability verdict"
+        )
     res = _integrate(
         residual_psd(plant, controller, freqs, psd, noise_psd, fs=fs_),
         np.asarray(freqs, dtype=float),

@@ -33,6 +33,7 @@ import numpy as np
 
 from aocontrol._validation import (
     MAX_MODES,
+    as_float_array,
     check_broadcast,
     check_finite_array,
     check_int,
@@ -178,7 +179,7 @@ class ControllerBank(abc.ABC):
         return mode
 
     def _check_measurement(self, measurement: object) -> np.ndarray:
-        m = np.asarray(measurement, dtype=float)
+        m = as_float_array("measurement", measurement)
         if m.shape != (self.n_modes,):
             raise ValueError(
                 f"measurement must have shape ({self.n_modes},) (one value per mode), got {m.shape}"

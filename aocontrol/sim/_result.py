@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,6 +62,16 @@ def _json_default(obj: Any) -> Any:
     if isinstance(obj, np.generic):
         return obj.item()
     return str(obj)
+
+
+def _warn_npz_writer() -> None:
+    warnings.warn(
+        "writing results as .npz (LoopResult.save / CascadeResult.save) is deprecated: write "
+        "HDF5 with aocontrol.study.results.save_result(result, path, settings=...); convert "
+        "existing .npz files with aocontrol.study.results.convert_npz(npz_path, h5_path)",
+        DeprecationWarning,
+        stacklevel=3,
+    )
 
 
 def _atomic_savez(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
@@ -162,14 +173,24 @@ class LoopResult:
         )
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write the result to ``path`` (.npz: arrays + JSON metadata), atomically.
+        """Write the result to ``path`` (.npz: arrays + JSON metadata), atomically. Deprecated.
+
+        Results are HDF5 files (``aocontrol.study.results.save_result``, opened by xarray);
+        this older form stays readable (:meth:`load`, ``aocontrol.load_result``) and
+        convertible (``aocontrol.study.results.convert_npz``).
 
         Parameters
         ----------
         path : str or os.PathLike
             Target file; a temporary file in the same directory is renamed onto it, so a
             failure leaves no partial file.
+
+        Warns
+        -----
+        DeprecationWarning
+            Always, pointing to ``save_result`` and ``convert_npz``.
         """
+        _warn_npz_writer()
         arrays = self._arrays()
         arrays["meta_json"] = np.array(json.dumps(self._meta(), default=_json_default))
         _atomic_savez(path, arrays)
@@ -272,13 +293,21 @@ class CascadeResult:
         return self.stages[1].residual_rms
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write both stages and the settings to ``path`` (.npz), atomically.
+        """Write both stages and the settings to ``path`` (.npz), atomically. Deprecated.
+
+        As :meth:`LoopResult.save`: use ``aocontrol.study.results.save_result`` (HDF5).
 
         Parameters
         ----------
         path : str or os.PathLike
             Target file (a failure leaves no partial file).
+
+        Warns
+        -----
+        DeprecationWarning
+            Always, pointing to ``save_result`` and ``convert_npz``.
         """
+        _warn_npz_writer()
         arrays: dict[str, np.ndarray] = {}
         metas = []
         for i, st in enumerate(self.stages):

@@ -47,6 +47,11 @@ split into calls.
 
 Units: phase maps are optical path differences in nm (wavelength independent): radians at
 500 nm times ``500 / (2 pi)``. ``r0`` is quoted at 500 nm.
+
+Building one: :class:`Atmosphere` ``(pupil, r0, layers, fs)`` for any profile (the one
+constructor); :func:`aocontrol.sim.profiles.eso_atmosphere` ``(pupil, seeing, tau0, fs)`` for
+the ESO median profile at a seeing and a coherence time, the atmosphere of the science cases
+(``aocontrol.study`` scenes build theirs with it).
 """
 
 from __future__ import annotations

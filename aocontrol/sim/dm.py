@@ -52,6 +52,7 @@ __all__ = [
     "ModalDM",
     "ModalDMState",
     "clip_to_stroke",
+    "modal_stroke",
     "MIN_PIXELS_PER_PITCH",
     "SAXO_N_ACTUATORS",
     "SAXO_PLUS_N_ACTUATORS",
@@ -161,8 +162,8 @@ class DeformableMirror:
         return float(np.log(self.coupling))
 
     @cached_property
-    def _grid(self) -> tuple[np.ndarray, np.ndarray]:
-        """Valid-actuator flags on the full grid and the valid actuators' (x, y) [m]."""
+    def positions(self) -> np.ndarray:
+        """``(x, y)`` of the valid actuators [m], shape ``(n_act, 2)``, full-grid row-major."""
         c = (np.arange(self.n_actuators) - (self.n_actuators - 1) / 2.0) * self.pitch
         ya, xa = np.meshgrid(c, c, indexing="ij")
         xa, ya = xa.ravel(), ya.ravel()
@@ -171,24 +172,13 @@ class DeformableMirror:
         r_in = self.pupil.obstruction * self.pupil.diameter / 2 - self.margin * self.pitch
         valid = (r <= r_out * (1 + 1e-12)) & (r >= r_in * (1 - 1e-12))
         pos = np.stack([xa[valid], ya[valid]], axis=1)
-        valid.setflags(write=False)
         pos.setflags(write=False)
-        return valid, pos
-
-    @property
-    def valid_grid(self) -> np.ndarray:
-        """Boolean map of the valid actuators, shape ``(n_actuators, n_actuators)``."""
-        return self._grid[0].reshape(self.n_actuators, self.n_actuators)
-
-    @property
-    def positions(self) -> np.ndarray:
-        """``(x, y)`` of the valid actuators [m], shape ``(n_act, 2)``."""
-        return self._grid[1]
+        return pos
 
     @property
     def n_act(self) -> int:
         """Number of valid actuators: the length of a command vector."""
-        return int(self._grid[1].shape[0])
+        return int(self.positions.shape[0])
 
     # ------------------------------------------------------------------ influence
     @cached_property
@@ -253,7 +243,7 @@ class DeformableMirror:
         ndarray, shape (..., n_act)
             Commands [nm] minimising ``mean((shape(c) - phase)^2)`` over the valid pixels.
         """
-        return _as_vectors(self.pupil, phase, "phase") @ self._fit_matrix
+        return self.pupil.as_vectors(phase, "phase") @ self._fit_matrix
 
     # ------------------------------------------------------------------ stroke
     def clip(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -311,6 +301,38 @@ def clip_to_stroke(values: np.ndarray, stroke: np.ndarray | float) -> tuple[np.n
     """
     over = np.abs(values) > stroke
     return np.clip(values, -stroke, stroke), over
+
+
+def modal_stroke(m2c: object, actuator_stroke: float) -> np.ndarray:
+    """Per-mode command bound [nm] that an actuator stroke implies, from the modes' shapes.
+
+    Mode ``i`` alone at amplitude ``u_i`` drives actuator ``a`` to ``m2c[a, i] u_i``: it stays
+    within ``+-actuator_stroke`` iff ``|u_i| <= actuator_stroke / max_a |m2c[a, i]|``. The one
+    place a modal bound is derived from the DM's stroke (the MPC's command limit in the case
+    comparison); a combination of modes may still reach the stroke earlier, where the DM
+    (:class:`ModalDM` with ``actuator_stroke``) clips.
+
+    Parameters
+    ----------
+    m2c : array_like, shape (n_act, n_modes)
+        Modes to actuator commands [nm of command per nm RMS of mode].
+    actuator_stroke : float
+        Largest |actuator command| [nm], > 0.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_modes,)
+        [nm RMS per mode]; ``inf`` for a mode that moves no actuator.
+
+    Examples
+    --------
+    >>> modal_stroke([[1.0, 0.5], [-2.0, 0.25]], 100.0)
+    array([ 50., 200.])
+    """
+    m2c = check_finite_array("m2c", m2c, ndim=2)
+    stroke = check_positive("actuator_stroke", actuator_stroke)
+    peak = np.max(np.abs(m2c), axis=0)
+    return np.where(peak > 0, stroke / np.where(peak > 0, peak, 1.0), np.inf)
 
 
 @dataclass(frozen=True, eq=False)
@@ -452,15 +474,3 @@ class ModalDMState:
     saturation: np.ndarray
     actuator_saturation: np.ndarray | None = None
 
-
-def _as_vectors(pupil: Pupil, data: np.ndarray, name: str) -> np.ndarray:
-    """``(..., n_pix, n_pix)`` maps or ``(..., n_valid)`` vectors -> ``(..., n_valid)``."""
-    arr = check_finite_array(name, data)
-    if arr.ndim >= 1 and arr.shape[-1] == pupil.n_valid:
-        return arr
-    if arr.ndim >= 2 and arr.shape[-2:] == (pupil.n_pix, pupil.n_pix):
-        return pupil.to_vector(arr)
-    raise ValueError(
-        f"{name} must end with ({pupil.n_pix}, {pupil.n_pix}) (maps) or n_valid="
-        f"{pupil.n_valid} (vectors on valid pixels), got shape {arr.shape}"
-    )

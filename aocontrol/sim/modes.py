@@ -45,8 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
-from aocontrol._validation import check_finite_array, check_int, check_positive
-from aocontrol.sim.dm import DeformableMirror, _as_vectors
+from aocontrol._validation import check_finite_array, check_instance, check_int, check_positive
+from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.turbulence import opd_per_radian, structure_function
 
@@ -154,7 +154,7 @@ class ModalBasis:
             Coefficients [nm RMS], ``v @ modes.T / n_valid``. Piston is ignored (modes are
             piston-free).
         """
-        v = _as_vectors(self.pupil, phase, "phase")
+        v = self.pupil.as_vectors(phase, "phase")
         return v @ self.modes.T / self.pupil.n_valid
 
     def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
@@ -192,7 +192,7 @@ class ModalBasis:
             of ``phase`` (not in the basis) stays in the residual; subtract the mean for a
             piston-free residual.
         """
-        v = _as_vectors(self.pupil, phase, "phase")
+        v = self.pupil.as_vectors(phase, "phase")
         return v - (v @ self.modes.T / self.pupil.n_valid) @ self.modes
 
     def commands(self, coeffs: np.ndarray) -> np.ndarray:
@@ -312,6 +312,7 @@ def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1, L0: float = 25
     >>> bool(np.allclose(gram, np.eye(50), atol=1e-10))
     True
     """
+    check_instance("dm", dm, DeformableMirror)
     n_modes = check_int("n_modes", n_modes, minimum=1)
     r0 = check_positive("r0", r0)
     L0 = check_positive("L0", L0)
@@ -422,6 +423,7 @@ def fitting_error(basis: ModalBasis, r0: float, L0: float = 25.0) -> float:
     float
         Residual variance [nm^2 of OPD]; divide by ``opd_per_radian()**2`` for rad^2 at 500 nm.
     """
+    check_instance("basis", basis, ModalBasis)
     r0 = check_positive("r0", r0)
     L0 = check_positive("L0", L0)
     pupil = basis.pupil

@@ -14,7 +14,13 @@ from functools import cached_property
 
 import numpy as np
 
-from aocontrol._validation import check_in_range, check_int, check_nonnegative, check_positive
+from aocontrol._validation import (
+    check_finite_array,
+    check_in_range,
+    check_int,
+    check_nonnegative,
+    check_positive,
+)
 
 __all__ = ["Pupil", "vlt_pupil"]
 
@@ -114,6 +120,38 @@ class Pupil:
                 f"maps must end with shape ({self.n_pix}, {self.n_pix}), got {maps.shape}"
             )
         return maps.reshape(*maps.shape[:-2], -1)[..., self.index]
+
+    def as_vectors(self, data: object, name: str = "data") -> np.ndarray:
+        """``(..., n_pix, n_pix)`` maps or ``(..., n_valid)`` vectors -> ``(..., n_valid)``.
+
+        The one reader of "a phase on this pupil, as maps or as valid-pixel vectors" (the
+        mirror's fit and the modal basis' projection use it).
+
+        Parameters
+        ----------
+        data : array_like, shape (..., n_pix, n_pix) or (..., n_valid)
+            Finite values.
+        name : str, default "data"
+            Argument name for the messages (e.g. ``"phase"``).
+
+        Returns
+        -------
+        numpy.ndarray, shape (..., n_valid)
+
+        Raises
+        ------
+        ValueError
+            Non-finite values, or a shape that ends with neither.
+        """
+        arr = check_finite_array(name, data)
+        if arr.ndim >= 1 and arr.shape[-1] == self.n_valid:
+            return arr
+        if arr.ndim >= 2 and arr.shape[-2:] == (self.n_pix, self.n_pix):
+            return self.to_vector(arr)
+        raise ValueError(
+            f"{name} must end with ({self.n_pix}, {self.n_pix}) (maps) or n_valid="
+            f"{self.n_valid} (vectors on valid pixels), got shape {arr.shape}"
+        )
 
     def to_map(self, vectors: np.ndarray) -> np.ndarray:
         """``(..., n_valid)`` values -> ``(..., n_pix, n_pix)`` maps, zero outside the pupil."""

@@ -61,7 +61,8 @@ def two_pass_scene(
     seconds : float
         Length of the first pass [s] (after the start-up).
     seed : int
-        Seed of the first pass (use another than the exposure's).
+        User seed; the first pass draws from its ``"two_pass"`` stream
+        (:mod:`aocontrol.study._seeds`), independent of the exposure's.
     n_screens : int
         Residual maps averaged.
 
@@ -76,14 +77,14 @@ def two_pass_scene(
         If stage 2 has no diffractive model.
     """
     from aocontrol.sim.wfs import optical_gains
-    from aocontrol.study.compare import _simulate  # the comparison's own run (no copy)
+    from aocontrol.study.compare import simulate_scene  # the comparison's own run (no copy)
 
     st = scene.stage2
     if st.wfs is None or st.calibration is None:
         raise ValueError(f"two-pass optical gains need a pyramid stage 2, got {st.spec.wfs!r}")
     sample = _MapSample(n_screens)
     ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
-    _simulate(scene, ref, scheme, seconds, seed, science=sample, record=())
+    simulate_scene(scene, ref, scheme, seconds, seed, "two_pass", science=sample, record=())
     maps = sample.result()
     og = optical_gains(
         st.wfs, st.basis, maps, amplitude=10.0, recon=st.calibration.recon, method="derivative"

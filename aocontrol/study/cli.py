@@ -181,7 +181,7 @@ def _run(args: argparse.Namespace) -> int:
 
     compare = _compare_module()
     case = _check_case(args.case)
-    controller = _valid_name("controller", args.controller, compare.CONTROLLERS)
+    controller = _valid_name("controller", args.controller, compare.controller_names())
     scheme = _valid_name("scheme", args.scheme, compare.SCHEMES)
     if args.seconds is not None and not args.seconds > 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
@@ -510,9 +510,9 @@ def _design_telemetry(args: argparse.Namespace) -> Any:
 def _design(args: argparse.Namespace) -> int:
     from aocontrol.analysis import sensitivity
     from aocontrol.controllers import save_controller
-    from aocontrol.synthesis import CONTROLLERS, design_from_telemetry
+    from aocontrol.synthesis import controller_names, design_from_telemetry, get_controller
 
-    controller = _valid_name("controller", args.controller, sorted(CONTROLLERS))
+    controller = _valid_name("controller", args.controller, sorted(controller_names()))
     telemetry = _design_telemetry(args)
     given = {
         "order": args.order,
@@ -521,7 +521,7 @@ def _design(args: argparse.Namespace) -> int:
         "progress": not args.no_progress,
     }
     # The registry says which options a design reads; the CLI offers them all.
-    options = {k: v for k, v in given.items() if k in CONTROLLERS[controller].options}
+    options = {k: v for k, v in given.items() if k in get_controller(controller).options}
     bounds = () if args.bounds == "none" else tuple(args.bounds.split(","))
     rep = design_from_telemetry(
         telemetry,

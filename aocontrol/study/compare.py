@@ -40,6 +40,7 @@ import numpy as np
 
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import ControllerBank, Integrator
+from aocontrol.sim.dm import modal_stroke
 from aocontrol.sim.loop import (
     LoopResult,
     PhaseSource,
@@ -49,12 +50,16 @@ from aocontrol.sim.loop import (
     run_loop,
 )
 from aocontrol.study._registry import (
+    CONTROLLER_ALIASES,
     CONTROLLERS,
     MODULUS_MARGIN,
     ControllerSpec,
     DesignInputs,
+    controller_names,
+    get_controller,
     register_controller,
 )
+from aocontrol.study._seeds import seed_sequence, seed_streams
 from aocontrol.study._two_pass import two_pass_scene
 from aocontrol.study.cases import Case, apply_overrides, load_case
 from aocontrol.study.scene import Scene, StageScene, build_scene
@@ -66,6 +71,8 @@ from aocontrol.synthesis import (
 
 __all__ = [
     "CONTROLLERS",
+    "CONTROLLER_ALIASES",
+    "controller_names",
     "GAIN_GRID",
     "SCHEMES",
     "CaseComparison",
@@ -124,12 +131,10 @@ class RunOutcome:
 
 
 def _version() -> str:
-    try:
-        from importlib.metadata import version
+    """The package version, from its one source (``aocontrol.__version__``)."""
+    from aocontrol import __version__
 
-        return version("aocontrol")
-    except Exception:  # pragma: no cover - not installed
-        return "unknown"
+    return __version__
 
 
 def _frames(scene: Scene, seconds: float) -> int:
@@ -140,13 +145,13 @@ def _frames(scene: Scene, seconds: float) -> int:
 
 def _stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
     # The sensor in the loop and its optical-gain handling: the case's stage settings.
-    stroke = st.spec.dm_stroke
+    stroke = st.spec.dm_stroke_nm
     sensor, tracker = st.loop_sensor()
     return Stage(
         controller,
         sensor,
         st.spec.latency_frames,
-        dm_stroke=None if stroke is None else stroke * 1e9,
+        dm_stroke=stroke,
         name=name,
         basis=st.basis,
         gain_tracker=tracker,
@@ -161,22 +166,56 @@ def _source(scene: Scene, rng: np.random.Generator, scheme: str) -> Any:
     return PhaseSource(atm, vib) if vib else atm
 
 
-def _simulate(
+def simulate_scene(
     scene: Scene,
     controller: ControllerBank,
     scheme: str,
     seconds: float,
     seed: int,
+    purpose: str,
     *,
     science: Any = True,
     record: tuple[str, ...] = ("measurements", "commands", "residuals"),
     progress: bool = False,
     metadata: dict | None = None,
 ) -> Any:
+    """One run of a scene: stage 2 with ``controller`` (and stage 1's integrator in a cascade).
+
+    Internal to the study layer (the comparison's runs and the two-pass calibration share
+    it; not in ``__all__``). The atmosphere and the noise draw from the ``purpose`` stream
+    of ``seed`` (:func:`aocontrol.study._seeds.seed_sequence`).
+
+    Parameters
+    ----------
+    scene : Scene
+    controller : ControllerBank
+        Stage 2's controller.
+    scheme : str
+        One of :data:`SCHEMES`.
+    seconds : float
+        Length after the start-up [s].
+    seed : int
+        User seed.
+    purpose : str
+        Its stream (``"exposure"``, ``"calibration"``, ``"gain_scan"``, ``"two_pass"``).
+    science : bool or accumulator, default True
+        The science camera (True), none (False), or an object with ``add(maps)`` and
+        ``result()``.
+    record : tuple of str
+        Telemetry recorded.
+    progress : bool
+        Progress bar.
+    metadata : dict, optional
+        Stored in the result.
+
+    Returns
+    -------
+    LoopResult or CascadeResult
+    """
     sci = scene.case.science
     settle = _frames(scene, sci.startup)
     n = settle + _frames(scene, seconds)
-    seeds = np.random.SeedSequence([seed, 7])
+    seeds = seed_sequence(seed, purpose)
     atm_rng, noise_rng = (np.random.default_rng(s) for s in seeds.spawn(2))
     # science: True for the camera, False for none, or an accumulator (add(maps), result()).
     camera = scene.camera().long_exposure() if science is True else (science or None)
@@ -241,9 +280,7 @@ def _sensor_overrides(sensor: str | None, optical_gain: str | None) -> dict:
 def _check_names(controller: str, scheme: str) -> ControllerSpec:
     if scheme not in SCHEMES:
         raise ValueError(f"scheme must be one of {list(SCHEMES)}, got {scheme!r}")
-    if controller not in CONTROLLERS:
-        raise ValueError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-    return CONTROLLERS[controller]
+    return get_controller(controller)
 
 
 def prewhitened_disturbance(
@@ -302,7 +339,8 @@ def design_inputs(
     seconds : float
         Length of the calibration run [s] (after the start-up).
     seed : int
-        Seed of the run (use another than the exposure's: independent data).
+        User seed; the run draws from its ``"calibration"`` stream
+        (:mod:`aocontrol.study._seeds`), independent of every exposure's.
     estimator : {"prewhitened", "welch"}
         Disturbance estimator (``method`` of
         :func:`aocontrol.synthesis.disturbance_from_telemetry`).
@@ -313,12 +351,13 @@ def design_inputs(
     """
     st = scene.stage2
     ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
-    res = _simulate(scene, ref, scheme, seconds, seed, science=False)
+    res = simulate_scene(scene, ref, scheme, seconds, seed, "calibration", science=False)
     r2 = _stage2_result(res)
     k = r2.settle_frames
     m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
     u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
     tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=estimator)
+    stroke_nm = st.spec.dm_stroke_nm
     return DesignInputs(
         plant=st.plant,
         freqs=tel.freqs,
@@ -328,7 +367,7 @@ def design_inputs(
         n_modes=st.n_modes,
         reference_gain=float(gain),
         telemetry=tel,
-        stroke=None if st.spec.dm_stroke is None else float(st.spec.dm_stroke) * 1e9,
+        stroke=None if stroke_nm is None else modal_stroke(st.basis.m2c, stroke_nm),
     )
 
 
@@ -360,7 +399,10 @@ def run_configuration(
     seconds : float
         Exposure after the case's start-up [s].
     seed : int
-        Seed of the atmosphere and noise (the calibration run uses ``seed + 1000``).
+        User seed. The exposure draws the atmosphere and noise from its ``"exposure"``
+        stream, the calibration run from its ``"calibration"`` stream
+        (``SeedSequence([seed, purpose])``, :mod:`aocontrol.study._seeds`); the settings
+        record both as ``seed_streams``.
     overrides : dict, optional
         Case values replaced, e.g. ``{"seeing": 0.6, "stage2.fs": 1500}``.
     quick : bool
@@ -373,7 +415,7 @@ def run_configuration(
         Stage 2's sensor in the loop (default the case's ``[stage2] sensor``, "linear").
     optical_gain : {"none", "calibrated", "tracked", "two-pass"}, optional
         Stage 2's optical-gain handling (default the case's, "calibrated"); "two-pass" first
-        runs :func:`two_pass_scene` (seed ``seed + 3000``).
+        runs :func:`two_pass_scene` (its ``"two_pass"`` stream of ``seed``).
 
     Returns
     -------
@@ -396,10 +438,10 @@ def run_configuration(
     gain = c.stage2.gain
     if c.stage2.optical_gain == "two-pass":
         cal = calibration_seconds(scene, quick)
-        scene = two_pass_scene(scene, scheme, gain, seconds=cal, seed=seed + 3000)
+        scene = two_pass_scene(scene, scheme, gain, seconds=cal, seed=seed)
     if design is None and spec.needs_telemetry:
         cal = calibration_seconds(scene, quick)
-        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed + 1000)
+        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed)
     if design is None:
         st = scene.stage2
         design = DesignInputs(
@@ -423,12 +465,20 @@ def run_configuration(
         "scheme": scheme,
         "seconds": float(seconds),
         "seed": int(seed),
+        "seed_streams": seed_streams(
+            seed,
+            ("exposure",)
+            + (("calibration",) if spec.needs_telemetry else ())
+            + (("two_pass",) if c.stage2.optical_gain == "two-pass" else ()),
+        ),
         "quick": bool(quick),
         "scene": scene.settings(),
         "version": _version(),
     }
     t0 = time.perf_counter()
-    res = _simulate(scene, ctrl, scheme, seconds, seed, progress=progress, metadata=settings)
+    res = simulate_scene(
+        scene, ctrl, scheme, seconds, seed, "exposure", progress=progress, metadata=settings
+    )
     summary = _summary(res)
     summary.update(design_seconds=t_design, run_seconds=time.perf_counter() - t0)
     return RunOutcome(res, settings, summary, ctrl, design)
@@ -608,7 +658,9 @@ def compare_case(
     seconds : float, optional
         Exposure [s]; default the case's (5 s), 0.5 s in quick mode.
     seed : int
-        Exposures use ``seed``, the calibration run ``seed + 1000``, the scan ``seed + 2000``.
+        User seed: exposures, the calibration run and the gain scan draw from its
+        ``"exposure"``, ``"calibration"`` and ``"gain_scan"`` streams
+        (``SeedSequence([seed, purpose])``, :mod:`aocontrol.study._seeds`).
     quick : bool
         Quick scene, scan grid :data:`QUICK_GAIN_GRID`, short runs.
     gain_grid : sequence of float, optional
@@ -648,16 +700,14 @@ def compare_case(
         scan = []
         for g in grid:
             ref = Integrator(g, fs=scene.stage2.fs, n_modes=scene.stage2.n_modes)
-            r = _simulate(scene, ref, scheme, scan_s, seed + 2000, record=())
+            r = simulate_scene(scene, ref, scheme, scan_s, seed, "gain_scan", record=())
             scan.append((g, float(r.science.mean_contrast_4_6)))
         best = min(scan, key=lambda x: x[1])[0]
         gains[scheme], scans[scheme] = best, scan
         timing["scan"] += time.perf_counter() - t0
         logger.info("%s %s: reference gain %.2f (scan %s)", c.name, scheme, best, scan)
         t0 = time.perf_counter()
-        design = design_inputs(
-            scene, scheme, best, seconds=cal_s, seed=seed + 1000, estimator=estimator
-        )
+        design = design_inputs(scene, scheme, best, seconds=cal_s, seed=seed, estimator=estimator)
         designs[scheme] = design
         timing["calibration"] += time.perf_counter() - t0
         for name in controllers:
@@ -674,6 +724,8 @@ def compare_case(
                 design=design,
             )
             timing["runs"] += time.perf_counter() - t0
+            # The reference gain came from the scan: its stream belongs to this run's record.
+            out.settings["seed_streams"].update(seed_streams(seed, ("gain_scan",)))
             sci = out.result.science
             path = _save(out, rd, f"{c.name}_{scheme}_{name}")
             cells.append(

@@ -58,7 +58,7 @@ from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.loop import DitherGainTracker, projection_matrix
 from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
 from aocontrol.sim.noise import photons_per_frame
-from aocontrol.sim.profiles import eso_median_profile, scale_to_tau0
+from aocontrol.sim.profiles import eso_atmosphere, eso_median_profile, scale_to_tau0
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.science import ScienceCamera
 from aocontrol.sim.turbulence import r0_from_seeing
@@ -74,6 +74,7 @@ from aocontrol.sim.wfs import (
     shack_hartmann_calibration,
 )
 from aocontrol.study._cache import cached as disk_cached
+from aocontrol.study._seeds import seed_sequence
 from aocontrol.study.cases import Case, StageSpec, apply_overrides, load_case
 
 __all__ = ["QUICK_MODES", "Scene", "StageScene", "build_scene", "clear_scene_cache"]
@@ -279,12 +280,14 @@ class Scene:
         fs : float, optional
             Frame rate [Hz]; default stage 2's.
         """
-        return Atmosphere(
+        atm = self.case.atmosphere
+        return eso_atmosphere(
             self.pupil,
-            self.r0,
-            list(self.layers),
+            atm.seeing,
+            atm.tau0,
             self.stage2.fs if fs is None else fs,
-            L0=self.case.atmosphere.L0,
+            n_layers=atm.simulated_layers,
+            L0=atm.L0,
             rng=rng,
             dtype=np.float32,
         )
@@ -383,7 +386,8 @@ def build_scene(
     cache : bool
         Reuse a scene built for the same case values and ``quick``.
     rng : int
-        Seed of the residual screens of the optical-gain calibration.
+        Seed of the residual screens of the optical-gain calibration (its
+        ``"optical_gain_screens"`` stream, :mod:`aocontrol.study._seeds`).
 
     Returns
     -------
@@ -452,7 +456,7 @@ def _build_geometry(c: Case, quick: bool, rng: int) -> dict:
     finer = b1 if n1 >= n2 else b2
     fit_rms = math.sqrt(fitting_error(finer, r0, c.atmosphere.L0))
     cutoff = (max(c.stage1.n_actuators, c.stage2.n_actuators) - 1) / (2 * sim.diameter)
-    gen = np.random.default_rng(rng)
+    gen = np.random.default_rng(seed_sequence(rng, "optical_gain_screens"))
     out = {"pupil": pupil, "r0": r0, "projection": projection_matrix(b1, b2)}
     for name, spec, dm, basis in (("stage1", c.stage1, dm1, b1), ("stage2", c.stage2, dm2, b2)):
         if spec.wfs == "pyramid":

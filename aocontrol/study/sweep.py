@@ -38,8 +38,10 @@ calibrations are also cached on disk, :mod:`aocontrol.study._cache`, so that a s
 one worker or an earlier sweep is read, not built again). Start one sweep per folder at a time:
 a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
-The summary table (:func:`summary_table`, one row per file, also written to
-``out/summary.csv``) is rebuilt from the files alone.
+The sweep's table (:func:`sweep_table`, one row per file, also written to
+``out/summary.csv``) is rebuilt from the files alone. (It was ``summary_table``, a name it
+shared with :func:`aocontrol.study.results.summary_table`, which takes a list of files: that
+name here is deprecated.)
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ import sys
 import time
 import traceback
 import uuid
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -88,6 +91,7 @@ __all__ = [
     "load_sweep_spec",
     "run_hash",
     "run_sweep",
+    "sweep_table",
     "summary_table",
     "default_runner",
     "blas_threads_per_worker",
@@ -203,7 +207,7 @@ def default_runner() -> SweepRunner:
 
     valid = {
         "cases": tuple(list_cases()),
-        "controllers": tuple(compare.CONTROLLERS),
+        "controllers": compare.controller_names(),
         "schemes": tuple(compare.SCHEMES),
     }
     return SweepRunner(
@@ -323,7 +327,7 @@ class SweepReport:
     failed : tuple of (str, str)
         ``(hash, error)`` of the runs that raised (``<hash>.error.json`` has the details).
     table : tuple of dict
-        :func:`summary_table` of the folder after the sweep.
+        :func:`sweep_table` of the folder after the sweep.
     wall_s : float
         Wall-clock time of the sweep [s], cluster start-up included.
     """
@@ -613,7 +617,7 @@ def run_sweep(
     partial = out / PARTIAL_DIR
     if partial.is_dir() and not any(partial.iterdir()):
         partial.rmdir()
-    table = summary_table(out, runner=runner)
+    table = sweep_table(out, runner=runner)
     return SweepReport(
         out=out,
         ran=tuple(ran),
@@ -640,6 +644,43 @@ _FIRST = ("hash", "status", "case", "controller", "scheme", "seed", "seconds", "
 
 
 def summary_table(
+    out: str | os.PathLike,
+    *,
+    runner: SweepRunner | None = None,
+    csv_path: str | os.PathLike | None = "summary.csv",
+) -> list[dict]:
+    """Deprecated name of :func:`sweep_table` (same arguments, same rows).
+
+    :func:`aocontrol.study.results.summary_table` (a list of files) keeps the name.
+
+    Parameters
+    ----------
+    out : path
+        Results folder of a sweep.
+    runner : SweepRunner, optional
+        As in :func:`sweep_table`.
+    csv_path : path or None, default "summary.csv"
+        As in :func:`sweep_table`.
+
+    Returns
+    -------
+    list of dict
+
+    Warns
+    -----
+    DeprecationWarning
+        Always, pointing to :func:`sweep_table`.
+    """
+    warnings.warn(
+        "aocontrol.study.sweep.summary_table is deprecated: use sweep_table(out) (the name "
+        "summary_table belongs to aocontrol.study.results.summary_table(paths))",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return sweep_table(out, runner=runner, csv_path=csv_path)
+
+
+def sweep_table(
     out: str | os.PathLike,
     *,
     runner: SweepRunner | None = None,

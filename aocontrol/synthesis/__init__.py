@@ -24,11 +24,14 @@ from aocontrol.synthesis._modal_gain import (
 from aocontrol.synthesis._mpc import mpc
 from aocontrol.synthesis._pipeline import BOUNDS, design_from_telemetry
 from aocontrol.synthesis._registry import (
+    CONTROLLER_ALIASES,
     CONTROLLERS,
     MODULUS_MARGIN,
     MPC_HORIZON,
     ControllerSpec,
     DesignInputs,
+    controller_names,
+    get_controller,
     register_controller,
 )
 from aocontrol.synthesis._telemetry import (
@@ -43,6 +46,9 @@ from aocontrol.synthesis._telemetry import (
 __all__ = [
     "BOUNDS",
     "CONTROLLERS",
+    "CONTROLLER_ALIASES",
+    "controller_names",
+    "get_controller",
     "ControllerSpec",
     "DesignInputs",
     "ESTIMATORS",

@@ -24,6 +24,7 @@ from aocontrol._validation import (
 )
 from aocontrol.synthesis._armodel import (
     DisturbanceModel,
+    _ar2_denominator,
     _ar2_psd,
     _finite_rows,
     _resonator,
@@ -37,6 +38,21 @@ logger = logging.getLogger(__name__)
 # Bounds of the turbulence's reflection coefficients in the fit, atanh scale: tanh(15) =
 # 1 - 1.9e-13, so a fitted pole cannot reach the unit circle by the optimiser's rounding.
 _ATANH_BOUND = 15.0
+# Bounds of the fitted log-variances, as natural-log offsets from the log of the mode's PSD
+# variance: a driving variance is at most the process variance and, with the reflection
+# coefficients within tanh(15), at least ~1e-26 of it (e^-60); a resonance carries at most
+# the whole variance and below e^-40 of it is nothing. The optimisers keep them (exp() stays
+# finite on every iterate), except the driving variance of the joint refinement (L-BFGS-B):
+# a bound there, however loose, changes its path (its subspace steps treat bounded variables
+# apart) and lost the strongest resonance of a two-peak spectrum to a misfit; that one is
+# capped in the map (``_LOG_S2_CAP``) instead.
+_LOG_VAR_BOUNDS = {"driving": (-70.0, 5.0), "resonance": (-40.0, 5.0)}
+# Largest natural-log driving variance the parameter map evaluates: e^300 ~ 1e130 keeps the
+# PSD (<= 2 s2 / fs / 1e-30) and its gradient (one more 1 / |A|^2) below the float range.
+_LOG_S2_CAP = 300.0
+# The Whittle objective's model spectrum is floored at this fraction of the largest target
+# value (the rounding level of a spectrum): target / S and target / S^2 stay finite.
+_SPECTRUM_FLOOR = 1e-15
 # Fitted damping ratios are kept within these bounds (a resonance narrower than 1e-5 is not
 # resolved by any telemetry record; one wider than 0.9 is not a resonance).
 _XI_BOUNDS = (1e-5, 0.9)
@@ -71,9 +87,13 @@ def _yule_walker_ar2(r: np.ndarray) -> tuple[float, float, float]:
 
 
 def _turb_from_params(p: np.ndarray) -> tuple[float, float, float]:
-    """(a1, a2, s_w^2) from (atanh k1, atanh k2, log s_w^2): always a stable AR(2)."""
+    """(a1, a2, s_w^2) from (atanh k1, atanh k2, log s_w^2): always a stable AR(2).
+
+    ``log s_w^2`` is capped at ``_LOG_S2_CAP`` (an unbounded optimiser's trial step cannot
+    overflow; the fits' solutions lie far below it, within ``_LOG_VAR_BOUNDS``).
+    """
     k1, k2 = np.tanh(p[0]), np.tanh(p[1])
-    return float(k1 * (1 - k2)), float(k2), float(np.exp(p[2]))
+    return float(k1 * (1 - k2)), float(k2), float(np.exp(min(p[2], _LOG_S2_CAP)))
 
 
 def _turb_params(a1: float, a2: float, s2: float) -> np.ndarray:
@@ -97,10 +117,10 @@ def _ar2_psd_grad(
     """PSD ``M`` of one AR(2) component and ``dM / d(c1, c2, log s2)``, shape ``(3, n)``.
 
     ``M = 2 s2 / fs / |A|^2``, ``A = 1 - c1 z^-1 - c2 z^-2``:
-    ``dM/dc = 2 M Re(z^-i conj(A)) / |A|^2`` (i = 1, 2), ``dM/dlog s2 = M``.
+    ``dM/dc = 2 M Re(z^-i conj(A)) / |A|^2`` (i = 1, 2), ``dM/dlog s2 = M``; ``|A|^2``
+    floored at the rounding level (:func:`aocontrol.synthesis._armodel._ar2_denominator`).
     """
-    a = 1 - c1 * zi - c2 * zi * zi
-    a2 = (a * np.conj(a)).real
+    a, a2 = _ar2_denominator(np.asarray(c1), np.asarray(c2), zi)
     m = 2 * s2 / fs / a2
     ca = np.conj(a)
     d = np.empty((3, zi.size))
@@ -139,6 +159,13 @@ def _vib_jacobian(q: np.ndarray, fs: float) -> np.ndarray:
     return jac
 
 
+def _log_var_bounds(kind: str, variance: float) -> tuple[float, float]:
+    """Bounds of a fitted natural-log variance around ``log(variance)`` (``_LOG_VAR_BOUNDS``)."""
+    lo, hi = _LOG_VAR_BOUNDS[kind]
+    centre = float(np.log(variance))
+    return centre + lo, centre + hi
+
+
 def _log_weights(freqs: np.ndarray) -> np.ndarray:
     """Quadrature weights of the log-frequency measure ``df / f`` (0 Hz as half the first bin)."""
     pos = freqs[freqs > 0]
@@ -155,6 +182,7 @@ def _fit_turbulence(
     fs: float,
     start: tuple[float, float, float],
     ratio: float,
+    variance: float,
 ) -> tuple[float, float, float]:
     """AR(2) ``(a1, a2, s_w^2)`` fitting the smooth part of ``p`` in log scale.
 
@@ -168,7 +196,8 @@ def _fit_turbulence(
     keep = np.ones(freqs.size, dtype=bool)
     x = _turb_params(*start)
     lim = (-_ATANH_BOUND, _ATANH_BOUND)
-    bounds = ([lim[0], lim[0], -np.inf], [lim[1], lim[1], np.inf])
+    lv = _log_var_bounds("driving", variance)
+    bounds = ([lim[0], lim[0], lv[0]], [lim[1], lim[1], lv[1]])
     x = np.clip(x, np.array(bounds[0]) + 1e-9, np.array(bounds[1]) - 1e-9)
     for _ in range(_MASK_ITER):
 
@@ -224,7 +253,7 @@ def _fit_mode(
             f"(lag-1 correlation {r[1] / r[0]:.15g}: a constant or a random walk, not a "
             "stationary disturbance)"
         )
-    turb = _fit_turbulence(freqs, p, noise, zi, fs, _yule_walker_ar2(r), s.peak_ratio)
+    turb = _fit_turbulence(freqs, p, noise, zi, fs, _yule_walker_ar2(r), s.peak_ratio, r[0])
     mask = (p + noise) > s.peak_ratio * (_ar2_psd(*(np.asarray(v) for v in turb), zi, fs) + noise)
     model = _ar2_psd(*(np.asarray(v) for v in turb), zi, fs)
     excess = np.maximum(p - model, 0.0)
@@ -259,10 +288,13 @@ def _fit_mode(
     bounds = [(-_ATANH_BOUND, _ATANH_BOUND)] * 2 + [(None, None)]
     for var, f0, xi, lo, hi in cands:
         x0.append([f0, np.log(xi), np.log(var)])
-        bounds += [(lo, hi), tuple(np.log(_XI_BOUNDS)), (None, None)]
+        bounds += [(lo, hi), tuple(np.log(_XI_BOUNDS)), _log_var_bounds("resonance", r[0])]
     x0 = np.concatenate(x0)
+    lo_b, hi_b = ([np.inf * (2 * j - 1) if b[j] is None else b[j] for b in bounds] for j in (0, 1))
+    x0 = np.clip(x0, lo_b, hi_b)
     target = p + noise
     scale = float(np.sum(w * target))
+    s_floor = _SPECTRUM_FLOOR * float(np.max(target))
 
     def unpack(x: np.ndarray):
         a1, a2, s2 = _turb_from_params(x[:3])
@@ -280,9 +312,9 @@ def _fit_mode(
             mv, dmv = mv * np.exp(c[2]), dmv * np.exp(c[2])
             total = total + mv
             parts.append((dmv, _vib_jacobian(q, fs)))
-        sp = np.maximum(total, 1e-300)
+        sp = np.maximum(total, s_floor)
         value = float(np.sum(w * (np.log(sp / scale) + target / sp)))
-        dj = w * (1 / sp - target / (sp * sp))
+        dj = w * (1 - target / sp) / sp
         grad = np.concatenate([(dmx @ dj) @ jx for dmx, jx in parts])
         return value, grad
 

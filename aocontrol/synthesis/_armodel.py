@@ -63,7 +63,12 @@ def ar2_variance(a1: object, a2: object, driving_variance: object) -> np.ndarray
     return s2 * (1 - a2) / ((1 + a2) * ((1 - a2) ** 2 - a1 * a1))
 
 
-_TINY = np.finfo(float).tiny
+#: Floor of ``|A(z)|^2`` on the unit circle, ``A = 1 - a1 z^-1 - a2 z^-2``: the square of the
+#: rounding error of computing ``A`` (a few ulps of its terms, each at most 4 in modulus for
+#: a stable AR(2)). Below it the value is rounding noise; a trial pole on the unit circle (a
+#: fit's iterate may touch ``z = 1`` at 0 Hz) gives a large, finite PSD, never a division by
+#: zero or an overflow.
+_AR2_DENOMINATOR_FLOOR = (16 * np.finfo(float).eps) ** 2
 
 
 def _resonator(f0: np.ndarray, xi: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray]:
@@ -74,12 +79,34 @@ def _resonator(f0: np.ndarray, xi: np.ndarray, fs: float) -> tuple[np.ndarray, n
     return 2 * r * np.cos(theta), -r * r
 
 
+def _ar2_denominator(
+    a1: np.ndarray, a2: np.ndarray, zi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``A = 1 - a1 z^-1 - a2 z^-2`` on ``zi`` and ``|A|^2`` floored at the rounding level.
+
+    The one evaluation of an AR(2) denominator for PSDs and their gradients
+    (:data:`_AR2_DENOMINATOR_FLOOR`).
+
+    Parameters
+    ----------
+    a1, a2 : numpy.ndarray, shape (...,)
+        AR coefficients.
+    zi : numpy.ndarray of complex, shape (n_freqs,)
+        ``exp(-2j pi f / fs)``.
+
+    Returns
+    -------
+    a : numpy.ndarray of complex, shape (..., n_freqs)
+    abs2 : numpy.ndarray, shape (..., n_freqs)
+        ``max(|A|^2, _AR2_DENOMINATOR_FLOOR)``.
+    """
+    a = 1 - a1[..., None] * zi - a2[..., None] * zi * zi
+    return a, np.maximum(a.real * a.real + a.imag * a.imag, _AR2_DENOMINATOR_FLOOR)
+
+
 def _ar2_psd(a1: np.ndarray, a2: np.ndarray, s2: np.ndarray, zi: np.ndarray, fs: float):
     """One-sided PSD of AR(2) components; coefficient arrays (...,), ``zi`` (n_freqs,)."""
-    den = np.abs(1 - a1[..., None] * zi - a2[..., None] * zi * zi) ** 2
-    # A trial pole on the unit circle (the fit's iterates may touch z = 1 at f = 0): a huge,
-    # finite PSD instead of a division by zero.
-    return 2 * s2[..., None] / fs / np.maximum(den, _TINY)
+    return 2 * s2[..., None] / fs / _ar2_denominator(a1, a2, zi)[1]
 
 
 def _ar2_stable(a1: np.ndarray, a2: np.ndarray) -> np.ndarray:

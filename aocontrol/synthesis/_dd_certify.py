@@ -22,7 +22,7 @@ from aocontrol.analysis import (
     modulus_certificate,
     winding_stability,
 )
-from aocontrol.analysis._margins import _winding_zeros
+from aocontrol.analysis import winding_zeros as _winding_zeros
 from aocontrol.plant import frequency_response, tf_from_z_inverse
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, Certifier, Check, GridData

@@ -36,7 +36,7 @@ from aocontrol._validation import (
     check_nonnegative,
     mode_psds,
 )
-from aocontrol.controllers._lqg import LQGBank, LQGStateSpace
+from aocontrol.controllers import LQGBank, LQGStateSpace
 from aocontrol.plant import plant_fs, split_latency, z_inverse_coefficients
 from aocontrol.synthesis._arfit import fit_disturbance_model
 from aocontrol.synthesis._armodel import DisturbanceModel

@@ -22,6 +22,7 @@ import numpy as np
 from scipy import optimize
 
 from aocontrol._validation import (
+    PerModeError,
     check_frequency_grid,
     check_in_range,
     is_programming_error,
@@ -29,7 +30,7 @@ from aocontrol._validation import (
 )
 from aocontrol.analysis import is_stable
 from aocontrol.controllers import Integrator
-from aocontrol.plant import _response, check_frd_coverage, plant_fs
+from aocontrol.plant import check_frd_coverage, frequency_response_unchecked, plant_fs
 
 __all__ = ["optimal_modal_gain", "integrator_gain_limit", "ModalGainError"]
 
@@ -52,7 +53,7 @@ _GOLDEN_XTOL = 1e-7
 _BLOCK = 256
 
 
-class ModalGainError(RuntimeError):
+class ModalGainError(PerModeError):
     """The gain optimisation failed numerically for some modes; the others are kept.
 
     Parameters
@@ -70,14 +71,13 @@ class ModalGainError(RuntimeError):
     """
 
     def __init__(self, failed: dict[int, str], result: Integrator) -> None:
-        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
-        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
         super().__init__(
-            f"optimal modal gain failed for {len(failed)} of {result.n_modes} modes: "
-            f"{lines}{more}; error.result holds every mode (failed ones at the fallback gain)"
+            failed,
+            result,
+            n_modes=result.n_modes,
+            operation="optimal modal gain",
+            note="; error.result holds every mode (failed ones at the fallback gain)",
         )
-        self.failed = failed
-        self.result = result
 
 
 def _dense_freqs(plant: object, fs: float) -> np.ndarray:
@@ -92,7 +92,7 @@ def _open_loop_unit(plant: object, freqs: np.ndarray, fs: float, leak: float) ->
     """``L1 = G / (1 - (1 - leak) z^-1)`` at ``freqs``; ``inf`` where the integrator is."""
     zi = np.exp(-2j * np.pi * freqs / fs)
     den = 1.0 - (1.0 - leak) * zi
-    G = _response(plant, np.atleast_1d(freqs), fs)  # plant validated by the caller
+    G = frequency_response_unchecked(plant, np.atleast_1d(freqs), fs)  # validated by caller
     out = np.full(freqs.shape, np.inf + 0j)
     ok = np.abs(den) > 0
     out[ok] = G[ok] / den[ok]

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import control
 
-from aocontrol.controllers._mpc import MPCBank
+from aocontrol.controllers import MPCBank
 from aocontrol.synthesis._armodel import DisturbanceModel
 from aocontrol.synthesis._lqg import lqg
 

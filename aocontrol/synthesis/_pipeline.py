@@ -32,7 +32,7 @@ from aocontrol.analysis import (
 from aocontrol.plant import loop_plant, plant_fs
 from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._modal_gain import optimal_modal_gain
-from aocontrol.synthesis._registry import CONTROLLERS, MODULUS_MARGIN, DesignInputs
+from aocontrol.synthesis._registry import MODULUS_MARGIN, DesignInputs, get_controller
 from aocontrol.synthesis._telemetry import LoopTelemetry, TelemetryPSD, disturbance_from_telemetry
 
 __all__ = ["BOUNDS", "design_from_telemetry"]
@@ -179,9 +179,7 @@ def design_from_telemetry(
     >>> rep.n_modes, bool(rep.stable.all())
     (2, True)
     """
-    if controller not in CONTROLLERS:
-        raise ValueError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
-    spec = CONTROLLERS[controller]
+    spec = get_controller(controller)
     modulus_margin = check_in_range(
         "modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False, high_inclusive=True
     )

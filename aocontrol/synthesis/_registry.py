@@ -9,7 +9,6 @@ integrator (alias ``integrator``), ``omgi``, ``datadriven``, ``lqg`` and ``mpc``
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -26,6 +25,9 @@ from aocontrol.synthesis._telemetry import TelemetryPSD
 
 __all__ = [
     "CONTROLLERS",
+    "CONTROLLER_ALIASES",
+    "controller_names",
+    "get_controller",
     "MODULUS_MARGIN",
     "MPC_HORIZON",
     "ControllerSpec",
@@ -60,8 +62,10 @@ class DesignInputs:
         Gain of the reference integrator (scanned, the case's or the user's).
     telemetry : TelemetryPSD or None
         The full estimate (pseudo-open loop included).
-    stroke : float or None
-        DM actuator stroke [units] (``None``: unlimited); the MPC's command limit.
+    stroke : float or ndarray of shape (n_modes,) or None
+        Per-mode command bound [units] (``None``: unlimited); the MPC's command limit. The
+        simulator gives the bound the DM's actuator stroke implies for each mode alone
+        (:func:`aocontrol.sim.dm.modal_stroke`, from ``m2c``).
     modulus_margin : float, default :data:`MODULUS_MARGIN`
         Required modulus margin of the designs that take one.
     options : mapping, default empty
@@ -77,7 +81,7 @@ class DesignInputs:
     n_modes: int
     reference_gain: float
     telemetry: TelemetryPSD | None = None
-    stroke: float | None = None
+    stroke: float | np.ndarray | None = None
     modulus_margin: float = MODULUS_MARGIN
     options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
 
@@ -185,10 +189,10 @@ def _lqg(inp: DesignInputs) -> ControllerBank:
 
 
 def _mpc(inp: DesignInputs) -> ControllerBank:
-    # The LQG's model and estimator, horizon 10 frames, the command limited to the DM stroke
-    # taken as a modal bound (a unit modal coefficient is 1 nm RMS over the pupil, so a mode
-    # at the stroke already exceeds it at some actuator: a loose limit; the DM still clips
-    # its actuators).
+    # The LQG's model and estimator, horizon 10 frames, each mode's command limited to
+    # inp.stroke (from the simulator: the bound the DM's actuator stroke implies for the mode
+    # alone, from m2c); modes combined may still reach the stroke at an actuator, where the
+    # DM clips.
     return mpc(
         inp.plant,
         inp.freqs,
@@ -202,6 +206,43 @@ def _mpc(inp: DesignInputs) -> ControllerBank:
 
 #: Registered controllers (name -> spec); see :func:`register_controller`.
 CONTROLLERS: dict[str, ControllerSpec] = {}
+
+
+#: Other names of registered controllers: one controller, one spec, one name in the results.
+CONTROLLER_ALIASES: dict[str, str] = {"integrator": "reference"}
+
+
+def controller_names() -> tuple[str, ...]:
+    """Every name a design or a run may ask for: the registered names, then the aliases.
+
+    Returns
+    -------
+    tuple of str
+    """
+    return (*CONTROLLERS, *(a for a in CONTROLLER_ALIASES if a not in CONTROLLERS))
+
+
+def get_controller(name: str) -> ControllerSpec:
+    """The registered spec of ``name`` (a registered name or an alias).
+
+    Parameters
+    ----------
+    name : str
+        E.g. ``"reference"`` or its alias ``"integrator"``.
+
+    Returns
+    -------
+    ControllerSpec
+
+    Raises
+    ------
+    ValueError
+        An unknown name (the message lists the valid ones).
+    """
+    spec = CONTROLLERS.get(name) or CONTROLLERS.get(CONTROLLER_ALIASES.get(name, ""))
+    if spec is None:
+        raise ValueError(f"controller must be one of {sorted(controller_names())}, got {name!r}")
+    return spec
 
 
 def register_controller(spec: ControllerSpec, *, replace: bool = False) -> None:
@@ -227,7 +268,6 @@ def register_controller(spec: ControllerSpec, *, replace: bool = False) -> None:
 
 _REF = ControllerSpec("reference", _reference, needs_telemetry=False, parameters={"scan": True})
 register_controller(_REF)
-register_controller(dataclasses.replace(_REF, name="integrator"))
 register_controller(ControllerSpec("omgi", _omgi, parameters={"modulus_margin": MODULUS_MARGIN}))
 register_controller(
     ControllerSpec(

@@ -30,7 +30,7 @@ from aocontrol._validation import (
     check_nonnegative,
     check_positive,
 )
-from aocontrol.analysis._psd import welch_psd
+from aocontrol.analysis import welch_psd
 from aocontrol.plant import plant_fs, z_inverse_coefficients
 
 __all__ = [

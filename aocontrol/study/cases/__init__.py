@@ -295,6 +295,15 @@ class StageSpec:
     sensor: str = "linear"
     optical_gain: str = "calibrated"
 
+    @property
+    def dm_stroke_nm(self) -> float | None:
+        """Actuator stroke [nm of OPD] (``None``: unlimited).
+
+        The one metres-to-nanometres conversion of the stroke: cases give SI units, the
+        simulator and the controllers work in nm (wavefronts as optical path in nm).
+        """
+        return None if self.dm_stroke is None else float(self.dm_stroke) * 1e9
+
 
 @dataclass(frozen=True)
 class ScienceSpec:
