@@ -130,7 +130,7 @@ def code_fingerprint() -> str:
     """Hash of the package, numpy and scipy versions and the calibration code's source.
 
     Computed once per process: the source files of ``aocontrol/sim`` (every sub-folder),
-    ``aocontrol/study/scene.py``, this module and ``aocontrol/study/cases``.
+    ``aocontrol/study/scene.py`` and ``_seeds.py``, this module and ``aocontrol/study/cases``.
     """
     global _fingerprint
     if _fingerprint is None:
@@ -145,7 +145,9 @@ def code_fingerprint() -> str:
         h.update(f"{version}|{numpy.__version__}|{scipy.__version__}".encode())
         files = sorted(root.joinpath("sim").rglob("*.py"))
         files += sorted(root.joinpath("study", "cases").rglob("*.py"))
-        files += [root / "study" / "scene.py", pathlib.Path(__file__).resolve()]
+        # The scene's seeds by purpose (study/_seeds.py) set its optical-gain screens.
+        files += [root / "study" / "scene.py", root / "study" / "_seeds.py"]
+        files += [pathlib.Path(__file__).resolve()]
         for path in files:
             h.update(path.relative_to(root).as_posix().encode())
             h.update(path.read_bytes())
