@@ -105,7 +105,7 @@ def test_one_registry_for_study_and_synthesis(telemetry):
     # The comparison's registry is the control layer's: a controller registered through
     # study is designed by design_from_telemetry.
     assert compare.CONTROLLERS is CONTROLLERS and compare.DesignInputs is DesignInputs
-    spec = ControllerSpec("half-integrator-test", lambda inp: CONTROLLERS["integrator"].design(
+    spec = ControllerSpec("half-integrator-test", lambda inp: CONTROLLERS["reference"].design(
         dataclasses.replace(inp, reference_gain=0.25)))  # fmt: skip
     compare.register_controller(spec)
     try:
