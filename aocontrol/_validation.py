@@ -308,8 +308,8 @@ class PerModeError(RuntimeError):
     A per-mode design or bound keeps every mode that succeeded: the error carries them in
     ``result`` and names the failed modes with their reasons in ``failed`` (the first ten in
     the message). Subclasses: :class:`aocontrol.synthesis.ModalGainError`,
-    :class:`aocontrol.analysis.ConstrainedBoundError` (and the data-driven synthesis'
-    ``DataDrivenError``, same fields); ``except PerModeError`` catches them all.
+    :class:`aocontrol.analysis.ConstrainedBoundError` and
+    :class:`aocontrol.synthesis.DataDrivenError`; ``except PerModeError`` catches them all.
 
     Parameters
     ----------

@@ -102,10 +102,11 @@ def test_per_mode_errors_share_one_base():
     # one message format names the first ten failed modes.
     from aocontrol._validation import PerModeError
     from aocontrol.analysis import ConstrainedBoundError
-    from aocontrol.synthesis import ModalGainError
+    from aocontrol.synthesis import DataDrivenError, ModalGainError
 
     assert issubclass(ModalGainError, PerModeError)
     assert issubclass(ConstrainedBoundError, PerModeError)
+    assert issubclass(DataDrivenError, PerModeError)
     failed = {m: "LinAlgError: singular" for m in range(12)}
     err = ModalGainError(failed, Integrator(gain=np.full(20, 0.1), fs=FS))
     assert str(err).startswith("optimal modal gain failed for 12 of 20 modes: mode 0: LinAlg")

@@ -6,13 +6,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from aocontrol._validation import PerModeError
 from aocontrol.controllers import IIRBank
 
 __all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport"]
 
 
-class DataDrivenError(RuntimeError):
+class DataDrivenError(PerModeError):
     """Synthesis failed for some modes; the others are kept.
+
+    One of the per-mode errors (:class:`aocontrol._validation.PerModeError`: ``except
+    PerModeError`` catches it with the modal-gain and constrained-bound ones).
 
     Parameters
     ----------
@@ -29,14 +33,13 @@ class DataDrivenError(RuntimeError):
     """
 
     def __init__(self, failed: dict[int, str], result: DataDrivenResult) -> None:
-        lines = "; ".join(f"mode {m}: {msg}" for m, msg in list(failed.items())[:10])
-        more = f" (and {len(failed) - 10} more)" if len(failed) > 10 else ""
         super().__init__(
-            f"data-driven synthesis failed for {len(failed)} of {result.controller.n_modes} "
-            f"modes: {lines}{more}. The other modes are in this error's .result"
+            failed,
+            result,
+            n_modes=result.controller.n_modes,
+            operation="data-driven synthesis",
+            note=". The other modes are in this error's .result",
         )
-        self.failed = failed
-        self.result = result
 
 
 @dataclass(frozen=True)
