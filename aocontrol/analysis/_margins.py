@@ -23,9 +23,7 @@ import numpy as np
 from scipy import optimize
 
 from aocontrol._validation import check_frequency_grid
-from aocontrol.analysis._certificate import modulus_certificate
-from aocontrol.analysis._loop import _as_siso_controller
-from aocontrol.controllers import ControllerBank
+from aocontrol.analysis._certificate import _controller_tf, modulus_certificate
 from aocontrol.plant import (
     check_frd_coverage,
     plant_fs,
@@ -82,13 +80,6 @@ class Margins:
     phase_crossover_hz: float
     gain_crossover_hz: float
     modulus_frequency_hz: float
-
-
-def _controller_tf(controller: object, fs: float, mode: int) -> object:
-    controller = _as_siso_controller(controller, fs)
-    if isinstance(controller, ControllerBank):
-        return controller.transfer_function(mode)
-    return controller
 
 
 class _LoopEval:
