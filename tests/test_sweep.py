@@ -292,7 +292,7 @@ def test_real_runs_write_results_files_that_the_summary_reads(tmp_path, schedule
     local = tmp_path / "local"
     local.mkdir()
     runner.run(dict(settings), local / f"{hash_}.h5")
-    (local_row,) = summary_table(local, csv_path=None)
+    (local_row,) = sweep_table(local, csv_path=None)
     for key in ("strehl", "mean_contrast_4_6", "residual_rms_nm"):
         assert local_row[key] == pytest.approx(row[key], rel=1e-12, abs=0), key
 
