@@ -33,7 +33,6 @@ from aocontrol._validation import (
 )
 from aocontrol.analysis import (
     is_stable,
-    modulus_certificate,
     residual_psd,
 )
 from aocontrol.controllers import IIRBank
@@ -44,6 +43,7 @@ from aocontrol.plant import (
     plant_fs,
     z_inverse_coefficients,
 )
+from aocontrol.synthesis._dd_assemble import _assemble
 from aocontrol.synthesis._dd_certify import (
     _Context,
     _free_poles,
@@ -58,7 +58,6 @@ from aocontrol.synthesis._dd_grids import (
     _design_indices,
     _interp_matrix,
     _trapezoid_weights,
-    fine_residual,
 )
 from aocontrol.synthesis._dd_results import DataDrivenError, DataDrivenResult, ModeReport
 from aocontrol.synthesis._socp import (
@@ -744,129 +743,3 @@ def _run(ctx: _Context, items: list, n_jobs: int | None, progress: bool) -> list
     finally:
         bar.close()
     return sorted(results, key=lambda r: r["mode"])
-
-
-def _assemble(setup: _Setup, outcomes: list) -> DataDrivenResult:
-    """Bank, reports and predicted residuals; raises DataDrivenError if a mode failed.
-
-    A designed mode whose residual is higher than its starting controller's, on the input
-    grid or on the fine check, is replaced by the starting controller (reported).
-    """
-    plant, freqs, fs, ctx = setup.plant, setup.freqs, setup.fs, setup.ctx
-    psd2, noise2, init_bank = setup.psd, setup.noise, setup.init_bank
-    n_modes = len(outcomes)
-    nb = max([init_bank.b.shape[1]] + [r["b"].size for r in outcomes if not r["error"]])
-    na = max([init_bank.a.shape[1]] + [r["a"].size for r in outcomes if not r["error"]])
-    b = np.zeros((n_modes, nb))
-    a = np.zeros((n_modes, na))
-    b[:, : init_bank.b.shape[1]] = init_bank.b
-    a[:, : init_bank.a.shape[1]] = init_bank.a
-    designed = np.zeros(n_modes, bool)
-    for r in outcomes:
-        if not r["error"]:
-            i = r["mode"]
-            b[i], a[i] = 0.0, 0.0
-            b[i, : r["b"].size], a[i, : r["a"].size] = r["b"], r["a"]
-            designed[i] = True
-    bank = IIRBank(b, a, fs)
-    var = np.trapezoid(residual_psd(plant, bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
-    var0 = np.trapezoid(residual_psd(plant, init_bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
-    peaks = [r.get("peaks_hz", np.empty(0)) for r in outcomes if not r["error"]]
-    fine, fine0 = fine_residual(plant, (bank, init_bank), freqs, psd2, noise2, fs, peaks)
-    worse = designed & ((var > var0 * (1 + _WORSE_TOL)) | (fine > fine0 * (1 + _WORSE_TOL)))
-    if worse.any():
-        logger.warning(
-            "%d mode(s) designed worse than their starting controller on the input grid or the "
-            "fine check: the starting controller is kept for them (modes %s)",
-            int(worse.sum()),
-            np.flatnonzero(worse)[:10].tolist(),
-        )
-        b[worse], a[worse] = 0.0, 0.0
-        b[worse, : init_bank.b.shape[1]] = init_bank.b[worse]
-        a[worse, : init_bank.a.shape[1]] = init_bank.a[worse]
-        bank = IIRBank(b, a, fs)
-        var[worse], fine[worse] = var0[worse], fine0[worse]
-    reports, failed = [], {}
-    for r in outcomes:
-        i = r["mode"]
-        if r["error"]:
-            failed[i] = r["error"]
-            reports.append(
-                ModeReport(i, False, r["error"], np.empty(0), 0, False, np.nan, False, 0, "")
-            )
-            continue
-        margin, method, start = r["margin"], r["certificate"], r["start"]
-        if worse[i]:
-            cert = modulus_certificate(plant, init_bank, fs=fs, mode=i)
-            margin, method, start = cert.value, cert.method, "initial (design rejected: worse)"
-        reports.append(
-            ModeReport(
-                i,
-                True,
-                "",
-                r["history"],
-                r["solves"],
-                r["converged"],
-                margin,
-                r["stable"],
-                r["refinements"],
-                start,
-                certificate=method,
-                pole_radius=_bank_pole_radius(bank, i, r["fixed"]),
-                order=int(r.get("order", ctx.nq + ctx.fixed.size - 1)),
-            )
-        )
-    result = DataDrivenResult(
-        bank,
-        init_bank,
-        tuple(reports),
-        var,
-        var0,
-        ctx.f_design,
-        residual_variance_fine=fine,
-        initial_residual_variance_fine=fine0,
-        verification=_verification_text(ctx),
-    )
-    if failed:
-        raise DataDrivenError(failed, result)
-    logger.info(
-        "data-driven synthesis of %d modes: median %d convex solves per mode",
-        n_modes,
-        int(np.median(result.solves)),
-    )
-    return result
-
-
-# A design is "worse" than its start beyond this relative tolerance (the solver's accuracy).
-_WORSE_TOL = 1e-6
-
-
-def _bank_pole_radius(bank: IIRBank, i: int, fixed: np.ndarray) -> float:
-    """Largest modulus of mode ``i``'s free poles (the fixed factor's divided out if it can)."""
-    a = np.trim_zeros(bank.a[i], "b")
-    quot, rem = np.polynomial.polynomial.polydiv(a, fixed)
-    if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a))):
-        quot = a
-    return float(np.max(np.abs(np.roots(quot)))) if quot.size > 1 else 0.0
-
-
-def _verification_text(ctx: _Context) -> str:
-    exact = ctx.plant_poly is not None
-    margin = (
-        "modulus margin certified exactly over the whole unit circle (stationary points of "
-        "|1 + G K| as polynomial roots)"
-        if exact
-        else "modulus margin on the measured plant's grid and a dense grid, refined around "
-        "the controller's lightly damped poles (plant interpolated between measured points)"
-    )
-    poles = (
-        f"free controller poles inside radius {ctx.pole_radius} (roots)"
-        if ctx.pole_radius is not None
-        else "controller poles unconstrained (max_pole_radius=None)"
-    )
-    return (
-        f"{margin}; closed-loop stability from the closed-loop poles"
-        f"{'' if exact else ' (winding number on the dense grid)'}; {poles}; residual on the "
-        "input grid (trapezoid) and on a fine check (20,001 linear + 2,001 log points and "
-        "points around every |S| peak, PSDs interpolated linearly)"
-    )
