@@ -348,7 +348,7 @@ def _merge(current: IIRBank, proposal: IIRBank, take: np.ndarray) -> IIRBank:
 
     b = np.where(take[:, None], pad(proposal.b, nb), pad(current.b, nb))
     a = np.where(take[:, None], pad(proposal.a, na), pad(current.a, na))
-    return IIRBank(b, a, current.fs, stroke=current.stroke)
+    return IIRBank(b, a, current.fs, command_limit=current.command_limit)
 
 
 # ---------------------------------------------------------------------------- designers
@@ -375,7 +375,7 @@ def datadriven_designer(
         Worker processes of the synthesis.
     **options
         Other keyword arguments of :func:`~aocontrol.synthesis.datadriven` (``n_grid``,
-        ``max_iter``, ``stroke_weight``...).
+        ``max_iter``, ``hinf_weight``...).
     """
 
     def design(tel: TelemetryPSD, plant: control.TransferFunction, current: IIRBank) -> Proposal:

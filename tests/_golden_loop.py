@@ -24,7 +24,7 @@ import numpy as np
 
 from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere, Layer
-from aocontrol.sim.dm import DeformableMirror
+from aocontrol.sim.dm import DeformableMirror, ModalDM
 from aocontrol.sim.loop import (
     LinearModalSensor,
     ModalTimeSeries,
@@ -65,12 +65,13 @@ def linear_run(config: dict):
     rng = np.random.default_rng(3)
     d = 2.0 * rng.standard_normal((n_frames, n_modes)).cumsum(axis=0) / 30.0
     m2c = rng.standard_normal((9, n_modes)) if config.get("dm_stroke") else None
-    kw = dict(
-        latency_frames=config["latency"],
-        stroke=config.get("stroke"),
-        dm_stroke=1.2 if m2c is not None else None,
+    dm = ModalDM(
+        n_modes,
+        modal_stroke=config.get("stroke"),
+        actuator_stroke=1.2 if m2c is not None else None,
         m2c=m2c,
     )
+    kw = dict(latency_frames=config["latency"], dm=dm)
     gains = np.linspace(0.2, 0.6, n_modes)
     sensor = LinearModalSensor(config.get("og", 1.0), config["noise"])
     return run_loop(
@@ -152,7 +153,7 @@ def cascade_run(scheme: str):
         Integrator(np.linspace(0.35, 0.5, b2.n_modes), fs=FS),
         LinearModalSensor(np.linspace(0.8, 1.0, b2.n_modes), 0.5),
         0.83,
-        stroke=40.0,
+        dm=ModalDM(b2.n_modes, modal_stroke=40.0),
         name="SAXO+",
     )
     cam = ScienceCamera(pupil, field_of_view=6.0)

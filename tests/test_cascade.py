@@ -13,7 +13,7 @@ from aocontrol.sim import (
     Stage,
     run_cascade,
 )
-from aocontrol.sim.dm import DeformableMirror
+from aocontrol.sim.dm import DeformableMirror, ModalDM
 from aocontrol.sim.loop import CascadeResult, DiffractiveSensor, projection_matrix
 from aocontrol.sim.modes import kl_basis
 from aocontrol.sim.pupil import vlt_pupil
@@ -422,7 +422,11 @@ def test_dcao_stroke_clips_the_total_dm_shape(bases):
             return np.tile(100.0 * b1.modes[0], (n, 1))
 
     s1 = Stage(Integrator(0.4, fs=1000.0, n_modes=b1.n_modes), latency_frames=LAT1)
-    s2 = Stage(Integrator(0.4, fs=FS2, n_modes=b2.n_modes), latency_frames=LAT2, stroke=stroke)
+    s2 = Stage(
+        Integrator(0.4, fs=FS2, n_modes=b2.n_modes),
+        latency_frames=LAT2,
+        dm=ModalDM(b2.n_modes, modal_stroke=stroke),
+    )
     res = run_cascade(
         s1, s2, _Static(), n_frames, scheme="dcao", basis1=b1, basis2=b2, settle_frames=300
     )

@@ -31,14 +31,14 @@ def test_iir_bank_round_trip_is_bit_identical(tmp_path):
     rng = np.random.default_rng(0)
     b = rng.standard_normal((7, 5)) * 0.1
     a = np.column_stack([np.ones(7), rng.standard_normal((7, 4)) * 0.05])
-    bank = IIRBank(b, a, 3000.0, stroke=rng.uniform(100, 200, 7))
+    bank = IIRBank(b, a, 3000.0, command_limit=rng.uniform(100, 200, 7))
     path = save_controller(bank, tmp_path / "ctrl.h5")
     back = load_controller(path)
     assert type(back) is IIRBank
     assert back.fs == bank.fs and back.n_modes == 7
     np.testing.assert_array_equal(back.b, bank.b)
     np.testing.assert_array_equal(back.a, bank.a)
-    np.testing.assert_array_equal(back.stroke, bank.stroke)
+    np.testing.assert_array_equal(back.command_limit, bank.command_limit)
     # Saturating measurements exercise the stroke clipping path too.
     np.testing.assert_array_equal(_drive(back), _drive(bank))
 
@@ -49,7 +49,7 @@ def test_integrator_round_trip_keeps_class_gain_and_leak(tmp_path):
     assert type(back) is Integrator
     assert back.leak == 0.01
     np.testing.assert_array_equal(back.gain, bank.gain)
-    assert back.stroke is None
+    assert back.command_limit is None
     np.testing.assert_array_equal(_drive(back), _drive(bank))
 
 

@@ -89,7 +89,7 @@ def test_step_is_bit_identical_to_its_documented_summation_order(nb, na, stroke)
     a = np.array([np.poly(p) for p in rng.uniform(-0.9, 0.9, size=(n_modes, na - 1))])
     b = rng.normal(size=(n_modes, nb))
     x = rng.normal(size=(n, n_modes))
-    bank = IIRBank(b, a.reshape(n_modes, na), fs=1000.0, stroke=stroke)
+    bank = IIRBank(b, a.reshape(n_modes, na), fs=1000.0, command_limit=stroke)
     y = np.array([bank.step(xk) for xk in x])
     for mode in range(n_modes):
         ref = _documented_order(bank.b[mode].tolist(), bank.a[mode].tolist(), x[:, mode], stroke)
@@ -134,7 +134,7 @@ def test_pure_integrator_accumulates():
 def test_clipping_antiwindup_keeps_state_consistent():
     # With anti-windup the recursion uses the applied (clipped) command: after the input
     # changes sign the command leaves the limit at once, instead of unwinding a huge state.
-    c = Integrator(1.0, fs=1000.0, stroke=1.0)
+    c = Integrator(1.0, fs=1000.0, command_limit=1.0)
     for _ in range(100):
         u = c.step(np.array([1.0]))
     assert u[0] == 1.0
@@ -149,7 +149,7 @@ def test_clipping_antiwindup_keeps_state_consistent():
 
 
 def test_clipping_per_mode_stroke():
-    c = IIRBank([1.0], [1.0], fs=100.0, n_modes=3, stroke=[1.0, 2.0, 3.0])
+    c = IIRBank([1.0], [1.0], fs=100.0, n_modes=3, command_limit=[1.0, 2.0, 3.0])
     np.testing.assert_allclose(c.step(np.array([5.0, -5.0, 2.5])), [1.0, -2.0, 2.5])
     np.testing.assert_array_equal(c.n_saturated, [1, 1, 0])
 
@@ -183,12 +183,16 @@ def test_coefficients_are_read_only():
         (lambda: Integrator([0.1, 0.2], fs=1000.0, n_modes=3), ValueError, "disagrees"),
         (lambda: IIRBank([1.0], [0.0, 1.0], fs=10.0), ValueError, "causal"),
         (lambda: IIRBank(np.ones((2, 2)), np.ones((3, 2)), fs=10.0), ValueError, "same number"),
-        (lambda: IIRBank([1.0], [1.0], fs=10.0, stroke=-1.0), ValueError, "stroke must be > 0"),
+        (
+            lambda: IIRBank([1.0], [1.0], fs=10.0, command_limit=-1.0),
+            ValueError,
+            "command_limit must be > 0",
+        ),
         (lambda: Integrator("a", fs=1000.0), TypeError, "gain must be array-like"),
         (
-            lambda: Integrator([0.1, 0.2], fs=1000.0, stroke=[1.0, 2.0, 3.0]),
+            lambda: Integrator([0.1, 0.2], fs=1000.0, command_limit=[1.0, 2.0, 3.0]),
             ValueError,
-            r"stroke must have shape scalar or \(n_modes,\) = \(2,\), got shape \(3,\)",
+            r"command_limit must have shape scalar or \(n_modes,\) = \(2,\), got shape \(3,\)",
         ),
     ],
 )

@@ -125,7 +125,7 @@ def test_dm_fit_inverts_shape(dm15):
 def test_dm_clip_counts_saturated_actuators():
     # Oracle by construction: 2 of the commands exceed the +-100 nm stroke in the first row,
     # none in the second.
-    dm = DeformableMirror(vlt_pupil(32), n_actuators=15, stroke=100.0)
+    dm = DeformableMirror(vlt_pupil(32), n_actuators=15, actuator_stroke=100.0)
     c = np.zeros((2, dm.n_act))
     c[0, :3] = [150.0, -250.0, 99.0]
     clipped, n_sat = dm.clip(c)
@@ -142,8 +142,8 @@ def test_dm_bad_inputs():
         DeformableMirror(pupil, n_actuators=15, coupling=-0.2)
     with pytest.raises(ValueError, match="coupling"):
         DeformableMirror(pupil, n_actuators=15, coupling=1.0)
-    with pytest.raises(ValueError, match="stroke"):
-        DeformableMirror(pupil, n_actuators=15, stroke=0.0)
+    with pytest.raises(ValueError, match="actuator_stroke must be a finite number > 0, got 0.0"):
+        DeformableMirror(pupil, n_actuators=15, actuator_stroke=0.0)
     # 32 pixels over 20 pitches: 1.6 pixels per pitch < 2.
     with pytest.raises(ValueError, match=r"too coarse.*n_pix=32.*n_actuators=21.*n_pix >= 40"):
         DeformableMirror(pupil, n_actuators=21)

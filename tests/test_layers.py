@@ -28,6 +28,7 @@ CONTROL = [
     "disturbance.py",
     "adaptive.py",
     "_validation.py",
+    "_deprecation.py",
 ]
 
 

@@ -7,6 +7,7 @@ from scipy import signal
 from aocontrol import loop_plant
 from aocontrol.analysis import residual_variance, sensitivity, white_noise_psd
 from aocontrol.controllers import ControllerBank, IIRBank, Integrator
+from aocontrol.sim.dm import ModalDM
 from aocontrol.sim.loop import (
     LinearModalSensor,
     LoopDivergedError,
@@ -144,7 +145,7 @@ def test_stroke_clipping_counts_saturation():
     d = np.full((n, 2), 10.0)
     d[:, 1] = 0.5
     res = run_loop(
-        Stage(Integrator(0.5, fs=FS, n_modes=2), latency_frames=0.0, stroke=1.0),
+        Stage(Integrator(0.5, fs=FS, n_modes=2), latency_frames=0.0, dm=ModalDM(2, 1.0)),
         ModalTimeSeries(d),
         n,
     )
@@ -312,11 +313,6 @@ def test_non_finite_disturbance_is_named_as_such():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"stroke": -1.0}, "stroke must be > 0"),
-        ({"stroke": np.nan}, "stroke must contain only finite values"),
-        ({"dm_stroke": 0.0}, "actuator_stroke must be a finite number > 0"),
-        ({"dm_stroke": np.inf, "m2c": np.ones((3, 1))}, "actuator_stroke must be a finite"),
-        ({"dm_stroke": 100.0}, "needs m2c of shape"),
         ({"latency_frames": -0.5}, "latency_frames"),
         ({"latency_frames": 1e9}, "latency_frames must be <= 1000"),
         ({"latency_frames": np.nan}, "latency_frames"),
@@ -325,6 +321,23 @@ def test_non_finite_disturbance_is_named_as_such():
 def test_stage_validates_physical_parameters(kwargs, match):
     with pytest.raises(ValueError, match=match):
         Stage(Integrator(0.4, fs=FS), **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"modal_stroke": -1.0}, r"modal_stroke must be > 0 \[nm\] for every mode, got min -1.0"),
+        ({"modal_stroke": np.nan}, "modal_stroke must contain only finite values"),
+        ({"modal_stroke": [1.0, 2.0]}, r"modal_stroke must be a float or have shape \(1,\)"),
+        ({"actuator_stroke": 0.0}, "actuator_stroke must be a finite number > 0, got 0.0"),
+        ({"actuator_stroke": np.inf, "m2c": np.ones((3, 1))}, "actuator_stroke must be a finite"),
+        ({"actuator_stroke": 100.0}, "actuator_stroke needs m2c of shape"),
+    ],
+)
+def test_dm_refuses_a_bad_stroke_naming_the_argument(kwargs, match):
+    # The DM owns the stroke: it checks it, and the message names the DM's argument.
+    with pytest.raises(ValueError, match=match):
+        ModalDM(1, **kwargs)
 
 
 @pytest.mark.parametrize(
@@ -424,7 +437,7 @@ def test_controller_counters_survive_the_reset_after_a_run():
     # kept in the metadata; replaying the recorded measurements through the same controller
     # counts the same clipped mode-frames.
     n_frames, n_modes = 400, 3
-    bank = Integrator(0.4, fs=1000.0, n_modes=n_modes, stroke=0.5)
+    bank = Integrator(0.4, fs=1000.0, n_modes=n_modes, command_limit=0.5)
     res = run_loop(
         Stage(bank, latency_frames=0.5),
         ModalTimeSeries(3.0 * _white(n_frames, n_modes)),

@@ -212,15 +212,15 @@ def test_stroke_clips_and_keeps_the_estimator_consistent():
     ss = bank.state_space
     _, free = _closed_loop(bank, d, 0.83, 1e-3, 300, np.random.default_rng(9))
     limit = 0.5 * np.max(np.abs(free), axis=0)
-    clipped = LQGBank(ss, stroke=limit)
-    clipped_dense = LQGBank(ss, stroke=limit, dense=True)
+    clipped = LQGBank(ss, command_limit=limit)
+    clipped_dense = LQGBank(ss, command_limit=limit, dense=True)
     _, u1 = _closed_loop(clipped, d, 0.83, 1e-3, 300, np.random.default_rng(9))
     _, u2 = _closed_loop(clipped_dense, d, 0.83, 1e-3, 300, np.random.default_rng(9))
     assert np.all(np.abs(u1) <= limit)
     assert np.all(clipped.n_saturated > 0)
     np.testing.assert_array_equal(clipped.n_saturated, clipped_dense.n_saturated)
     np.testing.assert_allclose(u1, u2, atol=REFERENCE * np.max(np.abs(u2)))
-    loose = LQGBank(ss, stroke=1e6)
+    loose = LQGBank(ss, command_limit=1e6)
     _, u3 = _closed_loop(loose, d, 0.83, 1e-3, 300, np.random.default_rng(9))
     np.testing.assert_array_equal(u3, free)
     assert not loose.n_saturated.any()
@@ -326,7 +326,7 @@ def test_controller_file_round_trip_is_bit_identical(tmp_path, stroke):
 
     _, bank = _bank_several_modes()
     if stroke is not None:
-        bank = LQGBank(bank.state_space, stroke=stroke)
+        bank = LQGBank(bank.state_space, command_limit=stroke)
     path = tmp_path / "lqg.h5"
     save_controller(bank, path)
     again = load_controller(path)

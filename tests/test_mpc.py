@@ -8,7 +8,7 @@ import pytest
 
 from aocontrol.controllers import Integrator, LQGBank, MPCBank
 from aocontrol.plant import loop_plant
-from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, run_loop
+from aocontrol.sim import LinearModalSensor, ModalDM, ModalTimeSeries, Stage, run_loop
 from aocontrol.synthesis import DisturbanceModel, lqg_state_space, mpc
 
 FS = 1000.0
@@ -54,8 +54,8 @@ def test_inactive_limits_take_the_shortcut_and_transfer_function_is_lqg():
     # Two paths: the unconstrained optimum applied without a solve (limits far away) equals
     # the QP path; the impulse response equals that of transfer_function (= LQG's).
     ss = lqg_state_space(_model(), latency_frames=1.0, noise_variance=0.01)
-    fast = MPCBank(ss, horizon=4, stroke=1e6, rate_limit=1e6)
-    slow = MPCBank(ss, horizon=4, stroke=1e6, rate_limit=1e6, skip_inactive=False)
+    fast = MPCBank(ss, horizon=4, command_limit=1e6, rate_limit=1e6)
+    slow = MPCBank(ss, horizon=4, command_limit=1e6, rate_limit=1e6, skip_inactive=False)
     rng = np.random.default_rng(1)
     for _ in range(50):
         m = rng.standard_normal(2)
@@ -86,7 +86,7 @@ def _run(controller, series, stroke, record=()):
         controller,
         sensor=LinearModalSensor(noise_std=0.05),
         latency_frames=1.0,
-        stroke=stroke,
+        dm=ModalDM(controller.n_modes, modal_stroke=stroke),
     )
     return run_loop(stage, ModalTimeSeries(series, fs=FS), series.shape[0], rng=5, record=record)
 
@@ -98,7 +98,7 @@ def test_stroke_limited_mpc_beats_clipped_lqg_and_clipped_integrators(stroke_lim
     d, series, stroke = stroke_limited
     ss = lqg_state_space(d, latency_frames=1.0, noise_variance=0.05**2)
     res_mpc = _run(
-        MPCBank(ss, horizon=8, stroke=stroke, groups=[[0, 1]]), series, None, ("commands",)
+        MPCBank(ss, horizon=8, command_limit=stroke, groups=[[0, 1]]), series, None, ("commands",)
     )
     commands = np.asarray(res_mpc.telemetry["commands"], dtype=float)
     # float32 telemetry: 1e-6 relative.
@@ -107,7 +107,7 @@ def test_stroke_limited_mpc_beats_clipped_lqg_and_clipped_integrators(stroke_lim
     v_mpc = res_mpc.residual_variance.sum()
     v_lqg = _run(LQGBank(ss), series, stroke).residual_variance.sum()
     v_int = min(
-        _run(Integrator(g, fs=FS, n_modes=2, stroke=stroke), series, stroke).residual_variance.sum()
+        _run(Integrator(g, fs=FS, n_modes=2, command_limit=stroke), series, stroke).residual_variance.sum()
         for g in (0.5, 0.8, 0.9)
     )
     # Measured: MPC 0.19 x clipped LQG, 0.81 x the best clipped integrator (gain 0.8; the
@@ -120,7 +120,7 @@ def test_rate_limit_is_respected(stroke_limited):
     d, series, stroke = stroke_limited
     ss = lqg_state_space(d, latency_frames=1.0, noise_variance=0.05**2)
     rate = 0.05 * stroke
-    bank = MPCBank(ss, horizon=5, stroke=stroke, rate_limit=rate)
+    bank = MPCBank(ss, horizon=5, command_limit=stroke, rate_limit=rate)
     u = np.array([bank.step(m) for m in series[:300] * 0.5])
     du = np.diff(np.vstack([np.zeros(2), u]), axis=0)
     # qpOASES returns the exact vertex; 1e-9 relative covers rounding.
@@ -165,7 +165,7 @@ class _FailingDaqp:
 def test_solver_failure_applies_clipped_lqg_and_counts(solver, raise_error, caplog):
     ss = lqg_state_space(_model(), latency_frames=1.0, noise_variance=0.01)
     stroke = np.array([0.1, 0.3])
-    bank = MPCBank(ss, horizon=4, stroke=stroke, skip_inactive=False, solver=solver)
+    bank = MPCBank(ss, horizon=4, command_limit=stroke, skip_inactive=False, solver=solver)
     lqg = LQGBank(ss)
     for group in bank._groups:
         if solver == "daqp":
@@ -193,13 +193,13 @@ def test_bad_input_names_the_argument_and_mode():
     with pytest.raises(ValueError, match="horizon must be an integer >= 1, got 0"):
         MPCBank(ss, horizon=0)
     with pytest.raises(
-        ValueError, match=r"stroke must be > 0 for every mode .* got 0.0 for mode 1"
+        ValueError, match=r"command_limit must be > 0 for every mode .* got 0.0 for mode 1"
     ):
-        MPCBank(ss, stroke=[1.0, 0.0])
+        MPCBank(ss, command_limit=[1.0, 0.0])
     with pytest.raises(ValueError, match="rate_limit must be > 0 .* got nan for mode 0"):
         MPCBank(ss, rate_limit=[np.nan, 1.0])
-    with pytest.raises(ValueError, match=r"stroke must be a scalar or have shape \(2,\)"):
-        MPCBank(ss, stroke=[1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match=r"command_limit must be a scalar or have shape \(2,\)"):
+        MPCBank(ss, command_limit=[1.0, 1.0, 1.0])
     with pytest.raises(ValueError, match=r"groups\[1\] repeats a mode"):
         MPCBank(ss, groups=[[0], [0, 1]])
     with pytest.raises(ValueError, match="solver must be one of"):
@@ -215,7 +215,7 @@ def test_design_from_psd_matches_lqg():
     d = _model()
     f = np.geomspace(1e-3, FS / 2, 3000)
     plant = loop_plant(FS, 1.0)
-    bank = mpc(plant, f, d.psd(f), noise_psd=1e-4, model=d, horizon=3, stroke=10.0)
+    bank = mpc(plant, f, d.psd(f), noise_psd=1e-4, model=d, horizon=3, command_limit=10.0)
     ref = lqg(plant, f, d.psd(f), noise_psd=1e-4, model=d)
     assert isinstance(bank, MPCBank) and bank.model is d
     for mode in range(2):
@@ -236,7 +236,7 @@ def test_constrained_command_solves_the_horizon_qp(stroke_limited, solver):
     ss = lqg_state_space(d, latency_frames=1.0, noise_variance=0.05**2)
     rate = 0.2 * stroke
     N = 5
-    bank = MPCBank(ss, horizon=N, stroke=stroke, rate_limit=rate, solver=solver)
+    bank = MPCBank(ss, horizon=N, command_limit=stroke, rate_limit=rate, solver=solver)
     rng = np.random.default_rng(2)
     n_active = 0
     for k in range(40):
@@ -266,7 +266,7 @@ def test_controller_file_round_trip_gives_the_same_constrained_commands(stroke_l
 
     d, series, stroke = stroke_limited
     ss = lqg_state_space(d, latency_frames=1.0, noise_variance=0.05**2)
-    bank = MPCBank(ss, horizon=5, stroke=stroke, rate_limit=0.2 * stroke, groups=[[0, 1]])
+    bank = MPCBank(ss, horizon=5, command_limit=stroke, rate_limit=0.2 * stroke, groups=[[0, 1]])
     save_controller(bank, tmp_path / "mpc.h5")
     again = load_controller(tmp_path / "mpc.h5")
     assert type(again) is MPCBank
@@ -284,7 +284,7 @@ def test_realtime_solver_equals_the_casadi_reference_over_a_run(stroke_limited):
     # rounding (1e-9 of the stroke; measured ~1e-13) and both solve on the same frames.
     d, series, stroke = stroke_limited
     ss = lqg_state_space(d, latency_frames=1.0, noise_variance=0.05**2)
-    kw = {"horizon": 8, "stroke": stroke, "rate_limit": 0.2 * stroke, "groups": [[0, 1]]}
+    kw = {"horizon": 8, "command_limit": stroke, "rate_limit": 0.2 * stroke, "groups": [[0, 1]]}
     fast, ref = MPCBank(ss, solver="daqp", **kw), MPCBank(ss, solver="qpoases", **kw)
     rng = np.random.default_rng(4)
     meas = series[:600] + 0.05 * rng.standard_normal((600, 2))

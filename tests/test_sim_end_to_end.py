@@ -10,7 +10,7 @@ from aocontrol.controllers import Integrator
 from aocontrol.plant import z_inverse_coefficients
 from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, TurbulenceSource, run_loop
 from aocontrol.sim.atmosphere import Atmosphere, Layer
-from aocontrol.sim.dm import DeformableMirror
+from aocontrol.sim.dm import DeformableMirror, ModalDM
 from aocontrol.sim.modes import kl_basis
 from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.sim.science import ScienceCamera, marechal_strehl, opd_to_phase
@@ -136,7 +136,7 @@ def test_strehl_and_contrast_match_theory_of_the_residual_phase(run):
 
 
 def test_actuator_stroke_clips_dm_commands_and_counts():
-    # With dm_stroke the actuator commands are clipped (counted per actuator), the DM cannot
+    # With an actuator stroke the actuator commands are clipped (counted per actuator), the DM cannot
     # follow a tip beyond its stroke, and a loop with ample stroke is unaffected.
     pupil = vlt_pupil(24)
     dm = DeformableMirror(pupil, n_actuators=9)
@@ -149,8 +149,7 @@ def test_actuator_stroke_clips_dm_commands_and_counts():
         stage = Stage(
             Integrator(0.5, fs=FS, n_modes=basis.n_modes),
             latency_frames=0.5,
-            dm_stroke=stroke,
-            m2c=basis.m2c,
+            dm=ModalDM.from_basis(basis, actuator_stroke=stroke),
         )
         return run_loop(stage, ModalTimeSeries(d), 400)
 

@@ -31,6 +31,7 @@ import math
 import control
 import numpy as np
 
+from aocontrol._deprecation import DeprecatedAttribute, renamed_keyword
 from aocontrol._validation import (
     MAX_MODES,
     as_float_array,
@@ -48,6 +49,27 @@ logger = logging.getLogger(__name__)
 
 def _check_n_modes(n_modes: object) -> int:
     return check_int("n_modes", n_modes, minimum=1, maximum=MAX_MODES)
+
+
+#: What a controller's ``command_limit`` is (the deprecation warnings of ``stroke`` say it).
+_LIMIT_NOTE = "the controller's own limit on its modal command; the DM's stroke is the DM's"
+
+
+def _check_command_limit(command_limit: object, n: int) -> np.ndarray | None:
+    """``command_limit`` as a read-only array of shape (n,) of values > 0, or ``None``."""
+    if command_limit is None:
+        return None
+    s = check_finite_array("command_limit", command_limit, ndim=(0, 1))
+    s = check_broadcast("command_limit", s, (n,), f"scalar or (n_modes,) = ({n},)").astype(float)
+    if np.any(s <= 0):
+        raise ValueError(f"command_limit must be > 0, got min {s.min()!r}")
+    s.setflags(write=False)
+    return s
+
+
+def _command_limit_in(arrays: dict) -> np.ndarray | None:
+    """A controller file's command limit (``stroke`` in files written before its rename)."""
+    return arrays.get("command_limit", arrays.get("stroke"))
 
 
 #: A rejected frame is logged on its first occurrence and then every this many rejections.
@@ -207,9 +229,9 @@ class IIRBank(ControllerBank):
 
         u[k] = sum_{i=0}^{nb-1} b_i m[k-i] - sum_{i=1}^{na-1} a_i u[k-i]
 
-    with ``a_0 = 1``. With a stroke limit the command is clipped to ``[-stroke, stroke]`` and
-    the *applied* command is what enters the recursion (anti-windup: the filter state stays
-    consistent with what the DM did).
+    with ``a_0 = 1``. With a command limit the command is clipped to
+    ``[-command_limit, command_limit]`` and the *applied* command is what enters the recursion
+    (anti-windup: the filter state stays consistent with what the DM did).
 
     Real-time implementation: the past inputs and commands of all modes sit side by side in
     a circular buffer stored twice (so that the last ``max(nb, na)`` frames are always one
@@ -230,8 +252,11 @@ class IIRBank(ControllerBank):
         Loop rate [Hz].
     n_modes : int, optional
         Number of modes when both ``b`` and ``a`` are 1-D (default 1).
-    stroke : float or array of shape (n_modes,), optional
-        Command limit (same unit as the command); ``None`` for no limit.
+    command_limit : float or array of shape (n_modes,), optional
+        The controller's own limit on its modal command (same unit as the command, > 0),
+        with anti-windup; ``None`` for no limit. A controller setting, not the DM's stroke
+        (which the simulator's :class:`~aocontrol.sim.dm.ModalDM` owns and applies after the
+        controller); ``stroke`` is its deprecated name.
 
     Attributes
     ----------
@@ -247,6 +272,10 @@ class IIRBank(ControllerBank):
     array([1., 2.])
     """
 
+    #: Deprecated name of :attr:`command_limit`.
+    stroke = DeprecatedAttribute("command_limit", _LIMIT_NOTE)
+
+    @renamed_keyword("stroke", "command_limit", _LIMIT_NOTE)
     def __init__(
         self,
         b: object,
@@ -254,7 +283,7 @@ class IIRBank(ControllerBank):
         fs: float,
         *,
         n_modes: int | None = None,
-        stroke: float | np.ndarray | None = None,
+        command_limit: float | np.ndarray | None = None,
     ) -> None:
         self._fs = check_positive("fs", fs)
         b = check_finite_array("b", b, ndim=(1, 2))
@@ -283,15 +312,7 @@ class IIRBank(ControllerBank):
         a.setflags(write=False)
         self._b, self._a = b, a
         self._n = n
-        if stroke is None:
-            self._stroke = None
-        else:
-            s = check_finite_array("stroke", stroke, ndim=(0, 1))
-            s = check_broadcast("stroke", s, (n,), f"scalar or (n_modes,) = ({n},)").astype(float)
-            if np.any(s <= 0):
-                raise ValueError(f"stroke must be > 0, got min {s.min()!r}")
-            s.setflags(write=False)
-            self._stroke = s
+        self._limit = _check_command_limit(command_limit, n)
         self.reset()
 
     # -- interface ------------------------------------------------------------------------
@@ -314,9 +335,9 @@ class IIRBank(ControllerBank):
         return self._a
 
     @property
-    def stroke(self) -> np.ndarray | None:
-        """Command limit per mode, or ``None``."""
-        return self._stroke
+    def command_limit(self) -> np.ndarray | None:
+        """The controller's limit on its command per mode, shape (n_modes,), or ``None``."""
+        return self._limit
 
     def reset(self) -> None:
         n, nb, na = self._n, self._b.shape[1], self._a.shape[1]
@@ -400,11 +421,11 @@ class IIRBank(ControllerBank):
         np.multiply(self._taps, hist[head : head + depth], out=self._products)
         sums = np.add.reduce(self._products, axis=0, out=self._sums)
         u = sums[:n] + sums[n:]
-        if self._stroke is not None:
-            clipped = np.abs(u) > self._stroke
+        if self._limit is not None:
+            clipped = np.abs(u) > self._limit
             if clipped.any():
                 self.n_saturated += clipped
-                u = np.clip(u, -self._stroke, self._stroke)
+                u = np.clip(u, -self._limit, self._limit)
         if not _all_finite(u):
             bad = np.flatnonzero(~np.isfinite(u))[:10].tolist()
             raise FloatingPointError(f"controller command is not finite for modes {bad}")
@@ -418,10 +439,17 @@ class IIRBank(ControllerBank):
 
     # -- constructors ---------------------------------------------------------------------
     @classmethod
+    @renamed_keyword("stroke", "command_limit", _LIMIT_NOTE)
     def from_transfer_functions(
-        cls, tfs: list[control.TransferFunction], *, stroke: float | np.ndarray | None = None
+        cls,
+        tfs: list[control.TransferFunction],
+        *,
+        command_limit: float | np.ndarray | None = None,
     ) -> IIRBank:
-        """Bank from one discrete SISO transfer function per mode (same ``dt``)."""
+        """Bank from one discrete SISO transfer function per mode (same ``dt``).
+
+        ``command_limit`` as for :class:`IIRBank` (``stroke``: its deprecated name).
+        """
         if len(tfs) == 0:
             raise ValueError("tfs must contain at least one transfer function")
         # Each one discrete (dt = True, "unspecified", is refused), causal, finite, and at
@@ -439,7 +467,7 @@ class IIRBank(ControllerBank):
         for i, (bi, ai) in enumerate(coeffs):
             b[i, : bi.size] = bi
             a[i, : ai.size] = ai
-        return cls(b, a, fs, stroke=stroke)
+        return cls(b, a, fs, command_limit=command_limit)
 
     def __repr__(self) -> str:
         return (

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from aocontrol._deprecation import renamed_keyword
 from aocontrol._validation import check_finite_array, check_in_range, check_int
-from aocontrol.controllers._base import IIRBank
+from aocontrol.controllers._base import _LIMIT_NOTE, IIRBank
 
 __all__ = ["Integrator"]
 
@@ -26,8 +27,9 @@ class Integrator(IIRBank):
         Leak in [0, 1); 0 is a pure integrator.
     n_modes : int, optional
         Number of modes when ``gain`` is a scalar (default 1).
-    stroke : float or array_like, optional
-        Command limit with anti-windup (see :class:`IIRBank`).
+    command_limit : float or array_like, optional
+        The controller's limit on its command, with anti-windup (see :class:`IIRBank`;
+        ``stroke`` is its deprecated name).
 
     Examples
     --------
@@ -37,6 +39,7 @@ class Integrator(IIRBank):
     True
     """
 
+    @renamed_keyword("stroke", "command_limit", _LIMIT_NOTE)
     def __init__(
         self,
         gain: float | np.ndarray,
@@ -44,7 +47,7 @@ class Integrator(IIRBank):
         leak: float = 0.0,
         *,
         n_modes: int | None = None,
-        stroke: float | np.ndarray | None = None,
+        command_limit: float | np.ndarray | None = None,
     ) -> None:
         g = check_finite_array("gain", gain, ndim=(0, 1))
         if np.any(g < 0):
@@ -57,9 +60,11 @@ class Integrator(IIRBank):
                 raise ValueError("gain must not be empty")
             b = g[:, None]
             a = np.tile([1.0, -(1.0 - leak)], (g.size, 1))
-            super().__init__(b, a, fs, stroke=stroke)
+            super().__init__(b, a, fs, command_limit=command_limit)
         else:
-            super().__init__([float(g)], [1.0, -(1.0 - leak)], fs, n_modes=n_modes, stroke=stroke)
+            super().__init__(
+                [float(g)], [1.0, -(1.0 - leak)], fs, n_modes=n_modes, command_limit=command_limit
+            )
         self._leak = leak
 
     @property

@@ -32,7 +32,7 @@ import h5py
 import numpy as np
 
 from aocontrol._atomic import atomic_path
-from aocontrol.controllers._base import ControllerBank, IIRBank
+from aocontrol.controllers._base import ControllerBank, IIRBank, _command_limit_in
 from aocontrol.controllers._integrator import Integrator
 
 __all__ = ["save_controller", "load_controller", "register_controller_format"]
@@ -81,19 +81,20 @@ def register_controller_format(cls: type, to_arrays: ToArrays, from_arrays: From
 
 def _iir_to_arrays(bank: IIRBank) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     arrays = {"b": np.asarray(bank.b), "a": np.asarray(bank.a)}
-    if bank.stroke is not None:
-        arrays["stroke"] = np.asarray(bank.stroke)
+    if bank.command_limit is not None:
+        arrays["command_limit"] = np.asarray(bank.command_limit)
     return arrays, {}
 
 
 def _iir_from_arrays(arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> IIRBank:
-    return IIRBank(arrays["b"], arrays["a"], float(attrs["fs"]), stroke=arrays.get("stroke"))
+    limit = _command_limit_in(arrays)
+    return IIRBank(arrays["b"], arrays["a"], float(attrs["fs"]), command_limit=limit)
 
 
 def _integrator_to_arrays(bank: Integrator) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     arrays = {"gain": bank.gain}
-    if bank.stroke is not None:
-        arrays["stroke"] = np.asarray(bank.stroke)
+    if bank.command_limit is not None:
+        arrays["command_limit"] = np.asarray(bank.command_limit)
     return arrays, {"leak": bank.leak}
 
 
@@ -101,7 +102,7 @@ def _integrator_from_arrays(
     arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]
 ) -> Integrator:
     return Integrator(
-        arrays["gain"], float(attrs["fs"]), float(attrs["leak"]), stroke=arrays.get("stroke")
+        arrays["gain"], float(attrs["fs"]), float(attrs["leak"]), command_limit=_command_limit_in(arrays)
     )
 
 

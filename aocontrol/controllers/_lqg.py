@@ -29,8 +29,14 @@ from functools import cached_property
 import control
 import numpy as np
 
+from aocontrol._deprecation import DeprecatedAttribute, renamed_keyword
 from aocontrol._validation import check_finite_array, check_positive
-from aocontrol.controllers._base import ControllerBank
+from aocontrol.controllers._base import (
+    _LIMIT_NOTE,
+    ControllerBank,
+    _check_command_limit,
+    _command_limit_in,
+)
 
 __all__ = ["FilterpyLQG", "LQGBank", "LQGStateSpace"]
 
@@ -251,10 +257,12 @@ class LQGBank(ControllerBank):
         The disturbance model it was designed from (kept for reports; not used).
     dense : bool, default False
         Always use the batched dense product (a check of the structured path).
-    stroke : float or array of shape (n_modes,), optional
-        Command limit (same unit as the command); ``None`` for no limit. The command is
-        clipped to ``[-stroke, stroke]`` and the *applied* command enters the delay line of
-        the state, so the estimator stays consistent with what the DM did (anti-windup).
+    command_limit : float or array of shape (n_modes,), optional
+        The controller's own limit on its modal command (same unit as the command, > 0);
+        ``None`` for no limit. The command is clipped to ``[-command_limit, command_limit]``
+        and the *applied* command enters the delay line of the state, so the estimator stays
+        consistent with what the DM did (anti-windup). A controller setting, not the DM's
+        stroke; ``stroke`` is its deprecated name.
 
     Attributes
     ----------
@@ -271,13 +279,17 @@ class LQGBank(ControllerBank):
     0.9
     """
 
+    #: Deprecated name of :attr:`command_limit`.
+    stroke = DeprecatedAttribute("command_limit", _LIMIT_NOTE)
+
+    @renamed_keyword("stroke", "command_limit", _LIMIT_NOTE)
     def __init__(
         self,
         state_space: LQGStateSpace,
         *,
         model: object = None,
         dense: bool = False,
-        stroke: float | np.ndarray | None = None,
+        command_limit: float | np.ndarray | None = None,
     ) -> None:
         if not isinstance(state_space, LQGStateSpace):
             raise TypeError(
@@ -285,15 +297,7 @@ class LQGBank(ControllerBank):
             )
         self._ss = state_space
         self.model = model
-        if stroke is None:
-            self._stroke = None
-        else:
-            st = check_finite_array("stroke", stroke, ndim=(0, 1))
-            st = np.broadcast_to(st, (state_space.n_modes,)).astype(float)
-            if np.any(st <= 0):
-                raise ValueError(f"stroke must be > 0, got min {st.min()!r}")
-            st.setflags(write=False)
-            self._stroke = st
+        self._limit = _check_command_limit(command_limit, state_space.n_modes)
         F, G, H, J = state_space.controller_matrices
         n, ns = state_space.n_modes, state_space.ns
         M = np.zeros((n, ns + 1, ns + 1))
@@ -312,8 +316,8 @@ class LQGBank(ControllerBank):
         The disturbance model (``model``, kept for reports only) is not saved.
         """
         arrays, attrs = state_space_arrays(self._ss)
-        if self._stroke is not None:
-            arrays["stroke"] = np.asarray(self._stroke)
+        if self._limit is not None:
+            arrays["command_limit"] = np.asarray(self._limit)
         attrs["dense"] = not self._structured and _is_structured(self._ss)
         return arrays, attrs
 
@@ -324,12 +328,13 @@ class LQGBank(ControllerBank):
         Parameters
         ----------
         arrays : dict of str to ndarray
-            The state-space arrays (and ``stroke`` when the bank had one).
+            The state-space arrays (and ``command_limit`` when the bank had one; ``stroke``
+            in files written before its rename).
         attrs : dict
             ``control_weight``, ``nx``, ``latency_frames``, ``dense``, ``fs``.
         """
         ss = state_space_from_arrays(arrays, attrs)
-        return cls(ss, dense=bool(attrs["dense"]), stroke=arrays.get("stroke"))
+        return cls(ss, dense=bool(attrs["dense"]), command_limit=_command_limit_in(arrays))
 
     @property
     def n_modes(self) -> int:
@@ -382,7 +387,7 @@ class LQGBank(ControllerBank):
             s += buf
             np.multiply(self._l, s, out=buf)
             u = buf.sum(axis=0)
-            if self._stroke is not None:
+            if self._limit is not None:
                 u = self._clip(u)
             # Prediction: companion blocks (x0, x1) <- (a1 x0 + a2 x1, x0); command shift.
             np.multiply(self._a2, self._x1, out=self._tmp)
@@ -397,7 +402,7 @@ class LQGBank(ControllerBank):
             np.matmul(self._M, self._v, out=self._out)
             self._v, self._out = self._out, self._v
             u = self._v[:, ns, 0].copy()
-            if self._stroke is not None:
+            if self._limit is not None:
                 uc = self._clip(u)
                 # The delay line holds the applied command: xi- += B (u_applied - u).
                 self._v[:, :ns, 0] += ss.B * (uc - u)[:, None]
@@ -408,16 +413,16 @@ class LQGBank(ControllerBank):
         return u
 
     def _clip(self, u: np.ndarray) -> np.ndarray:
-        clipped = np.abs(u) > self._stroke
+        clipped = np.abs(u) > self._limit
         if clipped.any():
             self.n_saturated += clipped
-            u = np.clip(u, -self._stroke, self._stroke)
+            u = np.clip(u, -self._limit, self._limit)
         return u
 
     @property
-    def stroke(self) -> np.ndarray | None:
-        """Command limit per mode, or ``None``."""
-        return self._stroke
+    def command_limit(self) -> np.ndarray | None:
+        """The controller's limit on its command per mode, shape (n_modes,), or ``None``."""
+        return self._limit
 
     @property
     def predicted_state(self) -> np.ndarray:

@@ -7,7 +7,7 @@ Per mode the estimator is the steady-state Kalman predictor of an
 the predicted residual over a horizon of ``N`` frames::
 
     min_U  sum_{i<N} (H z_i + D u_i)^2 + rho u_i^2 + z_N^T P z_N,  z_{i+1} = A_z z_i + B_z u_i
-    s.t.   |u_i| <= stroke,   |u_i - u_{i-1}| <= rate_limit      (u_{-1}: the last command)
+    s.t.   |u_i| <= command_limit,   |u_i - u_{i-1}| <= rate_limit   (u_{-1}: the last command)
 
 (``e = H z + D u`` is the residual the command first acts on; ``P`` the regulator Riccati
 solution, so that with no active constraint the first command is exactly LQG's). The
@@ -29,8 +29,14 @@ from collections.abc import Sequence
 import control
 import numpy as np
 
+from aocontrol._deprecation import DeprecatedAttribute, renamed_keyword
 from aocontrol._validation import check_int
-from aocontrol.controllers._base import ControllerBank, _all_finite
+from aocontrol.controllers._base import (
+    _LIMIT_NOTE,
+    ControllerBank,
+    _all_finite,
+    _command_limit_in,
+)
 from aocontrol.controllers._lqg import (
     LQGBank,
     LQGStateSpace,
@@ -114,7 +120,7 @@ class MPCBank(ControllerBank):
     with an active limit are solved, one solver call each.
 
     When a solve fails (solver status or exception) the group's command is the unconstrained
-    LQG command clipped to the limits (stroke, and the rate around the last command), the
+    LQG command clipped to the limits (command limit, and the rate around the last command), the
     failure is counted in ``n_solver_failures`` and logged (first, then every 1000th).
 
     Parameters
@@ -124,8 +130,12 @@ class MPCBank(ControllerBank):
         delays, Kalman gain and the regulator (cost, terminal cost).
     horizon : int, default 10
         Prediction horizon ``N`` [frames], >= 1.
-    stroke : float or array_like of shape (n_modes,), optional
-        Hard limit ``|u| <= stroke`` on the command [units of the command]; ``None``: none.
+    command_limit : float or array_like of shape (n_modes,), optional
+        Hard limit ``|u| <= command_limit`` on the modal command [units of the command], > 0
+        (``inf`` for a mode without one); ``None``: none. A controller setting: in the
+        simulator, the bound the stage's DM implies per mode
+        (:attr:`aocontrol.sim.dm.ModalDM.command_bound`, from ``m2c`` and the actuator stroke
+        by :func:`aocontrol.sim.dm.modal_stroke`); ``stroke`` is its deprecated name.
     rate_limit : float or array_like of shape (n_modes,), optional
         Hard limit ``|u[j] - u[j-1]| <= rate_limit`` [units per frame]; ``None``: none.
     groups : sequence of sequences of int, optional
@@ -160,17 +170,21 @@ class MPCBank(ControllerBank):
     >>> d = DisturbanceModel([[0.9, 0.0]], [1.0], np.zeros((1, 0)), np.zeros((1, 0)),
     ...                      np.zeros((1, 0)), fs=1000.0)
     >>> ss = lqg_state_space(d, latency_frames=0.0, noise_variance=0.0)
-    >>> mpc = MPCBank(ss, horizon=5, stroke=0.5)
+    >>> mpc = MPCBank(ss, horizon=5, command_limit=0.5)
     >>> float(np.round(mpc.step(np.array([1.0]))[0], 6))   # LQG would command 0.9
     0.5
     """
 
+    #: Deprecated name of :attr:`command_limit`.
+    stroke = DeprecatedAttribute("command_limit", _LIMIT_NOTE)
+
+    @renamed_keyword("stroke", "command_limit", _LIMIT_NOTE)
     def __init__(
         self,
         state_space: LQGStateSpace,
         horizon: int = 10,
         *,
-        stroke: object = None,
+        command_limit: object = None,
         rate_limit: object = None,
         groups: Sequence[Sequence[int]] | None = None,
         solver: str = "daqp",
@@ -185,7 +199,7 @@ class MPCBank(ControllerBank):
         self.model = model
         n = state_space.n_modes
         self._horizon = check_int("horizon", horizon, minimum=1)
-        self._stroke = _per_mode("stroke", stroke, n)
+        self._limit = _per_mode("command_limit", command_limit, n)
         self._rate = _per_mode("rate_limit", rate_limit, n)
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {list(SOLVERS)}, got {solver!r}")
@@ -200,7 +214,7 @@ class MPCBank(ControllerBank):
         self._Kfull = -np.linalg.solve(Hq, Gz)
         self._KT = self._Kfull @ state_space.regulator_map  # (n, N, ns)
         self._lqg_law = self._KT[:, 0]  # = LQG's control_gain (tested)
-        self._stroke_tol = self._stroke * (1 - _SLACK)
+        self._limit_tol = self._limit * (1 - _SLACK)
         self._rate_tol = self._rate * (1 - _SLACK)
         self._has_rate = bool(np.isfinite(self._rate).any())
         self._groups = [self._build_group(idx) for idx in self._group_modes]
@@ -229,7 +243,7 @@ class MPCBank(ControllerBank):
 
     def _build_group(self, modes: np.ndarray) -> DaqpQP | CasadiQP:
         """The QP of one group of modes with the chosen solver."""
-        data = (self._Hq[modes], self._Gx[modes], self._stroke[modes], self._rate[modes])
+        data = (self._Hq[modes], self._Gx[modes], self._limit[modes], self._rate[modes])
         if self._solver_name == "daqp":
             return DaqpQP(*data)
         return CasadiQP(*data, plugin=self._solver_name, name=f"mpc_{int(modes[0])}")
@@ -242,7 +256,7 @@ class MPCBank(ControllerBank):
         horizon, solver and ``skip_inactive``; the disturbance model is not saved.
         """
         arrays, attrs = state_space_arrays(self._ss)
-        arrays["stroke"] = np.asarray(self._stroke)
+        arrays["command_limit"] = np.asarray(self._limit)
         arrays["rate_limit"] = np.asarray(self._rate)
         arrays["group"] = self._group_of.copy()
         attrs.update(horizon=self._horizon, solver=self._solver_name, skip_inactive=self._skip)
@@ -255,17 +269,23 @@ class MPCBank(ControllerBank):
         Parameters
         ----------
         arrays : dict of str to ndarray
-            State-space arrays, ``stroke``, ``rate_limit`` and ``group`` per mode.
+            State-space arrays, ``command_limit`` (``stroke`` in files written before its
+            rename), ``rate_limit`` and ``group`` per mode.
         attrs : dict
             State-space scalars, ``horizon``, ``solver``, ``skip_inactive``, ``fs``.
         """
         group = np.asarray(arrays["group"], dtype=int)
         groups = [np.flatnonzero(group == g).tolist() for g in np.unique(group)]
-        finite = {k: np.asarray(arrays[k]) for k in ("stroke", "rate_limit")}
+        finite = {
+            "command_limit": np.asarray(_command_limit_in(arrays)),
+            "rate_limit": np.asarray(arrays["rate_limit"]),
+        }
         return cls(
             state_space_from_arrays(arrays, attrs),
             int(attrs["horizon"]),
-            stroke=finite["stroke"] if np.isfinite(finite["stroke"]).any() else None,
+            command_limit=(
+                finite["command_limit"] if np.isfinite(finite["command_limit"]).any() else None
+            ),
             rate_limit=finite["rate_limit"] if np.isfinite(finite["rate_limit"]).any() else None,
             groups=groups,
             solver=str(attrs["solver"]),
@@ -285,6 +305,14 @@ class MPCBank(ControllerBank):
     def horizon(self) -> int:
         """Prediction horizon [frames]."""
         return self._horizon
+
+    @property
+    def command_limit(self) -> np.ndarray | None:
+        """The hard limit on the command per mode, shape (n_modes,) (``inf``: none for that
+        mode), or ``None`` when no mode has one."""
+        if not np.isfinite(self._limit).any():
+            return None
+        return self._limit.copy()
 
     @property
     def state_space(self) -> LQGStateSpace:
@@ -315,7 +343,7 @@ class MPCBank(ControllerBank):
         U = np.matmul(self._KT, xi_post[:, :, None])[:, :, 0]
         u = U[:, 0].copy()
         if self._skip:
-            lim = self._stroke_tol
+            lim = self._limit_tol
             ok = np.abs(U).max(axis=1) <= lim
             if self._has_rate:
                 dU = np.empty_like(U)
@@ -346,15 +374,15 @@ class MPCBank(ControllerBank):
             self._fallback(gi, U, u, exc)
             return
         # Keep the solution within the limits exactly (solver tolerance).
-        u[modes] = np.clip(X[:, 0], -self._stroke[modes], self._stroke[modes])
+        u[modes] = np.clip(X[:, 0], -self._limit[modes], self._limit[modes])
         self.n_solves[modes] += 1
 
     def _fallback(self, gi: int, U: np.ndarray, u: np.ndarray, exc: Exception) -> None:
-        """The unconstrained LQG command clipped to the stroke and the rate limit."""
+        """The unconstrained LQG command clipped to the command and rate limits."""
         modes = self._group_modes[gi]
-        prev, rate, stroke = self._u_prev[modes], self._rate[modes], self._stroke[modes]
-        lo = np.maximum(-stroke, prev - rate)
-        hi = np.minimum(stroke, prev + rate)
+        prev, rate, limit = self._u_prev[modes], self._rate[modes], self._limit[modes]
+        lo = np.maximum(-limit, prev - rate)
+        hi = np.minimum(limit, prev + rate)
         u[modes] = np.clip(U[modes, 0], lo, hi)
         self.n_solver_failures[modes] += 1
         self._groups[gi].reset()

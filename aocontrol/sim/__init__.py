@@ -8,7 +8,7 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 """
 
 from aocontrol.sim.atmosphere import Atmosphere, Layer
-from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
+from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror, ModalDM
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.loop import (
     CascadeResult,
@@ -70,6 +70,7 @@ __all__ = [
     "LoopResult",
     "ModalTimeSeries",
     "Stage",
+    "ModalDM",
     "TurbulenceSource",
     "run_loop",
     "run_cascade",

@@ -105,7 +105,8 @@ class LoopResult:
     metadata : dict
         Case and controller settings (JSON-serialisable), saved with the result.
     actuator_saturation : ndarray (n_act,) of int or None
-        Frames in which each DM actuator was clipped (with ``Stage.dm_stroke``).
+        Frames in which each DM actuator was clipped (with an actuator stroke,
+        ``stage.dm.actuator_stroke``).
     """
 
     fs: float

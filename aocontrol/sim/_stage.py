@@ -1,4 +1,4 @@
-"""A simulator stage (frozen configuration): controller, sensor, basis, delay, DM stroke.
+"""A simulator stage (frozen configuration): controller, sensor, basis, delay, DM.
 
 A :class:`Stage` is validated once and never mutated; the runner of
 :mod:`aocontrol.sim.loop` creates the per-frame state of a run from it (controller state,
@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from aocontrol._deprecation import DeprecatedAttribute, warn_renamed
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import split_latency
 from aocontrol.sim._gain_tracking import DitherGainTracker
@@ -24,9 +25,17 @@ from aocontrol.sim.wfs.sensors import DiffractiveSensor, LinearModalSensor, Sens
 __all__ = ["Sensor", "DiffractiveSensor", "Stage"]
 
 
-@dataclass(frozen=True)
+_DM_NOTE = "the stage's DM: dm=ModalDM.from_basis(basis, actuator_stroke=...) or ModalDM(...)"
+
+
+@dataclass(frozen=True, init=False)
 class Stage:
-    """One AO stage (frozen, validated configuration): controller, sensor, delay, DM stroke.
+    """One AO stage (frozen, validated configuration): controller, sensor, delay, DM.
+
+    The stage's DM (:class:`~aocontrol.sim.dm.ModalDM`) owns the stroke: the actuator stroke
+    (``actuator_stroke`` [nm], the physical limit) and a limit per mode (``modal_stroke``
+    [nm RMS]); the stage keeps no copy. A controller's own ``command_limit`` is a separate,
+    controller-side setting (see :mod:`aocontrol.sim.dm` for the stroke's names).
 
     Parameters
     ----------
@@ -34,21 +43,16 @@ class Stage:
         Runs at the stage rate ``controller.fs`` [Hz].
     sensor : Sensor
         Any sensor implementing the protocol of :mod:`aocontrol.sim.wfs.sensors`
-        (:class:`LinearModalSensor`, :class:`DiffractiveSensor`). Default: a noise-free
-        linear sensor of optical gain 1.
+        (:class:`LinearModalSensor`, :class:`DiffractiveSensor`). Default (or ``None``): a
+        noise-free linear sensor of optical gain 1.
     latency_frames : float
         RTC latency beyond the one-frame WFS integration [frames] (as in ``loop_plant``), in
         ``[0, aocontrol.plant.MAX_LATENCY_FRAMES]``.
-    stroke : float or ndarray (n_modes,), optional
-        Modal command limit [nm]: the applied command is clipped (counted as saturation).
-    dm_stroke : float, optional
-        Actuator stroke [nm] (e.g. 3200 for the SAXO+ stage-2 DM, +-3.2 um): the actuator
-        commands ``m2c @ u`` are clipped and projected back on the modes (least squares in
-        actuator space); clipped actuator-frames are counted. Needs ``m2c``. Approximation
-        of the modal simulator: the part of the clipped shape outside the controlled modes is
-        dropped.
-    m2c : ndarray (n_act, n_modes), optional
-        Modes-to-commands matrix of the DM; default ``basis.m2c`` when a basis is given.
+    dm : ModalDM, optional
+        The stage's DM, ``dm.n_modes == controller.n_modes``, e.g.
+        ``ModalDM.from_basis(basis, actuator_stroke=3200.0)`` (the SAXO+ stage-2 DM,
+        +-3.2 um: the actuator commands ``m2c @ u`` are clipped and projected back on the
+        modes; clipped actuator-frames are counted). Default: an unlimited DM.
     name : str
         Name used in messages and results.
     basis : ModalBasis-like, optional
@@ -58,28 +62,94 @@ class Stage:
         reads phase maps unless passed to the runner.
     gain_tracker : DitherGainTracker, optional
         Online optical-gain tracking and compensation (:mod:`aocontrol.sim._gain_tracking`).
+    stroke, dm_stroke, m2c : optional
+        Deprecated (``DeprecationWarning``): the DM's ``modal_stroke`` [nm RMS],
+        ``actuator_stroke`` [nm] and ``m2c`` (default ``basis.m2c`` with ``dm_stroke``), from
+        which the stage builds ``dm``; pass ``dm`` instead. Reading ``stage.stroke``,
+        ``stage.dm_stroke`` or ``stage.m2c`` returns the DM's, with the same warning.
 
     Attributes
     ----------
     dm : aocontrol.sim.dm.ModalDM
-        The stage's DM, the one owner of ``stroke`` and ``dm_stroke``.
+        The stage's DM, the one owner of the stroke.
     delay : tuple of (int, float)
         ``aocontrol.plant.split_latency(latency_frames)``.
+
+    Raises
+    ------
+    TypeError
+        A controller, sensor, basis, DM or tracker of the wrong kind, or ``dm`` together
+        with a deprecated stroke keyword.
+    ValueError
+        A DM or basis whose number of modes is not the controller's, a bad latency or stroke.
     """
 
     controller: ControllerBank
     sensor: Any = field(default_factory=LinearModalSensor)
     latency_frames: float = 0.0
-    stroke: Any = None
-    dm_stroke: float | None = None
-    m2c: Any = None
+    dm: ModalDM | None = field(default=None, repr=False, compare=False)
     name: str = "stage"
     basis: Any = field(default=None, repr=False, compare=False)
     gain_tracker: DitherGainTracker | None = None
-    dm: ModalDM = field(init=False, repr=False, compare=False)
     delay: tuple = field(init=False, repr=False, compare=False)
 
-    def __post_init__(self) -> None:
+    #: Deprecated: the DM's ``modal_stroke`` [nm RMS] (``stage.dm.modal_stroke``).
+    stroke = DeprecatedAttribute("dm.modal_stroke", _DM_NOTE)
+    #: Deprecated: the DM's ``actuator_stroke`` [nm] (``stage.dm.actuator_stroke``).
+    dm_stroke = DeprecatedAttribute("dm.actuator_stroke", _DM_NOTE)
+    #: Deprecated: the DM's ``m2c`` (``stage.dm.m2c``).
+    m2c = DeprecatedAttribute("dm.m2c", _DM_NOTE)
+
+    def __init__(
+        self,
+        controller: ControllerBank,
+        sensor: Any = None,
+        latency_frames: float = 0.0,
+        *,
+        dm: ModalDM | None = None,
+        name: str = "stage",
+        basis: Any = None,
+        gain_tracker: DitherGainTracker | None = None,
+        stroke: Any = None,
+        dm_stroke: float | None = None,
+        m2c: Any = None,
+    ) -> None:
+        fields = dict(
+            controller=controller,
+            sensor=LinearModalSensor() if sensor is None else sensor,
+            latency_frames=latency_frames,
+            dm=dm,
+            name=name,
+            basis=basis,
+            gain_tracker=gain_tracker,
+        )
+        for key, value in fields.items():
+            object.__setattr__(self, key, value)
+        self._check()
+        legacy = {"stroke": stroke, "dm_stroke": dm_stroke, "m2c": m2c}
+        legacy = {k: v for k, v in legacy.items() if v is not None}
+        if legacy and dm is not None:
+            raise TypeError(
+                f"Stage: give dm only ({sorted(legacy)} are the deprecated way to build it), "
+                "got both"
+            )
+        for key in legacy:
+            warn_renamed("Stage", key, "dm", _DM_NOTE)
+        n = self.controller.n_modes
+        if dm is None:
+            if dm_stroke is not None and m2c is None and basis is not None:
+                m2c = getattr(basis, "m2c", None)
+            dm = ModalDM(n, modal_stroke=stroke, actuator_stroke=dm_stroke, m2c=m2c)
+        elif not isinstance(dm, ModalDM):
+            raise TypeError(f"dm must be an aocontrol.sim.dm.ModalDM, got {type(dm).__name__}")
+        elif dm.n_modes != n:
+            raise ValueError(
+                f"dm has {dm.n_modes} modes, the controller of {self.name!r} has {n}"
+            )
+        object.__setattr__(self, "dm", dm)
+
+    def _check(self) -> None:
+        """Validate the fields set by ``__init__`` (the DM apart) and set ``delay``."""
         if not isinstance(self.controller, ControllerBank):
             raise TypeError(
                 f"controller must be a ControllerBank, got {type(self.controller).__name__}"
@@ -97,8 +167,6 @@ class Stage:
                 )
             if int(nb) != n:
                 raise ValueError(f"basis has {nb} modes, the controller of {self.name!r} has {n}")
-            if self.m2c is None and self.dm_stroke is not None:
-                object.__setattr__(self, "m2c", getattr(self.basis, "m2c", None))
         if not isinstance(self.sensor, Sensor):
             raise TypeError(
                 "sensor must implement the sensor protocol (check, start; e.g. a "
@@ -110,10 +178,6 @@ class Stage:
                 "gain_tracker must be a DitherGainTracker or None, got "
                 f"{type(self.gain_tracker).__name__}"
             )
-        dm = ModalDM(n, stroke=self.stroke, actuator_stroke=self.dm_stroke, m2c=self.m2c)
-        object.__setattr__(self, "dm", dm)
-        if self.dm_stroke is not None:
-            object.__setattr__(self, "m2c", dm.m2c)
 
     @property
     def fs(self) -> float:

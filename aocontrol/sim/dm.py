@@ -4,6 +4,24 @@
 :class:`ModalDM` is a simulator stage's mirror in modal space, the one owner of the stroke
 (modal and actuator limits, saturation counts); both clip through :func:`clip_to_stroke`.
 
+Stroke: one model, three names
+------------------------------
+* ``actuator_stroke`` [nm of actuator command]: the physical limit ``|c_a| <= actuator_stroke``
+  of every actuator (3200 for the SAXO+ stage-2 DM, +-3.2 um). Owned by the DM
+  (:class:`DeformableMirror`, :class:`ModalDM`); a case file gives it in metres
+  (``dm_stroke``), converted once (``StageSpec.dm_stroke_nm``).
+* ``modal_stroke`` [nm RMS per mode]: a limit per mode of a :class:`ModalDM` (a simplified DM
+  model without actuators), and :func:`modal_stroke`, the per-mode bound an actuator stroke
+  implies (a mode alone stays within the actuator stroke), derived from ``m2c`` in that one
+  function; :attr:`ModalDM.command_bound` gives it for a stage's DM.
+* ``command_limit`` [units of the command]: a controller's own clip of its modal command
+  (``IIRBank``, ``LQGBank``: anti-windup) or the MPC's hard constraint (``MPCBank``): a
+  controller setting, not the DM's. In the case comparison the MPC's is the DM's
+  :attr:`~ModalDM.command_bound`.
+
+The older names (``DeformableMirror(stroke=)``, ``ModalDM(stroke=)``, ``Stage(stroke=,
+dm_stroke=)``, the controllers' ``stroke=``) still work with a ``DeprecationWarning``.
+
 Conventions: commands are in nm -- a unit command on one actuator raises the optical path by
 1 nm at that actuator's centre (the influence function is normalised to a peak of 1), so
 commands, stroke and phase maps share one unit (OPD in nm, wavelength independent). Command
@@ -38,6 +56,7 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol._deprecation import DeprecatedAttribute, renamed_keyword
 from aocontrol._validation import (
     check_finite_array,
     check_in_range,
@@ -75,6 +94,7 @@ SAXO_PLUS_N_ACTUATORS = 28
 MIN_PIXELS_PER_PITCH = 2.0
 
 
+@renamed_keyword("stroke", "actuator_stroke", "the actuator stroke [nm]")
 @dataclass(frozen=True)
 class DeformableMirror:
     """Deformable mirror conjugated to the pupil, square grid, Gaussian influence functions.
@@ -90,9 +110,10 @@ class DeformableMirror:
     coupling : float, default 0.3
         Mechanical coupling in (0, 1): value of an influence function at the neighbouring
         actuator.
-    stroke : float or None, default None
-        Maximum |command| [nm of OPD]; None for an unlimited stroke. The SAXO+ stage-2 DM has
-        +-3.2 um, i.e. ``stroke=3200.0``.
+    actuator_stroke : float or None, default None
+        Maximum |command| of every actuator [nm of OPD], finite and > 0; None for an
+        unlimited stroke. The SAXO+ stage-2 DM has +-3.2 um, i.e. ``actuator_stroke=3200.0``.
+        (``stroke`` is its deprecated name.)
     margin : float, default 1.0
         Valid-actuator criterion [pitches]: an actuator is kept when its centre lies in the
         annulus ``r_in - margin * pitch <= r <= D/2 + margin * pitch`` (``r_in`` the radius of
@@ -116,7 +137,7 @@ class DeformableMirror:
     ------
     ValueError
         If the pupil samples the pitch with fewer than 2 pixels, if ``coupling`` is not in
-        (0, 1), or if ``stroke`` is not > 0.
+        (0, 1), or if ``actuator_stroke`` is not finite and > 0.
 
     Examples
     --------
@@ -129,16 +150,21 @@ class DeformableMirror:
     pupil: Pupil
     n_actuators: int = SAXO_N_ACTUATORS
     coupling: float = 0.3
-    stroke: float | None = None
+    actuator_stroke: float | None = None
     margin: float = 1.0
+
+    #: Deprecated name of :attr:`actuator_stroke`.
+    stroke = DeprecatedAttribute("actuator_stroke", "the actuator stroke [nm]")
 
     def __post_init__(self) -> None:
         if not isinstance(self.pupil, Pupil):
             raise TypeError(f"pupil must be a Pupil, got {type(self.pupil).__name__}")
         check_int("n_actuators", self.n_actuators, minimum=2)
         check_in_range("coupling", self.coupling, 0.0, 1.0, low_inclusive=False)
-        if self.stroke is not None:
-            check_positive("stroke", self.stroke)
+        if self.actuator_stroke is not None:
+            object.__setattr__(
+                self, "actuator_stroke", check_positive("actuator_stroke", self.actuator_stroke)
+            )
         check_nonnegative("margin", self.margin)
         px_per_pitch = self.pitch / self.pupil.pixel_scale
         if px_per_pitch < MIN_PIXELS_PER_PITCH * (1 - 1e-9):
@@ -247,7 +273,7 @@ class DeformableMirror:
 
     # ------------------------------------------------------------------ stroke
     def clip(self, commands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Clip commands to the stroke and count the saturated actuators.
+        """Clip commands to the actuator stroke and count the saturated actuators.
 
         Parameters
         ----------
@@ -257,15 +283,15 @@ class DeformableMirror:
         Returns
         -------
         clipped : ndarray, shape (..., n_act)
-            ``commands`` clipped to ``[-stroke, stroke]`` (a copy; unchanged values when
-            ``stroke`` is None).
+            ``commands`` clipped to ``[-actuator_stroke, actuator_stroke]`` (a copy; unchanged
+            values when ``actuator_stroke`` is None).
         n_saturated : ndarray of int, shape (...)
             Number of actuators whose command exceeded the stroke, per command vector.
 
         Examples
         --------
         >>> from aocontrol.sim.pupil import vlt_pupil
-        >>> dm = DeformableMirror(vlt_pupil(32), n_actuators=15, stroke=100.0)
+        >>> dm = DeformableMirror(vlt_pupil(32), n_actuators=15, actuator_stroke=100.0)
         >>> c = np.zeros(dm.n_act); c[:3] = [150.0, -250.0, 50.0]
         >>> clipped, n_sat = dm.clip(c)
         >>> clipped[:3].tolist(), int(n_sat)
@@ -276,9 +302,9 @@ class DeformableMirror:
             raise ValueError(
                 f"commands must end with n_act={self.n_act} values, got shape {c.shape}"
             )
-        if self.stroke is None:
+        if self.actuator_stroke is None:
             return c, np.zeros(c.shape[:-1], dtype=int)
-        clipped, over = clip_to_stroke(c, self.stroke)
+        clipped, over = clip_to_stroke(c, self.actuator_stroke)
         return clipped, over.sum(axis=-1)
 
 
@@ -308,9 +334,10 @@ def modal_stroke(m2c: object, actuator_stroke: float) -> np.ndarray:
 
     Mode ``i`` alone at amplitude ``u_i`` drives actuator ``a`` to ``m2c[a, i] u_i``: it stays
     within ``+-actuator_stroke`` iff ``|u_i| <= actuator_stroke / max_a |m2c[a, i]|``. The one
-    place a modal bound is derived from the DM's stroke (the MPC's command limit in the case
-    comparison); a combination of modes may still reach the stroke earlier, where the DM
-    (:class:`ModalDM` with ``actuator_stroke``) clips.
+    place a modal bound is derived from the DM's stroke (through
+    :attr:`ModalDM.command_bound`, the MPC's command limit in the case comparison); a
+    combination of modes may still reach the stroke earlier, where the DM (:class:`ModalDM`
+    with ``actuator_stroke``) clips.
 
     Parameters
     ----------
@@ -335,24 +362,26 @@ def modal_stroke(m2c: object, actuator_stroke: float) -> np.ndarray:
     return np.where(peak > 0, stroke / np.where(peak > 0, peak, 1.0), np.inf)
 
 
+@renamed_keyword("stroke", "modal_stroke", "the DM's limit per mode [nm RMS]")
 @dataclass(frozen=True, eq=False)
 class ModalDM:
     """The DM of a simulator stage in modal space: owns the stroke and clips the commands.
 
     A modal command ``u`` (n_modes,) [nm RMS per mode] is clipped first per mode to
-    ``stroke`` (modal limit), then, with ``actuator_stroke``, in actuator space: the actuator
-    commands ``m2c @ u`` are clipped to ``+-actuator_stroke`` and projected back on the modes
-    (least squares, ``pinv(m2c)``); the part of the clipped shape outside the modes is
-    dropped (approximation of the modal simulator). Saturations are counted in a
+    ``modal_stroke`` (a modal limit), then, with ``actuator_stroke``, in actuator space: the
+    actuator commands ``m2c @ u`` are clipped to ``+-actuator_stroke`` and projected back on
+    the modes (least squares, ``pinv(m2c)``); the part of the clipped shape outside the modes
+    is dropped (approximation of the modal simulator). Saturations are counted in a
     :class:`ModalDMState` (per mode: frames with a clipped mode or a clipped actuator the
-    mode drives; per actuator: clipped frames).
+    mode drives; per actuator: clipped frames). See the module notes for the stroke's names.
 
     Parameters
     ----------
     n_modes : int
         Number of modes commanded.
-    stroke : float or array_like (n_modes,), optional
-        Modal command limit [nm RMS], finite and > 0; ``None`` for no modal limit.
+    modal_stroke : float or array_like (n_modes,), optional
+        Limit per mode [nm RMS], finite and > 0; ``None`` for no modal limit. (``stroke`` is
+        its deprecated name.)
     actuator_stroke : float, optional
         Actuator stroke [nm of command], finite and > 0 (3200 for the SAXO+ stage-2 DM,
         +-3.2 um); needs ``m2c``. ``None`` for no actuator limit.
@@ -362,25 +391,39 @@ class ModalDM:
     Raises
     ------
     ValueError
-        Non-finite or non-positive strokes, or ``m2c`` missing or of the wrong shape.
+        Non-finite or non-positive strokes (naming ``modal_stroke`` or ``actuator_stroke``),
+        or ``m2c`` missing or of the wrong shape.
+
+    Examples
+    --------
+    >>> dm = ModalDM(2, actuator_stroke=100.0, m2c=[[1.0, 0.5], [-2.0, 0.25]])
+    >>> dm.command_bound   # each mode alone, at its bound, drives one actuator to 100 nm
+    array([ 50., 200.])
     """
 
     n_modes: int
-    stroke: Any = None
+    modal_stroke: Any = None
     actuator_stroke: float | None = None
     m2c: Any = None
 
+    #: Deprecated name of :attr:`modal_stroke`.
+    stroke = DeprecatedAttribute("modal_stroke", "the DM's limit per mode [nm RMS]")
+
     def __post_init__(self) -> None:
         n = check_int("n_modes", self.n_modes, minimum=1)
-        if self.stroke is not None:
-            s = check_finite_array("stroke", self.stroke, ndim=(0, 1))
+        if self.modal_stroke is not None:
+            s = check_finite_array("modal_stroke", self.modal_stroke, ndim=(0, 1))
             if s.ndim == 1 and s.shape != (n,):
-                raise ValueError(f"stroke must be a float or have shape ({n},), got {s.shape}")
+                raise ValueError(
+                    f"modal_stroke must be a float or have shape ({n},), got {s.shape}"
+                )
             if np.any(s <= 0):
-                raise ValueError(f"stroke must be > 0 [nm] for every mode, got min {s.min()!r}")
+                raise ValueError(
+                    f"modal_stroke must be > 0 [nm] for every mode, got min {s.min()!r}"
+                )
             s = np.broadcast_to(s, (n,)).copy()
             s.setflags(write=False)
-            object.__setattr__(self, "stroke", s)
+            object.__setattr__(self, "modal_stroke", s)
         if self.actuator_stroke is not None:
             object.__setattr__(
                 self, "actuator_stroke", check_positive("actuator_stroke", self.actuator_stroke)
@@ -399,10 +442,56 @@ class ModalDM:
             m2c.setflags(write=False)
             object.__setattr__(self, "m2c", m2c)
 
+    @classmethod
+    def from_basis(
+        cls, basis: Any, *, actuator_stroke: float | None = None, modal_stroke: Any = None
+    ) -> ModalDM:
+        """The DM of a modal basis: ``basis.n_modes`` modes, ``m2c = basis.m2c``.
+
+        Parameters
+        ----------
+        basis : ModalBasis-like
+            With ``n_modes`` and ``m2c`` (n_act, n_modes).
+        actuator_stroke : float, optional
+            Actuator stroke [nm]; ``None``: unlimited.
+        modal_stroke : float or array_like (n_modes,), optional
+            Limit per mode [nm RMS]; ``None``: none.
+        """
+        if not hasattr(basis, "n_modes") or not hasattr(basis, "m2c"):
+            raise TypeError(
+                f"basis must be a ModalBasis-like object (n_modes, m2c), got {type(basis).__name__}"
+            )
+        return cls(
+            int(basis.n_modes),
+            modal_stroke=modal_stroke,
+            actuator_stroke=actuator_stroke,
+            m2c=basis.m2c,
+        )
+
     @property
     def limited(self) -> bool:
         """Whether any stroke limit applies."""
-        return self.stroke is not None or self.actuator_stroke is not None
+        return self.modal_stroke is not None or self.actuator_stroke is not None
+
+    @cached_property
+    def command_bound(self) -> np.ndarray | None:
+        """Per-mode bound on a modal command [nm RMS], shape (n_modes,), or ``None``.
+
+        What a controller's ``command_limit`` should be for this DM (the MPC's bound in the
+        case comparison): ``modal_stroke`` and, with an actuator stroke, the bound it implies
+        for each mode alone (:func:`modal_stroke`, from ``m2c``), the smaller of the two; a
+        combination of modes may still reach the actuator stroke earlier, where the DM
+        clips. ``inf`` for a mode that neither limits; ``None`` for an unlimited DM.
+        """
+        if not self.limited:
+            return None
+        bound = np.full(self.n_modes, np.inf)
+        if self.modal_stroke is not None:
+            bound = np.minimum(bound, self.modal_stroke)
+        if self.actuator_stroke is not None:
+            bound = np.minimum(bound, modal_stroke(self.m2c, self.actuator_stroke))
+        bound.setflags(write=False)
+        return bound
 
     @property
     def n_act(self) -> int | None:
@@ -444,8 +533,8 @@ class ModalDM:
         ndarray, shape (n_modes,)
             The command the DM applies (``u`` itself when nothing is clipped).
         """
-        if self.stroke is not None:
-            clipped, over = clip_to_stroke(u, self.stroke)
+        if self.modal_stroke is not None:
+            clipped, over = clip_to_stroke(u, self.modal_stroke)
             if over.any():
                 state.saturation += over
                 u = clipped

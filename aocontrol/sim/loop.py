@@ -6,7 +6,7 @@ rejection equals ``|S|^2`` of :mod:`aocontrol.analysis`): at frame ``k`` of the 
 1. the WFS delivers ``m[k] = og * e[k-1] + n[k]`` (integration of the previous frame; a
    diffractive sensor measures the residual phase map of frame ``k-1`` instead, through the
    one sensor protocol of :mod:`aocontrol.sim.wfs.sensors`);
-2. the controller computes ``u[k] = K(m)[k]`` (its own stroke clipping included);
+2. the controller computes ``u[k] = K(m)[k]`` (its own ``command_limit`` included, if any);
 3. the DM applies ``y[k] = (1 - f) u[k - k0] + f u[k - k0 - 1]`` with
    ``(k0, f) = aocontrol.plant.split_latency(latency_frames)`` (linear interpolation of the
    commands, as COMPASS), the command clipped by the stage's DM
@@ -18,7 +18,7 @@ only Python loop is over frames. Phase maps (nm OPD) are formed only for the fra
 the science camera: ``residual_map = phase[k] - DM shape``, which keeps the fitting error.
 
 Engine: a frozen :class:`Stage` is the configuration (controller, sensor, basis, latency,
-DM stroke, optional optical-gain tracker :class:`DitherGainTracker`); the runner creates the
+DM with its stroke, optional optical-gain tracker :class:`DitherGainTracker`); the runner creates the
 per-run state (the sensor's run state, controller state, delay line, DM counters, telemetry)
 and advances it one frame of the stage's rate. One chunked driver serves :func:`run_loop`
 (one stage) and :func:`run_cascade` (two stages on the fast clock, stage 2's rate an integer

@@ -12,8 +12,9 @@ runs each registered controller (:data:`CONTROLLERS`):
   datadriven`, with the noise term, modulus margin 0.5);
 * ``"lqg"`` and ``"mpc"`` (not in the paper's table, run on request): the LQG of
   :func:`aocontrol.synthesis.lqg` (AR(2) turbulence and resonances fitted to the telemetry
-  PSD) and the MPC of :func:`aocontrol.synthesis.mpc` on the same model, command limited to
-  the DM stroke.
+  PSD) and the MPC of :func:`aocontrol.synthesis.mpc` on the same model, each mode's command
+  limited to the bound the stage's DM implies (:attr:`aocontrol.sim.dm.ModalDM.command_bound`
+  of :meth:`aocontrol.study.scene.StageScene.modal_dm`).
 
 The last two are designed from the simulator's own telemetry: a calibration run with the
 reference integrator, whose pseudo-open loop goes through
@@ -40,7 +41,6 @@ import numpy as np
 
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import ControllerBank, Integrator
-from aocontrol.sim.dm import modal_stroke
 from aocontrol.sim.loop import (
     LoopResult,
     PhaseSource,
@@ -144,14 +144,14 @@ def _frames(scene: Scene, seconds: float) -> int:
 
 
 def _stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
-    # The sensor in the loop and its optical-gain handling: the case's stage settings.
-    stroke = st.spec.dm_stroke_nm
+    # The sensor in the loop and its optical-gain handling, and the DM (its stroke): the
+    # case's stage settings.
     sensor, tracker = st.loop_sensor()
     return Stage(
         controller,
         sensor,
         st.spec.latency_frames,
-        dm_stroke=stroke,
+        dm=st.modal_dm(),
         name=name,
         basis=st.basis,
         gain_tracker=tracker,
@@ -357,7 +357,6 @@ def design_inputs(
     m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
     u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
     tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=estimator)
-    stroke_nm = st.spec.dm_stroke_nm
     return DesignInputs(
         plant=st.plant,
         freqs=tel.freqs,
@@ -367,7 +366,7 @@ def design_inputs(
         n_modes=st.n_modes,
         reference_gain=float(gain),
         telemetry=tel,
-        stroke=None if stroke_nm is None else modal_stroke(st.basis.m2c, stroke_nm),
+        command_limit=st.modal_dm().command_bound,
     )
 
 

@@ -54,7 +54,7 @@ import numpy as np
 
 from aocontrol.plant import loop_plant
 from aocontrol.sim.atmosphere import Atmosphere
-from aocontrol.sim.dm import DeformableMirror
+from aocontrol.sim.dm import DeformableMirror, ModalDM
 from aocontrol.sim.loop import DitherGainTracker, projection_matrix
 from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
 from aocontrol.sim.noise import photons_per_frame
@@ -110,6 +110,8 @@ class StageScene:
     spec : StageSpec
         The case's stage values.
     dm : DeformableMirror
+        The mirror's geometry (influence functions; the KL basis is built on it). Its stroke
+        in the loop is :meth:`modal_dm`'s.
     basis : ModalBasis
         ``spec.n_modes`` KL modes (fewer in quick mode).
     plant : control.TransferFunction
@@ -153,6 +155,15 @@ class StageScene:
     def noise_std(self) -> np.ndarray:
         """Measurement noise per mode seen by the controller [nm RMS per frame]."""
         return np.asarray(self.sensor.noise_std)
+
+    def modal_dm(self) -> ModalDM:
+        """The stage's DM in the loop: the basis' ``m2c`` and the case's actuator stroke.
+
+        The case's ``dm_stroke`` [m] enters once, converted by ``StageSpec.dm_stroke_nm``;
+        the loop's :class:`~aocontrol.sim.Stage` takes this DM and the MPC its
+        :attr:`~aocontrol.sim.dm.ModalDM.command_bound`.
+        """
+        return ModalDM.from_basis(self.basis, actuator_stroke=self.spec.dm_stroke_nm)
 
     def with_optical_gains(self, optical_gain: np.ndarray) -> StageScene:
         """The same stage with other calibrated optical gains (the compensated linear sensor

@@ -2,7 +2,7 @@
 
 Per mode, an IIR controller ``K = X / Y`` (powers of ``z^-1``) minimises on a frequency grid
 
-    J(K) = ( ||W1 S||_2^2 + ||Wn T||_2^2 ) / v_ref  +  stroke_weight * ||T||_inf^2
+    J(K) = ( ||W1 S||_2^2 + ||Wn T||_2^2 ) / v_ref  +  hinf_weight * ||T||_inf^2
     subject to ||S||_inf <= 1 / modulus_margin,
 
 with ``S = Y/P``, ``T = G X / P``, ``P = Y + G X``, ``W1^2 = psd`` and ``Wn^2 = noise_psd``.
@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 import control
 import numpy as np
 
+from aocontrol._deprecation import renamed_keyword
 from aocontrol._validation import (
     check_finite_array,
     check_frequency_grid,
@@ -298,6 +299,7 @@ def _initial_coefficients(initial: object, n_modes: int, fs: float) -> list:
     )
 
 
+@renamed_keyword("stroke_weight", "hinf_weight", "the weight of ||T||_inf^2, not a stroke")
 def datadriven(
     plant: control.TransferFunction | control.FRD,
     freqs: object,
@@ -306,7 +308,7 @@ def datadriven(
     order: int | str = 5,
     noise_psd: object = 0.0,
     modulus_margin: float = 0.5,
-    stroke_weight: float = 1e-3,
+    hinf_weight: float = 1e-3,
     fixed_denominator: object = None,
     initial: IIRBank | control.TransferFunction | None = None,
     max_pole_radius: float | None = DEFAULT_POLE_RADIUS,
@@ -326,7 +328,7 @@ def datadriven(
 
         J(K) = \frac{1}{v_\mathrm{ref}} \int_0^{f_s/2}
                \left(|S|^2 \Phi_d + |T|^2 \Phi_n\right) df
-               + \mathtt{stroke\_weight}\, \|T\|_\infty^2
+               + \mathtt{hinf\_weight}\, \|T\|_\infty^2
         \quad \text{s.t.} \quad \|S\|_\infty \le 1/\mu
 
     with ``S = 1/(1 + G K)``, ``T = G K / (1 + G K)``. The integral (the paper's
@@ -336,9 +338,9 @@ def datadriven(
     ``freqs`` has at most ``n_grid`` points, otherwise with ``|S|^2`` and ``|T|^2`` interpolated
     linearly between the design points (the PSDs keep every input point: the disturbance
     variance is exact). ``v_ref`` is that of the initial controller, so
-    ``J(initial) = 1 + stroke_weight ||T0||_inf^2`` and the H2 part of ``J`` is the residual
+    ``J(initial) = 1 + hinf_weight ||T0||_inf^2`` and the H2 part of ``J`` is the residual
     variance relative to the initial controller. ``||T||_inf^2`` (the
-    paper's ``||W2 T||_inf^2``, ``W2^2 = stroke_weight``) penalises the peak of the command
+    paper's ``||W2 T||_inf^2``, ``W2^2 = hinf_weight``) penalises the peak of the command
     response (``|T| = |K S|`` for a pure-delay plant). With ``noise_psd = 0`` this is the paper's
     objective with the disturbance normalised by a scalar instead of its value at the
     bandwidth.
@@ -403,8 +405,12 @@ def datadriven(
         :func:`aocontrol.synthesis.disturbance_from_telemetry`).
     modulus_margin : float, default 0.5
         Required ``min |1 + G K|`` in (0, 1), i.e. ``||S||_inf <= 1/modulus_margin``.
-    stroke_weight : float, default 1e-3
-        Weight of ``||T||_inf^2`` relative to the normalised residual (>= 0; 0 drops it).
+    hinf_weight : float, default 1e-3
+        Weight of the H-infinity term ``||T||_inf^2`` relative to the normalised residual
+        (>= 0; 0 drops it): the paper's ``alpha``, a weight on the command sensitivity
+        ``T`` (``|T| = |K S|``, the control sensitivity, for a pure-delay plant), which
+        limits the command's overshoot. A weight, not a stroke (the stroke is the DM's,
+        :mod:`aocontrol.sim.dm`); ``stroke_weight`` is its deprecated name.
     fixed_denominator : array_like, optional
         Fixed factor ``F`` of the denominator, coefficients in powers of ``z^-1``, e.g.
         ``[1, -1]`` (integral action) or ``[1, -(1 - leak)]``.
@@ -481,7 +487,7 @@ def datadriven(
         order=order,
         noise_psd=noise_psd,
         modulus_margin=modulus_margin,
-        stroke_weight=stroke_weight,
+        stroke_weight=hinf_weight,
         fixed_denominator=fixed_denominator,
         initial=initial,
         max_pole_radius=max_pole_radius,
@@ -550,7 +556,7 @@ def _prepare(
             "max_pole_radius", max_pole_radius, 0.0, 1.0, low_inclusive=False
         )
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
-    stroke_weight = check_nonnegative("stroke_weight", stroke_weight)
+    stroke_weight = check_nonnegative("hinf_weight", stroke_weight)
     max_iter = _check_bounded_int("max_iter", max_iter, 1, MAX_ITER)
     tol = check_nonnegative("tol", tol)
     n_grid = _check_bounded_int("n_grid", n_grid, 8, MAX_N_GRID)

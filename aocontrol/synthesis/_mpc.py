@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import control
 
+from aocontrol._deprecation import renamed_keyword
 from aocontrol.controllers import MPCBank
 from aocontrol.synthesis._armodel import DisturbanceModel
 from aocontrol.synthesis._lqg import lqg
@@ -17,6 +18,7 @@ from aocontrol.synthesis._lqg import lqg
 __all__ = ["mpc"]
 
 
+@renamed_keyword("stroke", "command_limit", "the MPC's hard limit on its modal command")
 def mpc(
     plant: control.TransferFunction,
     freqs: object,
@@ -24,7 +26,7 @@ def mpc(
     *,
     noise_psd: object = 0.0,
     horizon: int = 10,
-    stroke: object = None,
+    command_limit: object = None,
     rate_limit: object = None,
     groups: Sequence[Sequence[int]] | None = None,
     control_weight: float = 0.0,
@@ -53,8 +55,9 @@ def mpc(
         White measurement-noise PSD, one-sided [units^2/Hz]: scalar or one level per mode.
     horizon : int, default 10
         Prediction horizon [frames], >= 1.
-    stroke : float or array_like of shape (n_modes,), optional
-        Hard command limit ``|u| <= stroke`` [units of the command].
+    command_limit : float or array_like of shape (n_modes,), optional
+        Hard limit ``|u| <= command_limit`` on the modal command [units of the command]
+        (see :class:`~aocontrol.controllers.MPCBank`; ``stroke`` is its deprecated name).
     rate_limit : float or array_like of shape (n_modes,), optional
         Hard limit on ``|u[j] - u[j-1]|`` [units per frame].
     groups : sequence of sequences of int, optional
@@ -92,7 +95,7 @@ def mpc(
     return MPCBank(
         bank.state_space,
         horizon,
-        stroke=stroke,
+        command_limit=command_limit,
         rate_limit=rate_limit,
         groups=groups,
         solver=solver,

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol._deprecation import renamed_keyword
 from aocontrol._validation import check_in_range, check_int
 from aocontrol.analysis import (
     Margins,
@@ -86,6 +87,7 @@ def _per_mode_margins(plant: Any, bank: Any, label: str) -> tuple:
     return tuple(out)
 
 
+@renamed_keyword("stroke", "command_limit", "the MPC's hard limit on its modal command")
 def design_from_telemetry(
     telemetry: LoopTelemetry | TelemetryPSD | tuple,
     controller: str = "datadriven",
@@ -98,7 +100,7 @@ def design_from_telemetry(
     noise_band: tuple[float, float] = (0.8, 1.0),
     modulus_margin: float = MODULUS_MARGIN,
     reference_gain: float = 0.5,
-    stroke: float | None = None,
+    command_limit: float | np.ndarray | None = None,
     options: Mapping[str, Any] | None = None,
     bounds: Sequence[str] = BOUNDS,
     n_taps: int = 128,
@@ -149,8 +151,9 @@ def design_from_telemetry(
         constrained bound.
     reference_gain : float, default 0.5
         Gain of the ``"integrator"``/``"reference"`` design.
-    stroke : float, optional
-        Command limit [units] (the MPC's).
+    command_limit : float or ndarray of shape (n_modes,), optional
+        Limit on the modal command [units] (:attr:`DesignInputs.command_limit`, the MPC's);
+        ``stroke`` is its deprecated name.
     options : mapping, optional
         Options of the design (:attr:`aocontrol.synthesis.ControllerSpec.options`).
     bounds : sequence of str, default ("wiener", "constrained")
@@ -234,7 +237,7 @@ def design_from_telemetry(
         n_modes=est.n_modes,
         reference_gain=float(reference_gain),
         telemetry=est,
-        stroke=stroke,
+        command_limit=command_limit,
         modulus_margin=modulus_margin,
         options=opts,
     )

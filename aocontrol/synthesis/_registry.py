@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol._deprecation import DeprecatedAttribute, renamed_keyword
 from aocontrol.controllers import ControllerBank, Integrator
 from aocontrol.synthesis._datadriven import DataDrivenResult, datadriven
 from aocontrol.synthesis._lqg import lqg
@@ -41,6 +42,7 @@ MODULUS_MARGIN = 0.5
 MPC_HORIZON = 10
 
 
+@renamed_keyword("stroke", "command_limit", "the per-mode bound on the modal command")
 @dataclass(frozen=True, eq=False)
 class DesignInputs:
     """What a controller design receives (all from telemetry, none from a simulator).
@@ -62,10 +64,11 @@ class DesignInputs:
         Gain of the reference integrator (scanned, the case's or the user's).
     telemetry : TelemetryPSD or None
         The full estimate (pseudo-open loop included).
-    stroke : float or ndarray of shape (n_modes,) or None
-        Per-mode command bound [units] (``None``: unlimited); the MPC's command limit. The
-        simulator gives the bound the DM's actuator stroke implies for each mode alone
-        (:func:`aocontrol.sim.dm.modal_stroke`, from ``m2c``).
+    command_limit : float or ndarray of shape (n_modes,) or None
+        Per-mode bound on the modal command [units] (``None``: unlimited); the MPC's command
+        limit (``stroke`` is its deprecated name). The simulator gives the bound its DM
+        implies for each mode alone (:attr:`aocontrol.sim.dm.ModalDM.command_bound`, from
+        ``m2c`` and the actuator stroke by :func:`aocontrol.sim.dm.modal_stroke`).
     modulus_margin : float, default :data:`MODULUS_MARGIN`
         Required modulus margin of the designs that take one.
     options : mapping, default empty
@@ -81,9 +84,12 @@ class DesignInputs:
     n_modes: int
     reference_gain: float
     telemetry: TelemetryPSD | None = None
-    stroke: float | np.ndarray | None = None
+    command_limit: float | np.ndarray | None = None
     modulus_margin: float = MODULUS_MARGIN
     options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+    #: Deprecated name of :attr:`command_limit`.
+    stroke = DeprecatedAttribute("command_limit", "the per-mode bound on the modal command")
 
     def option(self, name: str, default: Any) -> Any:
         """The option ``name`` if given, else ``default``."""
@@ -190,16 +196,16 @@ def _lqg(inp: DesignInputs) -> ControllerBank:
 
 def _mpc(inp: DesignInputs) -> ControllerBank:
     # The LQG's model and estimator, horizon 10 frames, each mode's command limited to
-    # inp.stroke (from the simulator: the bound the DM's actuator stroke implies for the mode
-    # alone, from m2c); modes combined may still reach the stroke at an actuator, where the
-    # DM clips.
+    # inp.command_limit (from the simulator: the bound its DM implies for the mode alone,
+    # ModalDM.command_bound); modes combined may still reach the stroke at an actuator, where
+    # the DM clips.
     return mpc(
         inp.plant,
         inp.freqs,
         inp.psd,
         noise_psd=inp.noise_psd,
         horizon=inp.option("horizon", MPC_HORIZON),
-        stroke=inp.stroke,
+        command_limit=inp.command_limit,
         n_vibrations=inp.option("n_vibrations", 2),
     )
 
