@@ -7,7 +7,7 @@
     noise; the DM stroke is set to a multiple of the disturbance RMS so that the limit is
     active. Closed-loop runs (aocontrol.sim.run_loop) of the MPC (one QP for tip and tilt,
     horizon 10), the LQG whose commands are simply clipped by the DM, the LQG that clips its
-    own command and feeds it to its predictor (LQGBank stroke), and integrators clipped
+    own command and feeds it to its predictor (LQGBank command_limit), and integrators clipped
     with anti-windup (best of 0.4, 0.6, 0.8 times the stability limit). Residual variance
     over the run, the fraction of frames at the limit, and the floor no controller within the
     stroke can beat: the mean of (|d| - stroke)_+^2 (the residual when the DM sits at the
@@ -31,7 +31,7 @@ import numpy as np
 
 from aocontrol.controllers import Integrator, LQGBank, MPCBank
 from aocontrol.plant import loop_plant
-from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, run_loop
+from aocontrol.sim import LinearModalSensor, ModalDM, ModalTimeSeries, Stage, run_loop
 from aocontrol.synthesis import DisturbanceModel, integrator_gain_limit, lqg_state_space
 
 FS = 3000.0
@@ -60,7 +60,7 @@ def run(controller, series: np.ndarray, stroke) -> tuple[np.ndarray, np.ndarray]
         controller,
         sensor=LinearModalSensor(noise_std=NOISE_STD),
         latency_frames=LATENCY,
-        stroke=stroke,
+        dm=ModalDM(controller.n_modes, modal_stroke=stroke),
     )
     res = run_loop(
         stage,
@@ -138,12 +138,14 @@ def main() -> None:
     print(header)
     for factor in (2.0, 1.5, 1.0):
         stroke = factor * rms
-        v_mpc, u_mpc = run(MPCBank(ss, HORIZON, stroke=stroke, groups=[[0, 1]]), series, None)
+        v_mpc, u_mpc = run(
+            MPCBank(ss, HORIZON, command_limit=stroke, groups=[[0, 1]]), series, None
+        )
         v_lqg, _ = run(LQGBank(ss), series, stroke)
         # LQG that clips its own command and feeds the clipped one to its predictor.
-        v_lqg_aw, _ = run(LQGBank(ss, stroke=stroke), series, stroke)
+        v_lqg_aw, _ = run(LQGBank(ss, command_limit=stroke), series, stroke)
         ints = {
-            g: run(Integrator(g, fs=FS, n_modes=2, stroke=stroke), series, stroke)[0].sum()
+            g: run(Integrator(g, fs=FS, n_modes=2, command_limit=stroke), series, stroke)[0].sum()
             for g in np.round(np.array([0.4, 0.6, 0.8]) * g_max, 3)
         }
         g_best = min(ints, key=ints.get)
@@ -169,11 +171,15 @@ def main() -> None:
     stroke = 1.0 * rms
     lqg_times = frame_times(LQGBank(ss), m2)
     every = {"groups": [[0, 1]], "skip_inactive": False}
-    qp_times = frame_times(MPCBank(ss, HORIZON, stroke=stroke, **every), m2)
-    ref_times = frame_times(MPCBank(ss, HORIZON, stroke=stroke, solver="qpoases", **every), m2)
+    qp_times = frame_times(MPCBank(ss, HORIZON, command_limit=stroke, **every), m2)
+    ref_times = frame_times(
+        MPCBank(ss, HORIZON, command_limit=stroke, solver="qpoases", **every), m2
+    )
     # Limits inactive: measurements at the noise level (a converged loop), stroke 10 RMS.
     m_small = rng.standard_normal(m2.shape) * NOISE_STD
-    short_times = frame_times(MPCBank(ss, HORIZON, stroke=10 * rms, groups=[[0, 1]]), m_small)
+    short_times = frame_times(
+        MPCBank(ss, HORIZON, command_limit=10 * rms, groups=[[0, 1]]), m_small
+    )
     t_lqg, t_qp, t_ref = (float(np.median(t[1])) for t in (lqg_times, qp_times, ref_times))
     print(
         f"  (times per frame; wall counts include the time the process was not scheduled on "
@@ -202,15 +208,15 @@ def main() -> None:
     ss_big = lqg_state_space(big, latency_frames=LATENCY, noise_variance=NOISE_STD**2)
     m_big = rng.standard_normal((20 if args.quick else 60, n_modes)) * 50.0
     t0 = time.perf_counter()
-    mpc_big = MPCBank(ss_big, HORIZON, stroke=1.0, skip_inactive=False)
+    mpc_big = MPCBank(ss_big, HORIZON, command_limit=1.0, skip_inactive=False)
     t_build = time.perf_counter() - t0
     t0 = time.perf_counter()
-    ref_big = MPCBank(ss_big, HORIZON, stroke=1.0, skip_inactive=False, solver="qpoases")
+    ref_big = MPCBank(ss_big, HORIZON, command_limit=1.0, skip_inactive=False, solver="qpoases")
     t_build_ref = time.perf_counter() - t0
     t_big_lqg = time_steps(LQGBank(ss_big), m_big)
     t_big = time_steps(mpc_big, m_big)
     t_big_ref = time_steps(ref_big, m_big)
-    mpc_free = MPCBank(ss_big, HORIZON, stroke=1e9)
+    mpc_free = MPCBank(ss_big, HORIZON, command_limit=1e9)
     t_big_short = time_steps(mpc_free, m_big)
     assert mpc_free.n_solves.sum() == 0  # the shortcut was taken on every frame
     print(f"  540 modes: building 540 QPs [s]   DAQP {t_build:5.2f}, qpOASES {t_build_ref:5.1f}")

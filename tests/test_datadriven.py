@@ -94,7 +94,7 @@ def test_objective_history_non_increasing(basic):
 
 @pytest.mark.parametrize("noise", [0.0, 3e-3])
 def test_objective_is_relative_residual_variance(plant, noise):
-    # Oracle: with stroke_weight = 0 and a grid no larger than n_grid (design grid = input
+    # Oracle: with hinf_weight = 0 and a grid no larger than n_grid (design grid = input
     # grid, trapezoid weights), J = residual variance / initial residual variance exactly;
     # with noise_psd = 0 this is the paper's objective (disturbance term only).
     f = _grid(101)
@@ -105,7 +105,7 @@ def test_objective_is_relative_residual_variance(plant, noise):
         psd,
         order=3,
         noise_psd=noise,
-        stroke_weight=0.0,
+        hinf_weight=0.0,
         n_grid=101,
         n_jobs=1,
         progress=False,
@@ -133,7 +133,7 @@ def test_order_one_with_integrator_factor_is_optimal_gain_integrator(plant):
         noise_psd=noise,
         fixed_denominator=[1, -1],
         modulus_margin=0.3,
-        stroke_weight=0.0,
+        hinf_weight=0.0,
         initial=start,
         n_jobs=1,
         progress=False,

@@ -107,7 +107,9 @@ def test_stroke_limited_mpc_beats_clipped_lqg_and_clipped_integrators(stroke_lim
     v_mpc = res_mpc.residual_variance.sum()
     v_lqg = _run(LQGBank(ss), series, stroke).residual_variance.sum()
     v_int = min(
-        _run(Integrator(g, fs=FS, n_modes=2, command_limit=stroke), series, stroke).residual_variance.sum()
+        _run(
+            Integrator(g, fs=FS, n_modes=2, command_limit=stroke), series, stroke
+        ).residual_variance.sum()
         for g in (0.5, 0.8, 0.9)
     )
     # Measured: MPC 0.19 x clipped LQG, 0.81 x the best clipped integrator (gain 0.8; the

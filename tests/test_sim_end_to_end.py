@@ -136,8 +136,8 @@ def test_strehl_and_contrast_match_theory_of_the_residual_phase(run):
 
 
 def test_actuator_stroke_clips_dm_commands_and_counts():
-    # With an actuator stroke the actuator commands are clipped (counted per actuator), the DM cannot
-    # follow a tip beyond its stroke, and a loop with ample stroke is unaffected.
+    # With an actuator stroke the actuator commands are clipped (counted per actuator), the DM
+    # cannot follow a tip beyond its stroke, and a loop with ample stroke is unaffected.
     pupil = vlt_pupil(24)
     dm = DeformableMirror(pupil, n_actuators=9)
     basis = kl_basis(dm, 20, r0=0.15)

@@ -62,7 +62,7 @@ def _check_command_limit(command_limit: object, n: int) -> np.ndarray | None:
     s = check_finite_array("command_limit", command_limit, ndim=(0, 1))
     s = check_broadcast("command_limit", s, (n,), f"scalar or (n_modes,) = ({n},)").astype(float)
     if np.any(s <= 0):
-        raise ValueError(f"command_limit must be > 0, got min {s.min()!r}")
+        raise ValueError(f"command_limit must be > 0, got min {float(s.min())!r}")
     s.setflags(write=False)
     return s
 

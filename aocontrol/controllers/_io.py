@@ -102,7 +102,10 @@ def _integrator_from_arrays(
     arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]
 ) -> Integrator:
     return Integrator(
-        arrays["gain"], float(attrs["fs"]), float(attrs["leak"]), command_limit=_command_limit_in(arrays)
+        arrays["gain"],
+        float(attrs["fs"]),
+        float(attrs["leak"]),
+        command_limit=_command_limit_in(arrays),
     )
 
 

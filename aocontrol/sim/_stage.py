@@ -143,9 +143,7 @@ class Stage:
         elif not isinstance(dm, ModalDM):
             raise TypeError(f"dm must be an aocontrol.sim.dm.ModalDM, got {type(dm).__name__}")
         elif dm.n_modes != n:
-            raise ValueError(
-                f"dm has {dm.n_modes} modes, the controller of {self.name!r} has {n}"
-            )
+            raise ValueError(f"dm has {dm.n_modes} modes, the controller of {self.name!r} has {n}")
         object.__setattr__(self, "dm", dm)
 
     def _check(self) -> None:

@@ -419,7 +419,7 @@ class ModalDM:
                 )
             if np.any(s <= 0):
                 raise ValueError(
-                    f"modal_stroke must be > 0 [nm] for every mode, got min {s.min()!r}"
+                    f"modal_stroke must be > 0 [nm] for every mode, got min {float(s.min())!r}"
                 )
             s = np.broadcast_to(s, (n,)).copy()
             s.setflags(write=False)
@@ -562,4 +562,3 @@ class ModalDMState:
 
     saturation: np.ndarray
     actuator_saturation: np.ndarray | None = None
-

@@ -17,10 +17,10 @@ Everything is modal (nm RMS per mode, shape ``(n_modes,)``) and vectorised over 
 only Python loop is over frames. Phase maps (nm OPD) are formed only for the frames that feed
 the science camera: ``residual_map = phase[k] - DM shape``, which keeps the fitting error.
 
-Engine: a frozen :class:`Stage` is the configuration (controller, sensor, basis, latency,
-DM with its stroke, optional optical-gain tracker :class:`DitherGainTracker`); the runner creates the
-per-run state (the sensor's run state, controller state, delay line, DM counters, telemetry)
-and advances it one frame of the stage's rate. One chunked driver serves :func:`run_loop`
+Engine: a frozen :class:`Stage` is the configuration (controller, sensor, basis, latency, DM
+with its stroke, optional optical-gain tracker :class:`DitherGainTracker`); the runner creates
+the per-run state (the sensor's run state, controller state, delay line, DM counters,
+telemetry) and advances it one frame of the stage's rate. One chunked driver serves :func:`run_loop`
 (one stage) and :func:`run_cascade` (two stages on the fast clock, stage 2's rate an integer
 multiple of stage 1's, in the ``standalone`` or ``dcao`` scheme).
 """
