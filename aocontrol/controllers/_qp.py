@@ -4,7 +4,7 @@ One group of modes (e.g. tip and tilt) is one QP in the condensed variables
 ``x = (U_0, ..., U_{ng-1})`` (``N`` commands per mode, mode after mode)::
 
     min_x  0.5 x^T Hq x + f^T x
-    s.t.   -stroke <= x <= stroke                         (simple bounds, per mode)
+    s.t.   -limit <= x <= limit                            (simple bounds, per mode)
            u_prev - rate <= U_j[0] <= u_prev + rate        (modes with a rate limit)
            -rate <= U_j[i] - U_j[i-1] <= rate, i = 1..N-1
 
@@ -104,11 +104,11 @@ class _GroupQP:
     """The data of one group's QP shared by both solvers."""
 
     def __init__(
-        self, Hq: np.ndarray, Gx: np.ndarray, stroke: np.ndarray, rate: np.ndarray
+        self, Hq: np.ndarray, Gx: np.ndarray, limit: np.ndarray, rate: np.ndarray
     ) -> None:
         self.n_modes, self.horizon, self.ns = Gx.shape
         self.Hq, self.Gx = Hq, Gx  # (ng, N, N), (ng, N, ns)
-        self.stroke, self.rate = stroke, rate  # (ng,), inf for none
+        self.limit, self.rate = limit, rate  # (ng,), inf for none
         self.has_rate = np.isfinite(rate)
 
 
@@ -121,14 +121,14 @@ class DaqpQP(_GroupQP):
         Condensed Hessian per mode (positive definite).
     Gx : ndarray, shape (ng, N, ns)
         Linear-term map per mode on the Kalman estimate: ``f_j = Gx[j] xi[j]``.
-    stroke, rate : ndarray, shape (ng,)
+    limit, rate : ndarray, shape (ng,)
         Limits per mode (``inf`` for none).
     """
 
     def __init__(
-        self, Hq: np.ndarray, Gx: np.ndarray, stroke: np.ndarray, rate: np.ndarray
+        self, Hq: np.ndarray, Gx: np.ndarray, limit: np.ndarray, rate: np.ndarray
     ) -> None:
-        super().__init__(Hq, Gx, stroke, rate)
+        super().__init__(Hq, Gx, limit, rate)
         ng, N = self.n_modes, self.horizon
         ns = self.ns
         H = np.zeros((ng * N, ng * N))
@@ -138,14 +138,14 @@ class DaqpQP(_GroupQP):
             F[j * N : (j + 1) * N, j * ns : (j + 1) * ns] = Gx[j]
         self._F = F
         self._A = _rate_rows(ng, N, self.has_rate)
-        s = np.repeat(stroke, N)
+        s = np.repeat(limit, N)
         r = np.concatenate([np.full(N, x) for x in rate[self.has_rate]] or [np.zeros(0)])
         # Bounds: the simple bounds first (DAQP's convention), then the rate rows.
         self._upper = np.concatenate([s, r])
         self._lower = -self._upper
         # Index of each rate-limited mode's U_j[0] row in the bound vectors.
         self._first_rows = ng * N + N * np.arange(int(self.has_rate.sum()))
-        limits = np.concatenate([stroke, rate])
+        limits = np.concatenate([limit, rate])
         finite = limits[np.isfinite(limits)]
         primal_tol = _DAQP_PRIMAL_TOL * (float(finite.min()) if finite.size else 1.0)
         self._model = daqp.Model()
@@ -199,7 +199,7 @@ class CasadiQP(_GroupQP):
 
     Parameters
     ----------
-    Hq, Gx, stroke, rate
+    Hq, Gx, limit, rate
         As :class:`DaqpQP`.
     plugin : {"qpoases", "osqp"}
         casadi QP plugin.
@@ -211,12 +211,12 @@ class CasadiQP(_GroupQP):
         self,
         Hq: np.ndarray,
         Gx: np.ndarray,
-        stroke: np.ndarray,
+        limit: np.ndarray,
         rate: np.ndarray,
         plugin: str,
         name: str,
     ) -> None:
-        super().__init__(Hq, Gx, stroke, rate)
+        super().__init__(Hq, Gx, limit, rate)
         ng, N, nz = self.n_modes, self.horizon, self.ns
         U = casadi.SX.sym("U", ng * N)
         p = casadi.SX.sym("p", ng * nz + ng)
@@ -235,7 +235,7 @@ class CasadiQP(_GroupQP):
             self.solver = casadi.qpsol(
                 name, plugin, {"x": U, "p": p, "f": cost, "g": g}, _CASADI_OPTIONS[plugin]
             )
-        s = np.repeat(stroke, N)
+        s = np.repeat(limit, N)
         r = np.concatenate([np.full(N, x) for x in rate[self.has_rate]] or [np.zeros(0)])
         self._lbx, self._ubx, self._lbg, self._ubg = -s, s, -r, r
         self.reset()
