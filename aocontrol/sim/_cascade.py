@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 
 from aocontrol._validation import check_int
+from aocontrol.sim._projection import ModalProjector
 from aocontrol.sim._result import TELEMETRY, CascadeResult
 from aocontrol.sim._runner import (
     _check_common,
@@ -247,9 +248,10 @@ def run_cascade(
                 "rng is required with a noisy sensor or an optical-gain tracker "
                 f"(reproducibility; stage {run.name!r})"
             )
-    # One product projects on both bases; one synthesises both DM shapes for the science.
+    # One projection on both bases (through the mirrors when cheaper); one product
+    # synthesises both DM shapes for the science.
+    project = ModalProjector((basis1, basis2))
     modes_all = np.concatenate([basis1.modes, basis2.modes], axis=0)
-    proj = (modes_all.T / n_valid).astype(_PROJECTION_DTYPE)
     synth = modes_all.astype(_PROJECTION_DTYPE) if science is not None else None
     stats1 = [np.zeros(n1), np.zeros(n1)]  # sums of e1^2 and d1^2 over the fast frames
     # Residual maps, formed only for a sensor that reads them (references kept per frame).
@@ -272,7 +274,7 @@ def run_cascade(
                 f"the disturbance gave phase of shape {phase.shape}, expected ({m}, "
                 f"{n_valid}) (frames, valid pupil pixels of the bases)"
             )
-        coeffs = (phase.astype(_PROJECTION_DTYPE, copy=False) @ proj).astype(float)
+        coeffs = project(phase)
         _check_finite_disturbance(coeffs, k, "disturbance (phase)")
         d1, d2 = coeffs[:, :n1], coeffs[:, n1:]
 
