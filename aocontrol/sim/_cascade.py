@@ -62,6 +62,7 @@ from aocontrol.sim._runner import (
 )
 from aocontrol.sim._sources import PhaseDisturbance, check_rate
 from aocontrol.sim._stage import Stage
+from aocontrol.sim.science import LongExposure
 
 __all__ = ["run_cascade", "projection_matrix", "SCHEMES"]
 
@@ -323,7 +324,10 @@ def run_cascade(
                     _PROJECTION_DTYPE
                 )
                 resid = phase[idx] - (shape @ synth)
-                science.add(basis2.pupil.to_map(resid))
+                # The camera reads valid-pixel vectors as they are (no map round trip).
+                science.add(
+                    resid if isinstance(science, LongExposure) else basis2.pupil.to_map(resid)
+                )
 
     drive(n_frames, chunk, advance, (run1, run2), progress=progress, desc=f"{scheme} cascade")
     sum_e1, sum_d1 = stats1
