@@ -104,3 +104,24 @@ def test_cascade_through_the_mirrors_agrees_with_the_dense_cascade(scene):
         )
     assert abs(a.science.strehl - b.science.strehl) < 1e-6
     assert a.stages[1].residual_variance.tolist() != b.stages[1].residual_variance.tolist()
+
+
+def test_the_pair_setup_is_built_once_and_released_with_the_bases(scene):
+    # Invariant: the runs of a study share P and the projector; a cache entry does not keep
+    # its bases alive (weak keys; the projector holds no reference to them).
+    import gc
+    import weakref
+
+    from aocontrol.sim._cascade import _PAIRS, _pair_setup
+
+    _, _, _, b1, b2 = scene
+    first = _pair_setup(b1, b2)
+    assert _pair_setup(b1, b2) is first
+    np.testing.assert_array_equal(first[0], b2.modes @ b1.modes.T / b1.modes.shape[1])
+    c1, c2 = dataclasses.replace(b1), dataclasses.replace(b2)
+    _pair_setup(c1, c2)
+    ref = weakref.ref(c1)
+    n = len(_PAIRS)
+    del c1, c2
+    gc.collect()
+    assert ref() is None and len(_PAIRS) == n - 1

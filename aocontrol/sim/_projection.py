@@ -122,8 +122,7 @@ class ModalProjector:
     """
 
     def __init__(self, bases: Any, *, separable: bool | None = None) -> None:
-        bases = list(bases)
-        self.bases = bases
+        bases = list(bases)  # not kept: a cached projector must not hold its bases alive
         self.n_valid = int(bases[0].modes.shape[1])
         self.n_modes = int(sum(b.modes.shape[0] for b in bases))
         why = self._why_not_separable(bases)
@@ -137,7 +136,7 @@ class ModalProjector:
             self._proj = (modes.T / self.n_valid).astype(PROJECTION_DTYPE)
             return
         self.path = "separable"
-        self._setup_separable(PROJECTION_DTYPE)
+        self._setup_separable(bases, PROJECTION_DTYPE)
 
     # -- choice -------------------------------------------------------------------------------
     def _why_not_separable(self, bases: list) -> str:
@@ -160,7 +159,7 @@ class ModalProjector:
         if sep > _SEPARABLE_COST_FRACTION * dense:
             return f"not cheaper ({sep} vs {dense} multiply-adds per frame)"
         # Probe: the separable path in float64 against the dense product on random phases.
-        self._setup_separable(np.float64)
+        self._setup_separable(bases, np.float64)
         probe = np.random.default_rng(0).standard_normal((3, self.n_valid))
         modes = np.concatenate([np.asarray(b.modes) for b in bases], axis=0)
         ref = probe @ modes.T / self.n_valid
@@ -170,27 +169,33 @@ class ModalProjector:
         return ""
 
     # -- separable path -----------------------------------------------------------------------
-    def _setup_separable(self, dtype: type) -> None:
-        pupil = self.bases[0].pupil
+    def _setup_separable(self, bases: list, dtype: type) -> None:
+        pupil = bases[0].pupil
         npx = pupil.n_pix
         self._dtype = dtype
         self._npx = npx
-        # Contiguous runs of valid pixels per map row: a map is filled by slice copies.
+        # Contiguous runs of valid pixels per map row: (row, first and last vector index, first
+        # column), so the columns are contracted on the vectors themselves (no map is formed).
         flat = np.asarray(pupil.index)
-        breaks = np.flatnonzero(np.diff(flat) != 1) + 1
+        breaks = np.flatnonzero((np.diff(flat) != 1) | (flat[1:] % npx == 0)) + 1
         starts = np.r_[0, breaks]
         stops = np.r_[breaks, flat.size]
-        self._runs = [(int(a), int(b), int(flat[a])) for a, b in zip(starts, stops, strict=True)]
-        self._mirrors = []  # (gxT, gy, [(basis slice, act_index, m2c / n, mean m2c / n)])
+        self._runs = [
+            (int(flat[a]) // npx, int(a), int(b), int(flat[a]) % npx)
+            for a, b in zip(starts, stops, strict=True)
+        ]
+        self._mirrors = []  # (gxT, gy, [(basis columns, rows, cols, m2c / n, mean m2c / n)])
         groups: dict[int, list] = {}
         col = 0
-        for b in self.bases:
+        for b in bases:
             m = b.mirror
             k = b.modes.shape[0]
             m2c = np.asarray(b.m2c, dtype=float)
+            rows, cols = np.divmod(np.asarray(m.act_index), m.n_actuators)
             entry = (
                 slice(col, col + k),
-                np.asarray(m.act_index),
+                rows,
+                cols,
                 (m2c / self.n_valid).astype(dtype),
                 (np.asarray(m.mean) @ m2c / self.n_valid).astype(dtype),
             )
@@ -206,28 +211,26 @@ class ModalProjector:
                 )
             groups[id(m)].append(entry)
 
-    def _maps(self, phase: np.ndarray) -> np.ndarray:
-        m, npx = phase.shape[0], self._npx
-        maps = np.zeros((m, npx * npx), dtype=self._dtype)
-        for a, b, start in self._runs:
-            maps[:, start : start + b - a] = phase[:, a:b]
-        return maps
-
     def _separable(self, phase: np.ndarray) -> np.ndarray:
         m, npx = phase.shape[0], self._npx
         phase = phase.astype(self._dtype, copy=False)
-        maps = self._maps(phase).reshape(m * npx, npx)
         total = phase.sum(axis=1, dtype=self._dtype)
         out = np.empty((m, self.n_modes), dtype=self._dtype)
+        tmp = np.empty((m, max(g[0].shape[1] for g in self._mirrors)), dtype=self._dtype)
         for gxt, gy, entries in self._mirrors:
             na = gy.shape[0]
-            # Contract the columns (x), then the rows (y): (m, na_y, na_x), grid row-major.
-            half = (maps @ gxt).reshape(m, npx, na)
-            grid = np.matmul(gy, half).reshape(m, na * na)
-            for cols, act_index, m2c, mean_m2c in entries:
-                acts = grid[:, act_index]
-                np.matmul(acts, m2c, out=out[:, cols])
-                out[:, cols] -= total[:, None] * mean_m2c
+            # Columns (x) first, row by row of the pupil: half[y, frame, a_x].
+            half = np.zeros((npx, m, na), dtype=self._dtype)
+            for row, a, b, c0 in self._runs:
+                t = tmp[:, :na]
+                np.matmul(phase[:, a:b], gxt[c0 : c0 + b - a], out=t)
+                half[row] += t
+            # Then the rows (y), one product: grid[a_y, frame, a_x].
+            grid = (gy @ half.reshape(npx, m * na)).reshape(na, m, na)
+            for cols_out, rows, cols, m2c, mean_m2c in entries:
+                acts = grid[rows, :, cols]  # (n_act, frames)
+                np.matmul(acts.T, m2c, out=out[:, cols_out])
+                out[:, cols_out] -= total[:, None] * mean_m2c
         return out
 
     # -- call -----------------------------------------------------------------------------------
