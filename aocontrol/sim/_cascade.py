@@ -75,8 +75,6 @@ __all__ = ["run_cascade", "projection_matrix", "SCHEMES"]
 SCHEMES = ("standalone", "dcao")
 # Relative tolerance for an integer rate ratio (floating-point noise of the rates).
 _RATIO_RTOL = 1e-9
-# Precision of the per-chunk projection and science synthesis (see the module docstring).
-_PROJECTION_DTYPE = np.float32
 
 
 def projection_matrix(basis_from: Any, basis_to: Any) -> np.ndarray:
@@ -277,10 +275,8 @@ def run_cascade(
                 "rng is required with a noisy sensor or an optical-gain tracker "
                 f"(reproducibility; stage {run.name!r})"
             )
-    # One projection on both bases (``project``: through the mirrors when cheaper); one
-    # product synthesises both DM shapes for the science.
-    modes_all = np.concatenate([basis1.modes, basis2.modes], axis=0)
-    synth = modes_all.astype(_PROJECTION_DTYPE) if science is not None else None
+    # ``project`` projects on both bases at once and synthesises both DM shapes for the
+    # science (float32, through the mirrors when cheaper: aocontrol.sim._projection).
     stats1 = [np.zeros(n1), np.zeros(n1)]  # sums of e1^2 and d1^2 over the fast frames
     # Residual maps, formed only for a sensor that reads them (references kept per frame).
     resid1 = _ResidualMap(basis1.pupil, n_valid)
@@ -347,10 +343,8 @@ def run_cascade(
         if want_sci:
             idx = science_frames(k, m, settle, science_every)
             if idx.size:
-                shape = np.concatenate([y1s[idx // ratio], y2s[idx]], axis=1).astype(
-                    _PROJECTION_DTYPE
-                )
-                resid = phase[idx] - (shape @ synth)
+                shape = np.concatenate([y1s[idx // ratio], y2s[idx]], axis=1)
+                resid = phase[idx] - project.synthesize(shape)
                 # The camera reads valid-pixel vectors as they are (no map round trip).
                 science.add(
                     resid if isinstance(science, LongExposure) else basis2.pupil.to_map(resid)

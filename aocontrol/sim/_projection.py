@@ -134,6 +134,8 @@ class ModalProjector:
             self.path = "dense"
             modes = np.concatenate([np.asarray(b.modes) for b in bases], axis=0)
             self._proj = (modes.T / self.n_valid).astype(PROJECTION_DTYPE)
+            self._modes = modes
+            self._synth: np.ndarray | None = None  # float32 modes, made on first synthesis
             return
         self.path = "separable"
         self._setup_separable(bases, PROJECTION_DTYPE)
@@ -198,6 +200,8 @@ class ModalProjector:
                 cols,
                 (m2c / self.n_valid).astype(dtype),
                 (np.asarray(m.mean) @ m2c / self.n_valid).astype(dtype),
+                np.ascontiguousarray(m2c.T, dtype=dtype),
+                np.asarray(m.mean, dtype=dtype),
             )
             col += k
             if id(m) not in groups:
@@ -227,11 +231,43 @@ class ModalProjector:
                 half[row] += t
             # Then the rows (y), one product: grid[a_y, frame, a_x].
             grid = (gy @ half.reshape(npx, m * na)).reshape(na, m, na)
-            for cols_out, rows, cols, m2c, mean_m2c in entries:
+            for cols_out, rows, cols, m2c, mean_m2c, _, _ in entries:
                 acts = grid[rows, :, cols]  # (n_act, frames)
                 np.matmul(acts.T, m2c, out=out[:, cols_out])
                 out[:, cols_out] -= total[:, None] * mean_m2c
         return out
+
+    def _separable_synthesis(self, coeffs: np.ndarray) -> np.ndarray:
+        m, npx = coeffs.shape[0], self._npx
+        out = np.zeros((m, self.n_valid), dtype=self._dtype)
+        for gxt, gy, entries in self._mirrors:
+            na = gy.shape[0]
+            # Commands of the mirror (every basis on it), on its grid: grid[a_y, frame, a_x].
+            grid = np.zeros((na, m, na), dtype=self._dtype)
+            piston = np.zeros(m, dtype=self._dtype)
+            for cols_in, rows, cols, _, _, m2c_t, mean in entries:
+                acts = coeffs[:, cols_in] @ m2c_t  # (frames, n_act)
+                grid[rows, :, cols] += acts.T
+                piston += acts @ mean
+            # Rows (y) first, one product, then the columns (x) of each run of valid pixels.
+            half = (gy.T @ grid.reshape(na, m * na)).reshape(npx, m, na)
+            for row, a, b, c0 in self._runs:
+                out[:, a:b] += half[row] @ gxt[c0 : c0 + b - a].T
+            out -= piston[:, None]
+        return out
+
+    def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
+        """Phase vectors ``(m, n_valid)`` [nm, float32] of stacked coefficients ``(m, n_modes)``.
+
+        ``coeffs @ modes`` (all bases stacked), in float32, through the mirrors on the
+        separable path (the transpose of the projection; same precision).
+        """
+        c = np.asarray(coeffs).astype(PROJECTION_DTYPE)
+        if self.path == "dense":
+            if self._synth is None:
+                self._synth = self._modes.astype(PROJECTION_DTYPE)
+            return c @ self._synth
+        return self._separable_synthesis(c)
 
     # -- call -----------------------------------------------------------------------------------
     def __call__(self, phase: np.ndarray) -> np.ndarray:
