@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from aocontrol.controllers import Integrator
-from aocontrol.sim._projection import ModalProjector, SeparableMirror
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.loop import LinearModalSensor, Stage, run_cascade
-from aocontrol.sim.modes import kl_basis
+from aocontrol.sim.modes import ModalProjector, SeparableMirror, kl_basis
 from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.sim.science import ScienceCamera
 

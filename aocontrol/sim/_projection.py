@@ -220,15 +220,16 @@ class ModalProjector:
         phase = phase.astype(self._dtype, copy=False)
         total = phase.sum(axis=1, dtype=self._dtype)
         out = np.empty((m, self.n_modes), dtype=self._dtype)
-        tmp = np.empty((m, max(g[0].shape[1] for g in self._mirrors)), dtype=self._dtype)
+        # The phase maps, laid out maps[y, frame, x] (slice copies of the runs of valid pixels;
+        # no small products, which a multithreaded BLAS would run slowly).
+        maps = np.zeros((npx, m, npx), dtype=self._dtype)
+        for row, a, b, c0 in self._runs:
+            maps[row, :, c0 : c0 + b - a] = phase[:, a:b]
+        maps = maps.reshape(npx * m, npx)
         for gxt, gy, entries in self._mirrors:
             na = gy.shape[0]
-            # Columns (x) first, row by row of the pupil: half[y, frame, a_x].
-            half = np.zeros((npx, m, na), dtype=self._dtype)
-            for row, a, b, c0 in self._runs:
-                t = tmp[:, :na]
-                np.matmul(phase[:, a:b], gxt[c0 : c0 + b - a], out=t)
-                half[row] += t
+            # Columns (x) first, one product: half[y, frame, a_x].
+            half = maps @ gxt
             # Then the rows (y), one product: grid[a_y, frame, a_x].
             grid = (gy @ half.reshape(npx, m * na)).reshape(na, m, na)
             for cols_out, rows, cols, m2c, mean_m2c, _, _ in entries:
@@ -239,21 +240,24 @@ class ModalProjector:
 
     def _separable_synthesis(self, coeffs: np.ndarray) -> np.ndarray:
         m, npx = coeffs.shape[0], self._npx
-        out = np.zeros((m, self.n_valid), dtype=self._dtype)
+        maps = np.zeros((npx * m, npx), dtype=self._dtype)  # maps[y, frame, x]
+        piston = np.zeros(m, dtype=self._dtype)
         for gxt, gy, entries in self._mirrors:
             na = gy.shape[0]
             # Commands of the mirror (every basis on it), on its grid: grid[a_y, frame, a_x].
             grid = np.zeros((na, m, na), dtype=self._dtype)
-            piston = np.zeros(m, dtype=self._dtype)
             for cols_in, rows, cols, _, _, m2c_t, mean in entries:
                 acts = coeffs[:, cols_in] @ m2c_t  # (frames, n_act)
                 grid[rows, :, cols] += acts.T
                 piston += acts @ mean
-            # Rows (y) first, one product, then the columns (x) of each run of valid pixels.
-            half = (gy.T @ grid.reshape(na, m * na)).reshape(npx, m, na)
-            for row, a, b, c0 in self._runs:
-                out[:, a:b] += half[row] @ gxt[c0 : c0 + b - a].T
-            out -= piston[:, None]
+            # Rows (y), then columns (x): two products.
+            half = (gy.T @ grid.reshape(na, m * na)).reshape(npx * m, na)
+            maps += half @ gxt.T
+        maps = maps.reshape(npx, m, npx)
+        out = np.empty((m, self.n_valid), dtype=self._dtype)
+        for row, a, b, c0 in self._runs:
+            out[:, a:b] = maps[row, :, c0 : c0 + b - a]
+        out -= piston[:, None]
         return out
 
     def synthesize(self, coeffs: np.ndarray) -> np.ndarray:

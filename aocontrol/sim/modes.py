@@ -46,12 +46,12 @@ import numpy as np
 from scipy import fft as sfft
 
 from aocontrol._validation import check_finite_array, check_instance, check_int, check_positive
-from aocontrol.sim._projection import SeparableMirror
+from aocontrol.sim._projection import ModalProjector, SeparableMirror
 from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.turbulence import opd_per_radian, structure_function
 
-__all__ = ["ModalBasis", "kl_basis", "fitting_error"]
+__all__ = ["ModalBasis", "ModalProjector", "SeparableMirror", "kl_basis", "fitting_error"]
 
 logger = logging.getLogger(__name__)
 
