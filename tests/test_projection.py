@@ -44,9 +44,11 @@ def test_separable_projection_agrees_with_the_dense_product(scene):
     phase = Atmosphere(pupil, 0.15, [Layer(0.0, 1.0, 10.0, 30.0)], 3000.0, rng=1)
     phi = phase.phase_vectors(200)
     ref = phi.astype(float) @ np.concatenate([b1.modes, b2.modes]).T / pupil.n_valid
-    sep = ModalProjector((b1, b2))
+    sep = ModalProjector((b1, b2), separable=True)
     dense = ModalProjector((b1, b2), separable=False)
     assert sep.path == "separable" and dense.path == "dense"
+    # At these small sizes the automatic choice is the dense product (not cheaper).
+    assert ModalProjector((b1, b2)).path == "dense"
     for proj in (sep, dense):
         got = proj(phi)
         assert got.dtype == np.float64 and got.shape == ref.shape
@@ -62,6 +64,12 @@ def test_a_mirror_that_is_not_the_basis_is_refused(scene):
     other = DeformableMirror(pupil, n_actuators=9, coupling=0.2)
     wrong = dataclasses.replace(b1, mirror=SeparableMirror.from_dm(other))
     assert ModalProjector((wrong, b2)).path == "dense"
+    from aocontrol.sim import _projection
+
+    with pytest.MonkeyPatch.context() as mp:  # cheap enough: only the probe refuses it
+        mp.setattr(_projection, "_SEPARABLE_COST_FRACTION", 10.0)
+        assert ModalProjector((b1, b2)).path == "separable"
+        assert ModalProjector((wrong, b2)).path == "dense"
     with pytest.raises(ValueError, match="does not reproduce the modes"):
         ModalProjector((wrong, b2), separable=True)
     with pytest.raises(ValueError, match="basis 0's mirror has 45 actuators, its m2c 77"):
@@ -73,9 +81,13 @@ def test_a_mirror_that_is_not_the_basis_is_refused(scene):
         ModalProjector((no_mirror, b2), separable=True)
 
 
-def test_cascade_through_the_mirrors_agrees_with_the_dense_cascade(scene):
+def test_cascade_through_the_mirrors_agrees_with_the_dense_cascade(scene, monkeypatch):
     # Same run with the bases stripped of their mirrors (dense projection): results agree to
-    # the float32 rounding of the projection (noise-free, no stroke: a linear loop).
+    # the float32 rounding of the projection (noise-free, no stroke: a linear loop). The
+    # separable path is made the choice at these small sizes.
+    from aocontrol.sim import _projection
+
+    monkeypatch.setattr(_projection, "_SEPARABLE_COST_FRACTION", 10.0)
     pupil, _, _, b1, b2 = scene
     runs = []
     for mirrors in (True, False):
@@ -131,7 +143,8 @@ def test_separable_synthesis_agrees_with_the_modes(scene):
     pupil, _, _, b1, b2 = scene
     coeffs = np.random.default_rng(2).standard_normal((30, 60)) * np.linspace(50, 1, 60)
     ref = coeffs @ np.concatenate([b1.modes, b2.modes])
-    sep, dense = ModalProjector((b1, b2)), ModalProjector((b1, b2), separable=False)
+    sep = ModalProjector((b1, b2), separable=True)
+    dense = ModalProjector((b1, b2), separable=False)
     for proj in (sep, dense):
         got = proj.synthesize(coeffs)
         assert got.dtype == np.float32 and got.shape == (30, pupil.n_valid)
