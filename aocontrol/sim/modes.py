@@ -131,6 +131,13 @@ class ModalBasis:
                 )
             var.setflags(write=False)
             object.__setattr__(self, "variances", var)
+        if self.mirror is not None:
+            check_instance("mirror", self.mirror, SeparableMirror)
+            if self.mirror.act_index.shape != (m2c.shape[0],):
+                raise ValueError(
+                    f"mirror must have n_act={m2c.shape[0]} actuators (rows of m2c), got "
+                    f"{self.mirror.act_index.shape[0]}"
+                )
         if self.r0 is not None:
             check_positive("r0", self.r0)
         if self.L0 is not None:
