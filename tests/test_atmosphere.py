@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pytest
 
-from aocontrol.sim._screens import fft_screens
+from aocontrol.sim._screens import Extruder, fft_screens
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.profiles import (
     compress_profile,
@@ -504,3 +504,19 @@ def test_bad_frames_and_profile_arguments():
         scale_to_tau0([Layer(0.0, 1.0, 0.0)], 0.1, 1e-3)
     with pytest.raises(ValueError, match="not all be zero"):
         normalize_layers([Layer(0.0, 0.0, 1.0)])
+
+
+def test_extrusion_of_k_columns_at_once_equals_k_single_columns():
+    # Invariant (bit for bit): the noise terms of a block of new columns are computed together;
+    # the screen must not depend on how many columns one call adds.
+    ext = Extruder.build(32, 0.1, 25.0)
+    rng = np.random.default_rng(5)
+    screen = rng.standard_normal((32, 32))
+    white = rng.standard_normal((6, 32))
+    block, single = screen.copy(), screen.copy()
+    ext.extrude(block, white, 3.0)
+    for row in white:
+        ext.extrude(single, row[None], 3.0)
+    assert np.array_equal(block, single)
+    ext.extrude(single, 1.001 * white[:1], 3.0)  # the check can fail
+    assert not np.array_equal(block, single)

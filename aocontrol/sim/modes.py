@@ -40,17 +40,18 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import fft as sfft
 
 from aocontrol._validation import check_finite_array, check_instance, check_int, check_positive
+from aocontrol.sim._projection import ModalProjector, SeparableMirror
 from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.turbulence import opd_per_radian, structure_function
 
-__all__ = ["ModalBasis", "kl_basis", "fitting_error"]
+__all__ = ["ModalBasis", "ModalProjector", "SeparableMirror", "kl_basis", "fitting_error"]
 
 logger = logging.getLogger(__name__)
 
@@ -81,6 +82,10 @@ class ModalBasis:
         Fried parameter at 500 nm [m] the variances were computed for.
     L0 : float or None
         Outer scale [m] the variances were computed for.
+    mirror : SeparableMirror or None
+        The factors of the mirror's Gaussian influence functions when ``modes = m2c^T (F -
+        mean(F))`` for that mirror (set by :func:`kl_basis`): they let the cascade project
+        phases through the mirror (:mod:`aocontrol.sim._projection`); ``None`` otherwise.
 
     Raises
     ------
@@ -98,6 +103,7 @@ class ModalBasis:
     variances: np.ndarray | None = None
     r0: float | None = None
     L0: float | None = None
+    mirror: SeparableMirror | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.pupil, Pupil):
@@ -125,6 +131,13 @@ class ModalBasis:
                 )
             var.setflags(write=False)
             object.__setattr__(self, "variances", var)
+        if self.mirror is not None:
+            check_instance("mirror", self.mirror, SeparableMirror)
+            if self.mirror.act_index.shape != (m2c.shape[0],):
+                raise ValueError(
+                    f"mirror must have n_act={m2c.shape[0]} actuators (rows of m2c), got "
+                    f"{self.mirror.act_index.shape[0]}"
+                )
         if self.r0 is not None:
             check_positive("r0", self.r0)
         if self.L0 is not None:
@@ -216,6 +229,7 @@ class ModalBasis:
             variances=None if self.variances is None else self.variances[:n],
             r0=self.r0,
             L0=self.L0,
+            mirror=self.mirror,
         )
 
 
@@ -397,7 +411,13 @@ def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1, L0: float = 25
         time.perf_counter() - t_start,
     )
     return ModalBasis(
-        pupil=pupil, modes=modes, m2c=m2c, variances=np.maximum(variances, 0.0), r0=r0, L0=L0
+        pupil=pupil,
+        modes=modes,
+        m2c=m2c,
+        variances=np.maximum(variances, 0.0),
+        r0=r0,
+        L0=L0,
+        mirror=SeparableMirror.from_dm(dm),
     )
 
 
