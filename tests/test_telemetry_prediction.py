@@ -40,7 +40,8 @@ def _loop_telemetry(seed: int):
         [signal.lfilter([1.0], np.convolve([1, -a], [1, -a]), w[:, i]) for i, a in enumerate(poles)]
     )[20000:]
     d *= 10.0 / np.sqrt(np.arange(1, N_MODES + 1)) / d.std(axis=0)
-    stage = Stage(Integrator(0.5, fs=FS, n_modes=N_MODES), LinearModalSensor(1.0, NOISE_NM), LATENCY)
+    ctrl = Integrator(0.5, fs=FS, n_modes=N_MODES)
+    stage = Stage(ctrl, LinearModalSensor(1.0, NOISE_NM), LATENCY)
     res = run_loop(
         stage, ModalTimeSeries(d, FS), N_FRAMES, rng=rng, record=("measurements", "commands"),
         settle_frames=SETTLE,
