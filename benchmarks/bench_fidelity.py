@@ -4,15 +4,18 @@
     one (the case's pyramid: 80-px pupil, 40x40, 20 modulation points, then the
     reconstructor), and the diffractive one with optical-gain tracking; ratios measured in
     one run (wall and process CPU time; the machine may be shared).
-(b) Fidelity: for each case, the comparison's cells (controllers x schemes) with stage 2
-    linear (calibrated gains) and diffractive (none, calibrated, tracked), Strehl and raw
-    contrast, beside the paper's values, and the stage-2 residual predicted from the
-    calibration telemetry vs measured.
+(b) Fidelity: for each case and stage-2 setting (linear with calibrated gains, diffractive
+    with none, calibrated, tracked gains), the paper's protocol (``compare_case``: reference
+    gain scanned, calibration run, reference / optimised modal gain / data-driven, standalone
+    and dCAO): Strehl and raw contrast beside the paper's values, the contrast orderings, the
+    dCAO - standalone Strehl, and the stage-2 residual predicted from the calibration
+    telemetry vs measured; printed as markdown.
 
     .venv/bin/python benchmarks/bench_fidelity.py [--quick] [--cost-only] [--seconds S]
-        [--cases red5-best,bright1-best]
+        [--cases red5-best,bright1-best] [--settings linear/calibrated,diffractive/none]
+        [--seed N] [--gain-grid 0.2,0.4]
 
-``--quick``: quick scenes (24 stage-2 modes), 0.1-s exposures, one case, one scheme.
+``--quick``: quick scenes (24 stage-2 modes), 0.1-s exposures, one case.
 """
 
 from __future__ import annotations
@@ -22,9 +25,13 @@ import time
 
 import numpy as np
 
+# The paper's tables (same folder: run as a script, its directory is on sys.path).
+from bench_paper_tables import _ORDER as ORDER  # noqa: E402
+from bench_paper_tables import PAPER  # noqa: E402
+
 from aocontrol.controllers import Integrator
 from aocontrol.sim.loop import Stage, run_cascade
-from aocontrol.study.compare import run_configuration
+from aocontrol.study.compare import compare_case
 from aocontrol.study.scene import build_scene
 
 CASES = ("red5-best", "red3-medium", "bright1-best")
@@ -103,28 +110,72 @@ def cost(case: str, quick: bool, n_frames: int) -> None:
     )
 
 
-def fidelity(quick: bool, seconds: float, cases: tuple[str, ...], schemes: tuple[str, ...]) -> None:
-    print("(b) case scheme controller | sensor/optical_gain: Strehl, contrast 4-6, residual nm")
+def _markdown(case: str, setting: str, comp, seconds: float, wall: float) -> list[str]:
+    """The case's six cells beside the paper (markdown rows) and the orderings."""
+    pc, ps = PAPER.get(case, (None, None))
+    lines = [
+        f"#### {case}, stage 2 {setting} ({seconds:g}-s exposures, reference gains "
+        f"{ {k: round(v, 2) for k, v in comp.reference_gains.items()} }, {wall:.0f} s)",
+        "",
+        "| scheme controller | Strehl % | paper | diff | contrast 4-6 | paper | ratio "
+        "| stage-2 residual nm | predicted nm | pred/meas |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for i, (scheme, ctrl) in enumerate(ORDER):
+        try:
+            c = comp.cell(ctrl, scheme)
+        except KeyError:
+            continue
+        s_pap = f"{ps[i]:.2f}" if ps else "-"
+        c_pap = f"{pc[i]:.2e}" if pc else "-"
+        diff = f"{100 * c.strehl - ps[i]:+.2f}" if ps else "-"
+        ratio = f"{c.mean_contrast_4_6 / pc[i]:.2f}" if pc else "-"
+        pred = c.predicted_rms_nm
+        pm = f"{pred / c.residual_rms_nm:.3f}" if pred == pred else "-"
+        lines.append(
+            f"| {scheme} {ctrl} | {100 * c.strehl:.2f} | {s_pap} | {diff} | "
+            f"{c.mean_contrast_4_6:.3e} | {c_pap} | {ratio} | {c.residual_rms_nm:.2f} | "
+            f"{pred:.2f} | {pm} |"
+        )
+    lines.append("")
+    for scheme in sorted({c.scheme for c in comp.cells}):
+        con = {c.controller: c.mean_contrast_4_6 for c in comp.cells if c.scheme == scheme}
+        order = " < ".join(sorted(con, key=con.get))
+        lines.append(f"- contrast ordering {scheme}: {order}")
+    schemes = {c.scheme for c in comp.cells}
+    if {"standalone", "dcao"} <= schemes:
+        for ctrl in sorted({c.controller for c in comp.cells}):
+            d = 100 * (comp.cell(ctrl, "dcao").strehl - comp.cell(ctrl, "standalone").strehl)
+            lines.append(f"- {ctrl}: dCAO - standalone Strehl {d:+.2f} points")
+    return lines
+
+
+def fidelity(
+    quick: bool,
+    seconds: float,
+    cases: tuple[str, ...],
+    settings: tuple[tuple[str, str], ...],
+    seed: int,
+    gain_grid: tuple[float, ...] | None,
+) -> None:
+    """Part (b): the paper's protocol (:func:`compare_case`: gain scan, calibration, the three
+    controllers, both schemes) per case and stage-2 setting, as markdown beside the paper."""
     for case in cases:
-        for scheme in schemes:
-            for controller in CONTROLLERS if not quick else ("reference",):
-                cells = []
-                for sensor, og in SETTINGS:
-                    out = run_configuration(
-                        case,
-                        controller=controller,
-                        scheme=scheme,
-                        seconds=seconds,
-                        quick=quick,
-                        sensor=sensor,
-                        optical_gain=og,
-                    )
-                    s = out.summary
-                    cells.append(
-                        f"{sensor[:3]}/{og}: {s['strehl']:.3f} {s['mean_contrast_4_6']:.2e} "
-                        f"{s['residual_rms_nm']:.1f}"
-                    )
-                print(f"    {case} {scheme} {controller} | " + " | ".join(cells))
+        for sensor, og in settings:
+            t0 = time.perf_counter()
+            comp = compare_case(
+                case,
+                controllers=CONTROLLERS,
+                schemes=SCHEMES,
+                seconds=seconds,
+                seed=seed,
+                quick=quick,
+                gain_grid=gain_grid,
+                sensor=sensor,
+                optical_gain=og,
+            )
+            wall = time.perf_counter() - t0
+            print("\n".join(_markdown(case, f"{sensor}/{og}", comp, seconds, wall)), flush=True)
 
 
 def main() -> None:
@@ -133,6 +184,16 @@ def main() -> None:
     parser.add_argument("--cost-only", action="store_true", help="only part (a)")
     parser.add_argument("--seconds", type=float, default=None, help="exposure [s]")
     parser.add_argument("--cases", default=None, help="comma-separated cases of part (b)")
+    parser.add_argument(
+        "--settings",
+        default=None,
+        help="comma-separated sensor/optical_gain of part (b), e.g. linear/calibrated,"
+        "diffractive/none (default: all of SETTINGS)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="user seed of part (b)")
+    parser.add_argument(
+        "--gain-grid", default=None, help="comma-separated reference gains scanned (part b)"
+    )
     args = parser.parse_args()
     quick = args.quick
     if not args.cases:
@@ -141,7 +202,11 @@ def main() -> None:
         return
     seconds = args.seconds or (0.1 if quick else 5.0)
     cases = tuple(args.cases.split(",")) if args.cases else (CASES[:1] if quick else CASES)
-    fidelity(quick, seconds, cases, SCHEMES[:1] if quick else SCHEMES)
+    settings = (
+        tuple(tuple(x.split("/")) for x in args.settings.split(",")) if args.settings else SETTINGS
+    )
+    grid = tuple(float(g) for g in args.gain_grid.split(",")) if args.gain_grid else None
+    fidelity(quick, seconds, cases, settings, args.seed, grid)
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
     python benchmarks/bench_telemetry_design.py aot [--seconds 5] [--controllers ...]
     python benchmarks/bench_telemetry_design.py estimators [--cases ...] [--full]
+    python benchmarks/bench_telemetry_design.py own [--cases ...] [--schemes ...] [--full]
 
 ``aot``: the case ``bright1-best`` (stage 2: 400 modes at 3 kHz, latency 0.828 frame,
 standalone cascade). A calibration exposure of ``--seconds`` with the case's reference
@@ -17,6 +18,12 @@ estimated with the plain and with the pre-whitened Welch PSD
 (:func:`aocontrol.synthesis.disturbance_from_telemetry`, ``method``); each controller
 designed from each estimate and run on the same independent exposure; predicted / measured
 stage-2 residual per (case, controller, estimator). Quick scenes unless ``--full``.
+
+``own``: the estimator alone, no design (issue 15): per case and scheme, one run of the
+reference integrator; the residual it should have, predicted from its own telemetry with each
+estimator (``residual_variance`` on the estimated disturbance and noise PSDs), over the one it
+had. The pseudo-open loop of a linear stage is exactly ``z^-1 d + n``, so the ratio shows the
+estimator's bias (and the Welch scatter), nothing of the calibration/exposure difference.
 
 Timings are wall-clock on a shared machine (2 cores, other jobs running): read the ratios.
 """
@@ -139,6 +146,36 @@ def bench_estimators(args: argparse.Namespace) -> None:
                 )
 
 
+def bench_own(args: argparse.Namespace) -> None:
+    from aocontrol.controllers import Integrator
+    from aocontrol.synthesis import disturbance_from_telemetry
+
+    quick = not args.full
+    print(f"{'case':14}{'scheme':12}{'frames':>8}{'meas[nm]':>10}" + "".join(
+        f"{m + ' p/m':>16}" for m in ("welch", "prewhitened")
+    ))  # fmt: skip
+    for case in args.cases:
+        scene = build_scene(case, quick=quick)
+        st = scene.stage2
+        cal_s = calibration_seconds(scene, quick)
+        for scheme in args.schemes:
+            out = run_configuration(
+                case, controller="reference", scheme=scheme, seconds=cal_s, seed=1000, quick=quick
+            )  # fmt: skip
+            r2 = out.result.stages[1] if scheme != "single" else out.result
+            k = r2.settle_frames
+            m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
+            u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
+            ref = Integrator(out.settings["reference_gain"], fs=st.fs, n_modes=st.n_modes)
+            meas = out.summary["residual_rms_nm"]
+            cells = []
+            for method in ("welch", "prewhitened"):
+                tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=method)
+                pred = residual_variance(st.plant, ref, tel.freqs, tel.psd, tel.noise_psd)
+                cells.append(f"{float(np.sqrt(np.sum(pred))) / meas:>16.3f}")
+            print(f"{case:14}{scheme:12}{m.shape[0]:>8}{meas:>10.2f}" + "".join(cells))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="part", required=True)
@@ -152,9 +189,16 @@ def main() -> None:
     e.add_argument("--controllers", nargs="+", default=["omgi", "lqg", "datadriven"])
     e.add_argument("--exposure", type=float, default=1.0, help="scoring exposure [s]")
     e.add_argument("--full", action="store_true", help="full scenes instead of quick ones")
+    o = sub.add_parser("own")
+    o.add_argument(
+        "--cases", nargs="+",
+        default=["bright1-best", "bright1-worst", "red1-fast", "red3-medium", "red5-best"],
+    )  # fmt: skip
+    o.add_argument("--schemes", nargs="+", default=["standalone", "dcao"])
+    o.add_argument("--full", action="store_true", help="full scenes instead of quick ones")
     args = p.parse_args()
     t0 = time.perf_counter()
-    (bench_aot if args.part == "aot" else bench_estimators)(args)
+    {"aot": bench_aot, "estimators": bench_estimators, "own": bench_own}[args.part](args)
     print(f"total {time.perf_counter() - t0:.0f} s")
 
 

@@ -260,9 +260,9 @@ def test_telemetry_to_datadriven_to_better_loop():
     # noise from its closed-loop telemetry, design the data-driven controller, run again on
     # the same turbulence and noise. Oracles: the new loop beats the integrator; its residual
     # is what aocontrol.analysis predicts from the true disturbance PSD and noise (10 %: a
-    # 4-s run); the prediction from the telemetry estimates is not optimistic (the noise
-    # floor subtracted per bin and clipped at zero biases the disturbance PSD upward where it
-    # is below the noise).
+    # 4-s run); the prediction from the telemetry estimates is not optimistic (the clip at
+    # zero of the disturbance PSD where it is below the noise, after the averaging of those
+    # bins, still biases it slightly upward).
     from aocontrol.synthesis import datadriven, disturbance_from_telemetry
 
     fs, latency, n_frames = 1000.0, LATENCY, 4000
