@@ -21,8 +21,8 @@ operator (pad, FFT, one mask factor, inverse FFT, detector lines; the same along
 linear phases, so a detector line sees the pupil samples of one parity through a dense kernel
 and only its direct-image sample of the other parity (:mod:`._pyramid_lines`; zero entries
 exact, not truncated). The x step is shared by the points with the same x tilt; the y step is
-one BLAS ``gemm`` per chunk of points (no FFT per frame: at SAXO+ sampling the products run
-several times faster than pocketfft's transforms of length 168, measured). Single precision
+one BLAS ``gemm`` per chunk of points (no FFT per frame: at SAXO+ sampling about 1.4x
+faster than the separable FFT propagation it replaced, measured in one run). Single precision
 by default (``complex64``; the difference from ``complex128`` is < 1e-4 of the signal,
 tested). Threads: ``workers`` BLAS threads during each call.
 
@@ -306,11 +306,11 @@ class PyramidWFS:
 
         ``a[p]`` ``(n_pix, n_x, n_p)``: the field times each x tilt on the samples ``x = p,
         p+2, ...``; ``g`` ``(n_pix, n_x, n_lines)`` (lines class by class) and ``gq[q]``
-        ``(n_pix, n_x, n_q)``: step x; ``b[p]`` ``(n_p, step, n_lines)``: the y tilts of a
-        chunk of points on the rows ``y = p, p+2, ...``; ``out[q]`` ``(n_q, step, n_lines)``:
-        step y; ``acc[q]`` ``(n_q, 2 n_lines)``: intensity accumulators (real and imaginary
-        parts interleaved). They make an instance not thread-safe (use one instance per
-        thread) and are not pickled.
+        ``(n_pix, n_x, n_q)``: step x; ``b[p]`` (flat, ``(n_p, m, n_lines)`` for a chunk of
+        ``m <= step`` points): the y tilts on the rows ``y = p, p+2, ...``; ``out[q]`` (flat,
+        ``(n_q, m, n_lines)``): step y; ``acc[q]`` ``(n_q, 2 n_lines)``: intensity
+        accumulators (real and imaginary parts interleaved). They make an instance not
+        thread-safe (use one instance per thread) and are not pickled.
         """
         plan = self._plan
         n_pix, c = self.pupil.n_pix, self._complex
@@ -325,8 +325,8 @@ class PyramidWFS:
             "a": [np.zeros((n_pix, n_x, n_p[p]), dtype=c) for p in (0, 1)],
             "gq": [np.zeros((n_pix, n_x, n_q[q]), dtype=c) for q in (0, 1)],
             "g": [np.zeros((n_pix, n_x, nl), dtype=c)],
-            "b": [np.zeros((n_p[p], step, nl), dtype=c) for p in (0, 1)],
-            "out": [np.zeros((n_q[q], step, nl), dtype=c) for q in (0, 1)],
+            "b": [np.zeros(n_p[p] * step * nl, dtype=c) for p in (0, 1)],
+            "out": [np.zeros(n_q[q] * step * nl, dtype=c) for q in (0, 1)],
             "acc": [np.zeros((n_q[q], 2 * nl), dtype=self._real) for q in (0, 1)],
         }
 
@@ -356,8 +356,11 @@ class PyramidWFS:
         classes, dense, dense_t = plan["classes"], plan["dense"], plan["dense_t"]
         x_index, ty = plan["x_index"], plan["ty"]
         a, gq, g, b, out = work["a"], work["gq"], work["g"][0], work["b"], work["out"]
-        n_pts, step = self.n_points, b[0].shape[1]
-        n0 = classes[0].lines.size
+        n_pts, nl = self.n_points, g.shape[-1]
+        n_p = [a[p].shape[-1] for p in (0, 1)]
+        n_q = [k.lines.size for k in classes]
+        step = b[0].size // (n_p[0] * nl)
+        n0 = n_q[0]
         # step x: g[y, t, l] = sum_x field[y, x] tx[t, x] L[l, x]
         for p in (0, 1):
             np.multiply(field[:, None, p::2], plan["tx"][p][None], out=a[p])
@@ -371,25 +374,16 @@ class PyramidWFS:
         for k0 in range(0, n_pts, step):
             k1 = min(k0 + step, n_pts)
             m = k1 - k0
+            # contiguous (rows, m, n_lines) views of the flat buffers, whatever m
+            bm = [b[p][: n_p[p] * m * nl].reshape(n_p[p], m, nl) for p in (0, 1)]
+            om = [out[q][: n_q[q] * m * nl].reshape(n_q[q], m, nl) for q in (0, 1)]
             for p in (0, 1):
-                bp = b[p][:, :m]
                 for j, k in enumerate(range(k0, k1)):  # per point: no fancy-index temporary
-                    np.multiply(g[p::2, x_index[k]], ty[p][k], out=bp[:, j])
+                    np.multiply(g[p::2, x_index[k]], ty[p][k], out=bm[p][:, j])
             for q in (0, 1):
-                oq = out[q][:, :m]
-                apply_runs(classes[q].runs, b[q][:, :m], oq)
-                if m == step:
-                    gemm_acc(
-                        dense[q],
-                        b[1 - q].reshape(b[1 - q].shape[0], -1),
-                        out[q].reshape(out[q].shape[0], -1),
-                    )
-                else:  # last, partial chunk: contiguous copies for the product
-                    res = np.ascontiguousarray(oq)
-                    src = np.ascontiguousarray(b[1 - q][:, :m])
-                    gemm_acc(dense[q], src.reshape(src.shape[0], -1), res.reshape(res.shape[0], -1))
-                    oq[...] = res
-            yield out[0][:, :m], out[1][:, :m]
+                apply_runs(classes[q].runs, bm[q], om[q])
+                gemm_acc(dense[q], bm[1 - q].reshape(n_p[1 - q], -1), om[q].reshape(n_q[q], -1))
+            yield om[0], om[1]
 
     @staticmethod
     def _accumulate(acc: list[np.ndarray], f: tuple, h: tuple, scale: float = 1.0) -> None:
