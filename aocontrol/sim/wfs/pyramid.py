@@ -127,8 +127,9 @@ class PyramidWFS:
         FFT precision (complex64 or complex128).
     workers : int, default 1
         BLAS threads of the propagation's matrix products, set for the duration of each call
-        (``threadpoolctl``). 1 by default: on a machine shared with other jobs a
-        multi-threaded BLAS stalls on products of this size (measured: 5-10x slower).
+        (``threadpoolctl``; the setting is process-wide while the call runs). 1 by default:
+        on a machine shared with other jobs a multi-threaded BLAS stalls on products of this
+        size (measured: 5-10x slower).
 
     Examples
     --------
