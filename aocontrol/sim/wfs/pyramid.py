@@ -45,7 +45,6 @@ signals of a flat wavefront, dimensionless.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -63,7 +62,7 @@ from aocontrol._validation import (
 )
 from aocontrol.sim.noise import add_detector_noise
 from aocontrol.sim.pupil import Pupil
-from aocontrol.sim.wfs._common import bin_matrix, check_opd, opd_to_phase
+from aocontrol.sim.wfs._common import bin_matrix, blas_threads, check_opd, opd_to_phase
 from aocontrol.sim.wfs._pyramid_lines import (
     apply_runs,
     gemm_acc,
@@ -78,14 +77,6 @@ logger = logging.getLogger(__name__)
 #: Target size of the per-chunk work arrays of the y step [bytes]: a few points at a time, so
 #: that the arrays stay in the core's cache between the product and the intensity.
 _CHUNK_BYTES = 2**21
-
-
-@functools.cache
-def _blas_controller():
-    """The process's BLAS libraries (``threadpoolctl``; inspected once, at first use)."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
 
 
 def default_modulation_points(modulation: float) -> int:
@@ -420,7 +411,7 @@ class PyramidWFS:
 
     def _blas_threads(self):
         """Context: ``workers`` BLAS threads (the products of :meth:`_fields`)."""
-        return _blas_controller().limit(limits=self.workers, user_api="blas")
+        return blas_threads(self.workers)
 
     def frame_derivative(self, opd: np.ndarray, delta_opd: np.ndarray) -> np.ndarray:
         """Derivative of the detector frame at ``opd`` in the directions ``delta_opd``.
