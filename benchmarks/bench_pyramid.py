@@ -22,14 +22,18 @@ Install it in a separate virtualenv and point ``--oopao-python`` at its interpre
     python3 -m venv /work/oopao-venv && /work/oopao-venv/bin/pip install oopao
     .venv/bin/python benchmarks/bench_pyramid.py --oopao-python /work/oopao-venv/bin/python
 
-Like for like: ``--precision single|double`` (default single) sets the FFT precision of both
-codes (ours: ``PyramidWFS(precision=...)``; OOPAO: ``OOPAO_PRECISION=32|64``, which
-``--oopao-precision`` overrides). OOPAO's focal-plane image, unused in a closed loop, is switched
-off (``wfs.compute_focal_plane = False``, as OOPAO recommends for closed loops; it costs OOPAO
-7-14 % per frame); ``--oopao-focal-plane`` turns it back on. ``--repeats N`` runs each code N
-times in fresh processes, alternating (ours, OOPAO, ours, ...), so slow phases of a shared
-machine hit both; the table gives each code's median with its spread (min-max, in % of the
-median) and the ratio of the medians, then the median and range of the per-repeat ratios.
+Like for like: ``--precision single|double`` (default single) sets the precision of both codes'
+pyramid propagation and DM shape (ours: ``PyramidWFS(precision=...)`` and the modes in
+float32/float64; OOPAO: ``OOPAO_PRECISION=32|64``, which ``--oopao-precision`` overrides, and
+which also puts its DM influence functions in float32); both reconstructors are float64. Our
+pyramid propagates with matrix products (BLAS), OOPAO's with 2-D FFTs: ``--threads`` sets both
+our BLAS threads and OOPAO's FFT/joblib threads. OOPAO's focal-plane image, unused in a closed
+loop, is switched off (``wfs.compute_focal_plane = False``, as OOPAO recommends for closed
+loops; it costs OOPAO 7-14 % per frame); ``--oopao-focal-plane`` turns it back on. ``--repeats
+N`` runs each code N times in fresh processes, alternating (ours, OOPAO, ours, ...), so slow
+phases of a shared machine hit both; the table gives each code's median with its spread
+(min-max, in % of the median) and the ratio of the medians, then the median and range of the
+per-repeat ratios.
 
 Without ``--oopao-python`` the OOPAO half is skipped with a message. ``--quick`` runs a small
 configuration (smoke test).
@@ -118,7 +122,9 @@ def run_ours(args: argparse.Namespace) -> dict:
     imat_rel_diff = float(np.linalg.norm(imat_lin - imat) / np.linalg.norm(imat))
 
     atm = Atmosphere(pupil, r0=0.15, layers=[Layer(0.0, 1.0, 10.0, 0.0)], fs=fs, rng=1)
-    modes = basis.modes
+    # the DM shape in the FFT precision, like OOPAO's DM under OOPAO_PRECISION=32 (float32
+    # influence functions); the reconstructor in float64 on both sides
+    modes = basis.modes.astype(np.float32 if args.precision == "single" else np.float64)
     coeffs = np.zeros(basis.n_modes)
     meas = np.zeros(basis.n_modes)
     res_rms = []
@@ -127,7 +133,7 @@ def run_ours(args: argparse.Namespace) -> dict:
     for k in range(n_frames + warm):
         t0, c0 = time.perf_counter(), time.process_time()
         turb = atm.phase_vectors(1)[0]
-        res = turb - coeffs @ modes
+        res = turb - coeffs.astype(modes.dtype) @ modes
         coeffs += gain * meas  # command from the previous frame's measurement
         s = wfs.signals(pupil.to_map(res))
         meas = recon @ s

@@ -34,6 +34,7 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import numpy as np
 
 from aocontrol._validation import check_finite_array, check_int, check_nonnegative, check_positive
+from aocontrol.sim.wfs._common import blas_threads
 from aocontrol.sim.wfs.calibration import WFSCalibration, calibrate, optical_gains
 
 __all__ = ["Sensor", "SensorRun", "LinearModalSensor", "DiffractiveSensor"]
@@ -511,11 +512,14 @@ class DiffractiveSensor:
         -------
         ndarray (n_modes,)
         """
-        if self.photons is None:
-            sig = self.wfs.signals(residual)
-        else:
-            sig = self.wfs.measure(residual, self.photons, self.read_noise, rng)
-        m = self.reconstructor @ sig
+        # one BLAS thread (or the WFS's workers) for the WFS and the reconstructor product:
+        # on a shared machine a multi-threaded BLAS stalls on products of this size
+        with blas_threads(getattr(self.wfs, "workers", 1)):
+            if self.photons is None:
+                sig = self.wfs.signals(residual)
+            else:
+                sig = self.wfs.measure(residual, self.photons, self.read_noise, rng)
+            m = self.reconstructor @ sig
         if self.gain_compensation is not None:
             m = m / self.gain_compensation
         return m
