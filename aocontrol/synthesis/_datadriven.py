@@ -59,7 +59,12 @@ from aocontrol.synthesis._dd_grids import (
     _interp_matrix,
     _trapezoid_weights,
 )
-from aocontrol.synthesis._dd_results import DataDrivenError, DataDrivenResult, ModeReport
+from aocontrol.synthesis._dd_results import (
+    DataDrivenError,
+    DataDrivenResult,
+    InitialPoleRadiusError,
+    ModeReport,
+)
 from aocontrol.synthesis._socp import (
     SolveFailure,
     ccp,
@@ -67,7 +72,13 @@ from aocontrol.synthesis._socp import (
     true_objective,
 )
 
-__all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport", "datadriven"]
+__all__ = [
+    "DataDrivenError",
+    "DataDrivenResult",
+    "InitialPoleRadiusError",
+    "ModeReport",
+    "datadriven",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -454,6 +465,9 @@ def datadriven(
     ValueError, TypeError
         Invalid inputs (named in the message), or an initial controller that does not
         stabilise the plant.
+    InitialPoleRadiusError
+        (A ValueError.) ``initial`` has free poles outside ``max_pole_radius`` (e.g. an
+        integrator with ``fixed_denominator=[1]``); ``.radii`` maps the modes to their radii.
     DataDrivenError
         Some modes failed (infeasible convexified problem, no verified controller, or any
         numerical failure of that mode's design: solver, linear algebra, floating point); the
@@ -647,13 +661,7 @@ def _prepare(
             if r.size and r.max() > max_pole_radius * (1 + 1e-12):
                 outside[i] = float(r.max())
         if outside:
-            first = list(outside.items())[:5]
-            raise ValueError(
-                f"initial has free controller poles outside max_pole_radius={max_pole_radius} "
-                f"(mode: radius {first}{' ...' if len(outside) > 5 else ''}); give an initial "
-                "controller inside the radius, or max_pole_radius=None to allow unstable "
-                "controllers"
-            )
+            raise InitialPoleRadiusError(outside, max_pole_radius)
 
     # Design grid: the input grid (subsampled) plus margin-only points covering [0, fs/2]
     # beyond it (a TF plant, or an FRD that covers [0, fs/2]: checked above).
