@@ -28,8 +28,9 @@ fs = 3000 Hz, latency 0.83 frame (SAXO+ stage 2).
     mode designed alone can end better than in the bank (1.20 vs 1.56; in the bank the design
     grid is shared and the previous mode's design may be the start: another basin). The
     bound's FIR-Youla controllers (degree 257) have 8 to 14 poles outside the unit circle
-    (|p| up to 1.04, near fs/2): a class the stable-controller design does not contain. A resonant start (integrator plus a phase-aligned
-    second-order section at each PSD line) was tried and stalled the iterations (not kept).
+    (|p| up to 1.04, near fs/2): a class the stable-controller design does not contain.
+    A resonant start (integrator plus a phase-aligned second-order section at each PSD line)
+    was tried and stalled the iterations (not kept).
 (d) Estimated PSDs (what a design from telemetry sees): each PSD as a Welch estimate of
     disturbance + noise with ``WELCH_SEGMENTS`` averaged segments (chi-square scatter with
     ``2 WELCH_SEGMENTS`` degrees of freedom) on a 513-bin Welch grid, minus the noise level,
