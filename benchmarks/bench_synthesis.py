@@ -152,8 +152,8 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
             break
         vc, J, Pc = np.array(v.value), Jn, Pn
         history.append(J)
-        if len(history) > _socp._PATIENCE:
-            past = history[-1 - _socp._PATIENCE]
+        if len(history) > _socp.PATIENCE:
+            past = history[-1 - _socp.PATIENCE]
             if past - J <= ctx.tol * past:
                 break
     dense = dd._grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)

@@ -66,6 +66,7 @@ from aocontrol.synthesis._dd_results import (
     ModeReport,
 )
 from aocontrol.synthesis._socp import (
+    PATIENCE,
     SolveFailure,
     ccp,
     get_problem,
@@ -98,6 +99,11 @@ _START_LEAK_MARGIN = 1e-3
 # The integral-action structure is chosen where its start's residual is below this fraction
 # of the leaky start's.
 _INTEGRATOR_START_GAIN = 0.8
+# A mode started from the previous mode's design (a neighbour, already converged) stops when
+# one iteration lowers the objective by less than ``tol`` (others: PATIENCE iterations).
+# Measured on 32 contiguous turbulence modes (3 kHz, order 5): 25 % less CPU, the same median
+# residual / Wiener bound (1.016); on the 20 lowest modes 1.139 vs 1.130.
+_WARM_PATIENCE = 1
 #: Orders tried by ``order="auto"``, lowest first.
 AUTO_ORDERS = (2, 3, 5, 8, 12)
 #: Largest controller order accepted (an AO controller has a few to a few tens of
@@ -169,6 +175,7 @@ def _design_mode(
         tol=ctx.tol,
         extrapolate=ctx.extrapolate,
         J_start=J_start,
+        patience=_WARM_PATIENCE if start == "previous mode" else PATIENCE,
     )
     # Final verification by the certificates (margin over the whole circle, closed-loop
     # stability, pole radius). The checks in the iterations make a failure unlikely; if it
@@ -439,7 +446,8 @@ def datadriven(
     max_iter : int, default 60
         Maximum convex solves per mode (at most ``MAX_ITER`` = 10000).
     tol : float, default 1e-3
-        Stop when three iterations lower the objective by less than ``tol`` (relative).
+        Stop when three iterations lower the objective by less than ``tol`` (relative); one
+        iteration for a mode started from the previous mode's design.
     n_grid : int, default 64
         Design-grid size (8 to ``MAX_N_GRID`` = 4096): an input grid with more points is
         subsampled (log- and linearly-spaced points and the PSD peaks), with quadrature
