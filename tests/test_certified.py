@@ -19,7 +19,7 @@ from aocontrol import loop_plant
 from aocontrol.analysis import margins, modulus_certificate, residual_variance
 from aocontrol.controllers import Integrator
 from aocontrol.plant import tf_from_z_inverse, z_inverse_coefficients
-from aocontrol.synthesis import datadriven
+from aocontrol.synthesis import InitialPoleRadiusError, datadriven
 from aocontrol.synthesis._datadriven import DEFAULT_POLE_RADIUS
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*encountered in divide:RuntimeWarning:scipy")
@@ -197,8 +197,9 @@ def test_bad_order_is_refused_naming_it(value):
 
 
 def test_initial_outside_the_radius_is_refused():
+    # A typed error (a ValueError) that callers can catch to fall back to the default start.
     fs, G, f, psd, noise = _issue_case()
-    with pytest.raises(ValueError, match="max_pole_radius"):
+    with pytest.raises(InitialPoleRadiusError, match="max_pole_radius") as info:
         datadriven(
             G,
             f,
@@ -208,6 +209,9 @@ def test_initial_outside_the_radius_is_refused():
             n_jobs=1,
             progress=False,
         )
+    assert isinstance(info.value, ValueError)
+    assert info.value.max_pole_radius == DEFAULT_POLE_RADIUS
+    assert list(info.value.radii.values()) == [pytest.approx(1.0)]
 
 
 @pytest.mark.slow

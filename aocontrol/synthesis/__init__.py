@@ -11,6 +11,7 @@ from aocontrol.synthesis._armodel import DisturbanceModel, ar2_variance
 from aocontrol.synthesis._datadriven import (
     DataDrivenError,
     DataDrivenResult,
+    InitialPoleRadiusError,
     ModeReport,
     datadriven,
 )
@@ -61,6 +62,7 @@ __all__ = [
     "DataDrivenError",
     "DataDrivenResult",
     "DisturbanceModel",
+    "InitialPoleRadiusError",
     "ModalGainError",
     "ModeReport",
     "TelemetryDesign",

@@ -60,15 +60,27 @@ from aocontrol.synthesis._dd_grids import (
     _interp_matrix,
     _trapezoid_weights,
 )
-from aocontrol.synthesis._dd_results import DataDrivenError, DataDrivenResult, ModeReport
+from aocontrol.synthesis._dd_results import (
+    DataDrivenError,
+    DataDrivenResult,
+    InitialPoleRadiusError,
+    ModeReport,
+)
 from aocontrol.synthesis._socp import (
+    PATIENCE,
     SolveFailure,
     ccp,
     get_problem,
     true_objective,
 )
 
-__all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport", "datadriven"]
+__all__ = [
+    "DataDrivenError",
+    "DataDrivenResult",
+    "InitialPoleRadiusError",
+    "ModeReport",
+    "datadriven",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +100,11 @@ _START_LEAK_MARGIN = 1e-3
 # The integral-action structure is chosen where its start's residual is below this fraction
 # of the leaky start's.
 _INTEGRATOR_START_GAIN = 0.8
+# A mode started from the previous mode's design (a neighbour, already converged) stops when
+# one iteration lowers the objective by less than ``tol`` (others: PATIENCE iterations).
+# Measured on 32 contiguous turbulence modes (3 kHz, order 5): 25 % less CPU, the same median
+# residual / Wiener bound (1.016); on the 20 lowest modes 1.139 vs 1.130.
+_WARM_PATIENCE = 1
 #: Orders tried by ``order="auto"``, lowest first.
 AUTO_ORDERS = (2, 3, 5, 8, 12)
 #: Largest controller order accepted (an AO controller has a few to a few tens of
@@ -159,6 +176,7 @@ def _design_mode(
         tol=ctx.tol,
         extrapolate=ctx.extrapolate,
         J_start=J_start,
+        patience=_WARM_PATIENCE if start == "previous mode" else PATIENCE,
     )
     # Final verification by the certificates (margin over the whole circle, closed-loop
     # stability, pole radius). The checks in the iterations make a failure unlikely; if it
@@ -434,7 +452,8 @@ def datadriven(
     max_iter : int, default 60
         Maximum convex solves per mode (at most ``MAX_ITER`` = 10000).
     tol : float, default 1e-3
-        Stop when three iterations lower the objective by less than ``tol`` (relative).
+        Stop when three iterations lower the objective by less than ``tol`` (relative); one
+        iteration for a mode started from the previous mode's design.
     n_grid : int, default 64
         Design-grid size (8 to ``MAX_N_GRID`` = 4096): an input grid with more points is
         subsampled (log- and linearly-spaced points and the PSD peaks), with quadrature
@@ -460,6 +479,9 @@ def datadriven(
     ValueError, TypeError
         Invalid inputs (named in the message), or an initial controller that does not
         stabilise the plant.
+    InitialPoleRadiusError
+        (A ValueError.) ``initial`` has free poles outside ``max_pole_radius`` (e.g. an
+        integrator with ``fixed_denominator=[1]``); ``.radii`` maps the modes to their radii.
     DataDrivenError
         Some modes failed (infeasible convexified problem, no verified controller, or any
         numerical failure of that mode's design: solver, linear algebra, floating point); the
@@ -653,13 +675,7 @@ def _prepare(
             if r.size and r.max() > max_pole_radius * (1 + 1e-12):
                 outside[i] = float(r.max())
         if outside:
-            first = list(outside.items())[:5]
-            raise ValueError(
-                f"initial has free controller poles outside max_pole_radius={max_pole_radius} "
-                f"(mode: radius {first}{' ...' if len(outside) > 5 else ''}); give an initial "
-                "controller inside the radius, or max_pole_radius=None to allow unstable "
-                "controllers"
-            )
+            raise InitialPoleRadiusError(outside, max_pole_radius)
 
     # Design grid: the input grid (subsampled) plus margin-only points covering [0, fs/2]
     # beyond it (a TF plant, or an FRD that covers [0, fs/2]: checked above).

@@ -9,7 +9,7 @@ import numpy as np
 from aocontrol._validation import PerModeError
 from aocontrol.controllers import IIRBank
 
-__all__ = ["DataDrivenError", "DataDrivenResult", "ModeReport"]
+__all__ = ["DataDrivenError", "DataDrivenResult", "InitialPoleRadiusError", "ModeReport"]
 
 
 class DataDrivenError(PerModeError):
@@ -40,6 +40,42 @@ class DataDrivenError(PerModeError):
             operation="data-driven synthesis",
             note=". The other modes are in this error's .result",
         )
+
+
+class InitialPoleRadiusError(ValueError):
+    """The initial controller has free poles outside ``max_pole_radius``.
+
+    Raised by :func:`aocontrol.synthesis.datadriven` before any design, e.g. for an
+    integrator (pole at ``z = 1``) given as ``initial`` with every pole free
+    (``fixed_denominator=[1]``). A caller may catch it to start from the default instead
+    (``initial=None``), or pass ``max_pole_radius=None`` to allow unstable controllers.
+
+    Parameters
+    ----------
+    radii : dict[int, float]
+        Mode index -> largest free pole radius of its initial controller (> the radius).
+    max_pole_radius : float
+        The radius asked for.
+
+    Attributes
+    ----------
+    radii : dict[int, float]
+    max_pole_radius : float
+    """
+
+    def __init__(self, radii: dict[int, float], max_pole_radius: float) -> None:
+        first = list(radii.items())[:5]
+        super().__init__(
+            f"initial has free controller poles outside max_pole_radius={max_pole_radius} "
+            f"(mode: radius {first}{' ...' if len(radii) > 5 else ''}); give an initial "
+            "controller inside the radius, or max_pole_radius=None to allow unstable "
+            "controllers"
+        )
+        self.radii = dict(radii)
+        self.max_pole_radius = max_pole_radius
+
+    def __reduce__(self):  # picklable (worker processes) despite the custom signature
+        return (type(self), (self.radii, self.max_pole_radius))
 
 
 @dataclass(frozen=True)

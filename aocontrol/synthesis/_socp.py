@@ -404,8 +404,8 @@ _EXTRAPOLATION = 2.0 ** np.arange(1, 11) - 1.0
 # through a near pole-zero cancellation that the margin does not see (fractions of the step).
 _DAMPING = 0.5 ** np.arange(1, 9)
 _DAMPED = ("poles", "stability")
-# Number of iterations over which the relative decrease is compared with ``tol``.
-_PATIENCE = 3
+#: Number of iterations over which the relative decrease is compared with ``tol`` (default).
+PATIENCE = 3
 # Points added to the grid per failed check.
 _ADD_PER_CHECK = 4
 
@@ -422,6 +422,7 @@ def ccp(
     tol: float,
     extrapolate: bool = True,
     J_start: float = np.inf,
+    patience: int = PATIENCE,
 ) -> CcpOutcome:
     """Iterate the convexified problem from ``P0`` until the objective stops decreasing.
 
@@ -455,13 +456,15 @@ def ccp(
     max_iter : int
         Maximum number of convex solves.
     tol : float
-        Stop when the last ``_PATIENCE`` iterations lowered the objective by less than
+        Stop when the last ``PATIENCE`` iterations lowered the objective by less than
         ``tol`` (relative) in total.
     extrapolate : bool, default True
         Try extrapolated steps (False: the plain convex-concave iteration).
     J_start : float, optional
         Objective of an initial controller outside the parameter set (``v0`` None), for the
         history only: the first iterate is then accepted whatever its value.
+    patience : int, default PATIENCE
+        Number of iterations over which the decrease is compared with ``tol``.
 
     Returns
     -------
@@ -594,8 +597,8 @@ def ccp(
         iterates.append(v)
         v_best, J_best, Pc = v, J, P
         problem.set_winding(cert.winding(v))
-        if not free and len(history) > _PATIENCE:
-            past = history[-1 - _PATIENCE]
+        if not free and len(history) > patience:
+            past = history[-1 - patience]
             if past - J <= tol * abs(past):
                 converged = True
                 break
