@@ -121,9 +121,9 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
             ),
         ]
         objective = (h * s) @ u
-        if ctx.stroke_weight > 0:
+        if ctx.hinf_weight > 0:
             gamma = cp.Variable()
-            sw = 2 * np.sqrt(ctx.stroke_weight)
+            sw = 2 * np.sqrt(ctx.hinf_weight)
             cons.append(
                 cp.SOC(
                     gamma + phi,
@@ -161,7 +161,7 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
     return J, solves, cert.check_final(vc) is not None
 
 
-def _setup(plant, freqs, psd, noise, stroke_weight: float) -> dd._Setup:
+def _setup(plant, freqs, psd, noise, hinf_weight: float) -> dd._Setup:
     """The synthesis set-up of ``datadriven``'s defaults (order ORDER), for per-mode timing."""
     return dd._prepare(
         plant,
@@ -170,7 +170,7 @@ def _setup(plant, freqs, psd, noise, stroke_weight: float) -> dd._Setup:
         order=ORDER,
         noise_psd=noise,
         modulus_margin=0.5,
-        stroke_weight=stroke_weight,
+        hinf_weight=hinf_weight,
         fixed_denominator=None,
         initial=None,
         max_pole_radius=dd.DEFAULT_POLE_RADIUS,

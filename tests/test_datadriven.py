@@ -333,7 +333,7 @@ def test_design_grid_ignores_lines_below_the_noise_floor(plant):
     kw = dict(
         order=5,
         modulus_margin=0.5,
-        stroke_weight=0.0,
+        hinf_weight=0.0,
         fixed_denominator=None,
         initial=None,
         max_iter=60,

@@ -147,7 +147,7 @@ def _design_mode(
     r1, rn, h = cert.weights(f)
     grid = cert.rows(f)
     n_wind = ctx.wind_index.size + (cert.n_pole_rows if ctx.pole_radius is not None else 0)
-    problem = get_problem(f.size + _SPARE_SLOTS, 2 * ctx.nq + 1, ctx.stroke_weight > 0, n_wind)
+    problem = get_problem(f.size + _SPARE_SLOTS, 2 * ctx.nq + 1, ctx.hinf_weight > 0, n_wind)
     v0 = _to_v(ctx, b0, a0)
     start = "initial"
     if warm is not None:
@@ -163,8 +163,8 @@ def _design_mode(
     J_start = float(
         np.sum(h * (r1**2 * np.abs(Y0) ** 2 + rn**2 * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2)
     )
-    if start == "initial" and ctx.stroke_weight > 0:
-        J_start += ctx.stroke_weight * float(np.max(np.abs(P0 - Y0) ** 2 / np.abs(P0) ** 2))
+    if start == "initial" and ctx.hinf_weight > 0:
+        J_start += ctx.hinf_weight * float(np.max(np.abs(P0 - Y0) ** 2 / np.abs(P0) ** 2))
     out = ccp(
         problem,
         f,
@@ -509,7 +509,7 @@ def datadriven(
         order=order,
         noise_psd=noise_psd,
         modulus_margin=modulus_margin,
-        stroke_weight=hinf_weight,
+        hinf_weight=hinf_weight,
         fixed_denominator=fixed_denominator,
         initial=initial,
         max_pole_radius=max_pole_radius,
@@ -544,7 +544,7 @@ def _prepare(
     order,
     noise_psd,
     modulus_margin,
-    stroke_weight,
+    hinf_weight,
     fixed_denominator,
     initial,
     max_pole_radius=DEFAULT_POLE_RADIUS,
@@ -578,7 +578,7 @@ def _prepare(
             "max_pole_radius", max_pole_radius, 0.0, 1.0, low_inclusive=False
         )
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
-    stroke_weight = check_nonnegative("hinf_weight", stroke_weight)
+    hinf_weight = check_nonnegative("hinf_weight", hinf_weight)
     max_iter = _check_bounded_int("max_iter", max_iter, 1, MAX_ITER)
     tol = check_nonnegative("tol", tol)
     n_grid = _check_bounded_int("n_grid", n_grid, 8, MAX_N_GRID)
@@ -713,7 +713,7 @@ def _prepare(
         fixed=fixed,
         nq=order - (fixed.size - 1),
         mu=mu,
-        stroke_weight=stroke_weight,
+        hinf_weight=hinf_weight,
         wind_index=wind_index,
         g_scale=float(np.median(np.abs(g_design))),
         plant_poly=(

@@ -46,7 +46,7 @@ class _Context:
     fixed: np.ndarray
     nq: int
     mu: float
-    stroke_weight: float
+    hinf_weight: float
     wind_index: np.ndarray
     g_scale: float
     plant_poly: tuple | None
@@ -70,7 +70,7 @@ def _grid_data(ctx: _Context, f: np.ndarray, g: np.ndarray, mu: float) -> GridDa
     AY = np.zeros((f.size, nv), complex)
     AX[:, : ctx.nq + 1] = (g / ctx.g_scale)[:, None] * powers
     AY[:, ctx.nq + 1 :] = F[:, None] * powers[:, 1:]
-    return GridData(AY, AX, F.astype(complex), mu, ctx.stroke_weight)
+    return GridData(AY, AX, F.astype(complex), mu, ctx.hinf_weight)
 
 
 def _to_v(ctx: _Context, b: np.ndarray, a: np.ndarray) -> np.ndarray | None:

@@ -104,7 +104,7 @@ class GridData:
     mu : float or ndarray of shape (N,)
         Modulus margin enforced on the grid (one per point allowed: a cut point's margin
         never exceeds what the previous controller meets there, so that it stays feasible).
-    stroke_weight : float
+    hinf_weight : float
         Weight of ``||T||_inf^2`` (0 drops the term).
     """
 
@@ -112,7 +112,7 @@ class GridData:
     AX: np.ndarray
     F: np.ndarray
     mu: float | np.ndarray
-    stroke_weight: float
+    hinf_weight: float
 
     def mu_rows(self) -> np.ndarray:
         """The margin of every point, shape (N,)."""
@@ -125,7 +125,7 @@ class GridData:
     def take(self, idx: np.ndarray) -> GridData:
         """The rows ``idx`` as a new grid."""
         mu = self.mu if np.ndim(self.mu) == 0 else np.asarray(self.mu)[idx]
-        return GridData(self.AY[idx], self.AX[idx], self.F[idx], mu, self.stroke_weight)
+        return GridData(self.AY[idx], self.AX[idx], self.F[idx], mu, self.hinf_weight)
 
     def join(self, other: GridData) -> GridData:
         """This grid followed by the rows of ``other``."""
@@ -134,7 +134,7 @@ class GridData:
             np.vstack([self.AX, other.AX]),
             np.concatenate([self.F, other.F]),
             np.concatenate([self.mu_rows(), other.mu_rows()]),
-            self.stroke_weight,
+            self.hinf_weight,
         )
 
 
@@ -241,7 +241,7 @@ class ConvexifiedProblem:
             "m_yi": 2 * data.mu_rows()[:, None] * AY.imag,
         }
         if self.stroke:
-            sw = 2 * np.sqrt(data.stroke_weight)
+            sw = 2 * np.sqrt(data.hinf_weight)
             values.update({"s_xr": sw * AX.real, "s_xi": sw * AX.imag})
         for name, value in values.items():
             if name in self._params:
@@ -331,7 +331,7 @@ def true_objective(
     p2 = np.abs(P) ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
         h2 = np.sum(h * (r1**2 * np.abs(Y) ** 2 + rn**2 * np.abs(GX) ** 2) / p2)
-        hinf = data.stroke_weight * np.max(np.abs(GX) ** 2 / p2) if data.stroke_weight > 0 else 0.0
+        hinf = data.hinf_weight * np.max(np.abs(GX) ** 2 / p2) if data.hinf_weight > 0 else 0.0
     return float(h2 + hinf), P
 
 
@@ -541,7 +541,7 @@ def ccp(
                     rows.AX,
                     rows.F,
                     np.minimum(rows.mu_rows(), met * (1 - 1e-9)),
-                    rows.stroke_weight,
+                    rows.hinf_weight,
                 )
             grid_f = np.concatenate([grid_f, new])
             grid = grid.join(rows)
