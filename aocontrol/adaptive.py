@@ -81,7 +81,9 @@ __all__ = [
     "datadriven_designer",
     "lqg_designer",
     "modal_gain_designer",
-    "predicted_gain",
+    "residual_shift",
+    "redesign",
+    "Update",
     "select_modes",
 ]
 
@@ -216,8 +218,7 @@ class AdaptiveRun:
         """Mode designs, summed over redesigns (every mode, or the selected ones)."""
         return int(
             sum(
-                r.certified.size if r.selected is None else r.selected.sum()
-                for r in self.redesigns
+                r.certified.size if r.selected is None else r.selected.sum() for r in self.redesigns
             )
         )
 
@@ -379,56 +380,48 @@ def _merge(current: IIRBank, proposal: IIRBank, take: np.ndarray) -> IIRBank:
     return IIRBank(b, a, current.fs, stroke=current.stroke)
 
 
-def predicted_gain(
-    plant: control.TransferFunction,
+def residual_shift(
     current: IIRBank,
+    plant: control.TransferFunction,
     tel: TelemetryPSD,
     last_ratio: np.ndarray,
-    *,
-    modulus_margin: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Residual a redesign is predicted to recover, per mode, on a new disturbance estimate.
+    """How far each mode's residual moved from what a change of scale explains [units^2].
 
-    The yardstick is the optimal modal-gain integrator on the new estimate (cheap, exact for
-    its one parameter): ``rho = J(current) / J(modal gain)``, both predicted residuals on the
-    estimate (:func:`~aocontrol.analysis.residual_variance`). A redesign is predicted to bring
-    ``rho`` back to ``last_ratio``, its value when the mode's controller was designed, so it
-    recovers ``J(modal gain) * (rho - last_ratio)`` (clipped at 0): nothing when the
-    disturbance did not change, or changed in a way the current controller handles as well as
-    before (e.g. a scale factor in a noise-free mode).
+    ``rho = J / v``: the current controller's predicted residual on the estimate
+    (:func:`~aocontrol.analysis.residual_variance`) over the measured variance ``v`` (the
+    disturbance PSD integrated plus the per-frame noise variance). A change of scale of the
+    disturbance and noise (the seeing alone, noise-limited or not) leaves ``rho`` as it was;
+    a change of shape (the wind: the disturbance moves in frequency; the noise against the
+    disturbance) moves it, and the controller is then tuned to the wrong disturbance. The
+    shift ``v |rho - last_ratio|`` is the residual that change moved, in either direction (a
+    wind that drops leaves a controller too fast, its residual lower but not optimal): the
+    screen of :func:`select_modes`. A mode never designed (``last_ratio`` ``nan``) has an
+    infinite shift.
 
     Parameters
     ----------
-    plant : control.TransferFunction
     current : IIRBank
         The controllers in use (certified: their loops are stable).
+    plant : control.TransferFunction
     tel : TelemetryPSD
         The new estimate.
     last_ratio : ndarray, shape (n_modes,)
-        ``rho`` of each mode's controller at its design (``nan``: never designed, gain
-        ``inf``).
-    modulus_margin : float
-        Margin of the modal-gain yardstick.
+        ``rho`` of each mode's controller on the estimate it was designed from.
 
     Returns
     -------
-    gain : ndarray, shape (n_modes,)
-        Predicted recoverable residual [units^2] (``inf`` for a mode never designed).
-    reference : ndarray, shape (n_modes,)
-        ``J(modal gain)`` on the estimate [units^2].
+    shift : ndarray, shape (n_modes,)
+        ``v |rho - last_ratio|`` [units^2] (``inf`` where ``last_ratio`` is ``nan``).
+    rho : ndarray, shape (n_modes,)
+        ``J / v`` of the current controllers on the estimate.
     """
-    try:
-        ref_bank = optimal_modal_gain(
-            plant, tel.freqs, tel.psd, tel.noise_psd, modulus_margin=modulus_margin
-        )
-    except ModalGainError as exc:
-        ref_bank = exc.result
-    kw = dict(check_stability=False)
-    ref = residual_variance(plant, ref_bank, tel.freqs, tel.psd, tel.noise_psd, **kw)
-    now = residual_variance(plant, current, tel.freqs, tel.psd, tel.noise_psd, **kw)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        gain = np.clip(now - last_ratio * ref, 0.0, None)
-    return np.where(np.isnan(last_ratio), np.inf, gain), ref
+    v = np.trapezoid(tel.psd, tel.freqs, axis=-1) + tel.noise_variance
+    j = residual_variance(plant, current, tel.freqs, tel.psd, tel.noise_psd, check_stability=False)
+    rho = j / v
+    with np.errstate(invalid="ignore"):
+        shift = v * np.abs(rho - last_ratio)
+    return np.where(np.isnan(last_ratio), np.inf, shift), rho
 
 
 def select_modes(gain: np.ndarray, share: float, max_modes: int | None = None) -> np.ndarray:
@@ -461,6 +454,120 @@ def select_modes(gain: np.ndarray, share: float, max_modes: int | None = None) -
     out = np.zeros(gain.size, dtype=bool)
     out[order[take]] = True
     return out
+
+
+@dataclass(frozen=True)
+class Update:
+    """Result of :func:`redesign`.
+
+    Attributes
+    ----------
+    bank : IIRBank
+        The current bank with every certified mode replaced by its new design.
+    certified : ndarray of bool, shape (n_modes,)
+        Modes redesigned and certified (replaced in ``bank``).
+    modulus_margin : ndarray, shape (n_modes,)
+        Certified margin of each checked new design (``nan`` elsewhere).
+    reasons : dict of int to str
+        Why each redesigned mode that is not replaced was refused.
+    selected : ndarray of bool, shape (n_modes,) or None
+        Modes redesigned (``None``: all).
+    ratio : ndarray, shape (n_modes,) or None
+        ``last_ratio`` updated for the replaced modes (``None`` without selection).
+    """
+
+    bank: IIRBank
+    certified: np.ndarray
+    modulus_margin: np.ndarray
+    reasons: dict[int, str]
+    selected: np.ndarray | None
+    ratio: np.ndarray | None
+
+
+def redesign(
+    plant: control.TransferFunction,
+    current: IIRBank,
+    tel: TelemetryPSD,
+    designer: Designer,
+    *,
+    modulus_margin: float,
+    max_pole_radius: float = 1.0,
+    last_ratio: np.ndarray | None = None,
+    select: float | None = None,
+    max_modes: int | None = None,
+) -> Update:
+    """One redesign: select the modes, design them, certify them, merge the certified ones.
+
+    The step of :class:`AdaptiveController` at each period, as a function (a benchmark
+    times it alone).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+    current : IIRBank
+        The bank in use.
+    tel : TelemetryPSD
+        Disturbance and noise estimate.
+    designer : callable
+        As in :class:`AdaptiveController`.
+    modulus_margin, max_pole_radius : float
+        Certificates (:func:`certify`).
+    last_ratio : ndarray, shape (n_modes,), optional
+        Per mode, ``rho`` of :func:`residual_shift` when its controller was designed
+        (``nan``: never); with ``select``.
+    select : float, optional
+        Share of the total residual shift to cover (:func:`select_modes`);
+        ``None``: every mode.
+    max_modes : int, optional
+        At most this many modes (with ``select``).
+
+    Returns
+    -------
+    Update
+    """
+    n = current.n_modes
+    modes = np.arange(n)
+    selected = ratio = None
+    if select is not None:
+        last = np.full(n, np.nan) if last_ratio is None else np.asarray(last_ratio, float)
+        shift, _ = residual_shift(current, plant, tel, last)
+        selected = select_modes(shift, select, max_modes)
+        modes = np.flatnonzero(selected)
+        ratio = last.copy()
+    ok = np.zeros(n, dtype=bool)
+    margin = np.full(n, np.nan)
+    reasons: dict[int, str] = {}
+    if not modes.size:
+        return Update(current, ok, margin, reasons, selected, ratio)
+    proposal = designer(_subset(tel, modes), plant, _rows(current, modes))
+    if not isinstance(proposal, Proposal):
+        raise TypeError(f"the designer must return a Proposal, got {type(proposal).__name__}")
+    if proposal.controller.n_modes != modes.size:
+        raise ValueError(
+            f"the designer proposed {proposal.controller.n_modes} modes, it was asked for "
+            f"{modes.size}"
+        )
+    todo = [i for i in range(modes.size) if i not in proposal.failed]
+    ok_s, margin_s, reasons_s = certify(
+        plant,
+        proposal.controller,
+        modulus_margin=modulus_margin,
+        max_pole_radius=max_pole_radius,
+        modes=todo,
+    )
+    ok[modes], margin[modes] = ok_s, margin_s
+    reasons = {
+        **{int(modes[i]): f"design failed: {msg}" for i, msg in proposal.failed.items()},
+        **{int(modes[i]): msg for i, msg in reasons_s.items()},
+    }
+    if ratio is not None and ok_s.any():
+        take = np.flatnonzero(ok_s)
+        _, rho = residual_shift(
+            _rows(proposal.controller, take), plant, _subset(tel, modes[take]), ratio[modes[take]]
+        )
+        ratio[modes[take]] = rho
+    full = _join(current, [(modes, proposal)]).controller
+    return Update(_merge(current, full, ok), ok, margin, reasons, selected, ratio)
 
 
 # ---------------------------------------------------------------------------- designers
@@ -699,9 +806,9 @@ class AdaptiveController(ControllerBank):
         a simulation; its ``pseudo_open_loop`` is not used).
     select : float, optional
         Redesign only the modes whose disturbance changed enough to matter: the fewest modes,
-        largest first, whose predicted recoverable residual (:func:`predicted_gain`: the
-        current controller against the optimal modal gain on the new estimate, compared with
-        the same ratio when it was designed) covers this share, in (0, 1], of the total;
+        largest first, whose residual shifts (:func:`residual_shift`: how far the current
+        controller's residual moved from what a change of the disturbance's scale explains,
+        since its design) cover this share, in (0, 1], of the total;
         modes never designed always. ``None`` (default): every mode at every design. The
         others keep their controller (not counted as rejected). See :func:`select_modes`.
     max_modes : int, optional
@@ -893,84 +1000,47 @@ class AdaptiveController(ControllerBank):
 
     def _redesign(self, k: int) -> None:
         t0 = time.perf_counter()
-        n = self.n_modes
         tel = self._estimate(k)
-        selected = None
-        modes = np.arange(n)
-        if self._select is not None:
-            gain, ref = predicted_gain(
-                self._plant, self.current, tel, self._last_ratio, modulus_margin=self._mu
-            )
-            selected = select_modes(gain, self._select, self._max_modes)
-            modes = np.flatnonzero(selected)
-        ok = np.zeros(n, dtype=bool)
-        margin = np.full(n, np.nan)
-        reasons: dict[int, str] = {}
-        proposal = None
-        if modes.size:
-            sub = _rows(self.current, modes)
-            proposal = self._designer(_subset(tel, modes), self._plant, sub)
-            if not isinstance(proposal, Proposal):
-                raise TypeError(
-                    f"the designer must return a Proposal, got {type(proposal).__name__}"
-                )
-            if proposal.controller.n_modes != modes.size:
-                raise ValueError(
-                    f"the designer proposed {proposal.controller.n_modes} modes, it was asked "
-                    f"for {modes.size}"
-                )
-            todo = [i for i in range(modes.size) if i not in proposal.failed]
-            ok_s, margin_s, reasons_s = certify(
-                self._plant,
-                proposal.controller,
-                modulus_margin=self._mu,
-                max_pole_radius=self._rmax,
-                modes=todo,
-            )
-            ok[modes], margin[modes] = ok_s, margin_s
-            reasons = {
-                **{int(modes[i]): f"design failed: {msg}" for i, msg in proposal.failed.items()},
-                **{int(modes[i]): msg for i, msg in reasons_s.items()},
-            }
-            if self._select is not None and ok_s.any():
-                take = np.flatnonzero(ok_s)
-                j = residual_variance(
-                    self._plant,
-                    _rows(proposal.controller, take),
-                    tel.freqs,
-                    tel.psd[modes[take]],
-                    tel.noise_psd[modes[take]],
-                    check_stability=False,
-                )
-                self._last_ratio[modes[take]] = j / ref[modes[take]]
+        up = redesign(
+            self._plant,
+            self.current,
+            tel,
+            self._designer,
+            modulus_margin=self._mu,
+            max_pole_radius=self._rmax,
+            last_ratio=self._last_ratio if self._select is not None else None,
+            select=self._select,
+            max_modes=self._max_modes,
+        )
+        if up.ratio is not None:
+            self._last_ratio = up.ratio
         seconds = time.perf_counter() - t0
         latency = (
             math.ceil(seconds * self._fs) if self._latency_frames is None else self._latency_frames
         )
         switch = None
-        if ok.any():
+        if up.certified.any():
             switch = k + latency
-            full = _join(self.current, [(modes, proposal)]).controller
-            self._pending = (switch, _merge(self.current, full, ok))
-        elif modes.size:
+            self._pending = (switch, up.bank)
+        elif up.selected is None or up.selected.any():
             logger.warning(
                 "redesign at frame %d: no mode certified, the current bank stays (%s)",
                 k,
-                "; ".join(f"mode {i}: {r}" for i, r in list(reasons.items())[:5]),
+                "; ".join(f"mode {i}: {r}" for i, r in list(up.reasons.items())[:5]),
             )
-        if reasons:
-            logger.info("redesign at frame %d: %d modes kept their controller", k, len(reasons))
+        if up.reasons:
+            logger.info("redesign at frame %d: %d modes kept their controller", k, len(up.reasons))
         self.run.redesigns.append(
             Redesign(
                 frame=k,
                 switch_frame=switch,
                 design_seconds=seconds,
-                certified=ok,
-                reasons=reasons,
-                modulus_margin=margin,
+                certified=up.certified,
+                reasons=up.reasons,
+                modulus_margin=up.modulus_margin,
                 disturbance_variance=np.trapezoid(tel.psd, tel.freqs, axis=-1),
                 noise_variance=tel.noise_variance,
-                selected=selected,
+                selected=up.selected,
             )
         )
 

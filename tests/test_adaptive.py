@@ -25,8 +25,8 @@ from aocontrol.adaptive import (
     select_modes,
 )
 from aocontrol.controllers import IIRBank, Integrator
-from aocontrol.synthesis import TelemetryPSD
 from aocontrol.sim import LinearModalSensor, LoopDivergedError, ModalTimeSeries, Stage, run_loop
+from aocontrol.synthesis import TelemetryPSD
 
 FS = 1000.0
 LATENCY = 0.83

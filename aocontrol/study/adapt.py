@@ -312,8 +312,9 @@ def _controller(
         )
     elif strategy == "oracle-prophet":
         # The old oracle: this run's own coming disturbance, no latency.
-        kwargs["oracle"] = _truth(d, scene, max(period_frames, window_frames), seed, offset=0,
-                                  centre=0.0)
+        kwargs["oracle"] = _truth(
+            d, scene, max(period_frames, window_frames), seed, offset=0, centre=0.0
+        )
     elif strategy == "adaptive-truth":
         # The adaptive's window, on the true disturbance (no pseudo-open-loop estimate).
         kwargs["oracle"] = _truth(independent, scene, window_frames, seed, offset=0, centre=1.0)
