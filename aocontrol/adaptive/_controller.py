@@ -1,0 +1,485 @@
+"""The adaptive controller bank and its run record (see :mod:`aocontrol.adaptive`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import control
+import numpy as np
+
+from aocontrol._validation import check_in_range, check_int, check_nonnegative, check_positive
+from aocontrol.adaptive._redesign import Designer, _merge, redesign
+from aocontrol.controllers import ControllerBank, IIRBank
+from aocontrol.plant import check_system, plant_fs, z_inverse_coefficients
+from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry, pseudo_open_loop
+
+logger = logging.getLogger(__name__)
+
+#: Fewest frames in a window (a Welch estimate needs at least 8; a useful one, hundreds).
+MIN_WINDOW_FRAMES = 64
+#: Frames over which a new filter's past outputs are fitted to the applied commands at a switch.
+BUMPLESS_FRAMES = 100
+#: E-folding age [frames] of the weights of that fit, and the weight of the last frame.
+BUMPLESS_MEMORY = 20.0
+BUMPLESS_LAST_WEIGHT = 100.0
+
+
+@dataclass(frozen=True)
+class Redesign:
+    """One redesign of an :class:`AdaptiveController`.
+
+    Attributes
+    ----------
+    frame : int
+        Frame at which the design was requested (telemetry up to ``frame - 1``).
+    switch_frame : int or None
+        Frame from which the new bank runs (``None``: not switched in).
+    design_seconds : float
+        Measured compute time of estimation, design and certification [s].
+    certified : ndarray of bool, shape (n_modes,)
+        Modes whose proposed controller passed every certificate (and are switched in).
+    reasons : dict of int to str
+        Why each other mode kept its controller.
+    modulus_margin : ndarray, shape (n_modes,)
+        Certified modulus margin of each mode's proposed controller (``nan`` if none).
+    disturbance_variance : ndarray, shape (n_modes,)
+        Variance of the estimated disturbance over the window [units^2] (the PSD integrated).
+    noise_variance : ndarray, shape (n_modes,)
+        Estimated per-frame noise variance [units^2].
+    selected : ndarray of bool, shape (n_modes,) or None
+        Modes that were redesigned (``None``: all; see ``select`` of
+        :class:`AdaptiveController`).
+    """
+
+    frame: int
+    switch_frame: int | None
+    design_seconds: float
+    certified: np.ndarray
+    reasons: dict[int, str]
+    modulus_margin: np.ndarray
+    disturbance_variance: np.ndarray
+    noise_variance: np.ndarray
+    selected: np.ndarray | None = None
+
+    @property
+    def switched(self) -> bool:
+        """Whether the (partly) certified bank was switched in."""
+        return self.switch_frame is not None
+
+
+@dataclass
+class AdaptiveRun:
+    """Record of one run of an :class:`AdaptiveController` (between two resets).
+
+    Attributes
+    ----------
+    frames : int
+        Frames stepped.
+    redesigns : list of Redesign
+        Every design, in order.
+    n_skipped : int
+        Designs skipped because the previous one was still pending.
+    final : IIRBank or None
+        The bank in use at the end of the run (set when the run is archived by a reset).
+    """
+
+    frames: int = 0
+    redesigns: list[Redesign] = field(default_factory=list)
+    n_skipped: int = 0
+    final: IIRBank | None = None
+
+    @property
+    def n_switches(self) -> int:
+        """Banks switched in."""
+        return sum(r.switched for r in self.redesigns)
+
+    @property
+    def n_rejected_banks(self) -> int:
+        """Proposals with no certified mode (not switched in; the last certified bank stayed);
+        a redesign that selected no mode proposes nothing and is not counted."""
+        return sum(
+            not r.switched and (r.selected is None or bool(r.selected.any()))
+            for r in self.redesigns
+        )
+
+    @property
+    def n_rejected_modes(self) -> int:
+        """Mode designs that were not certified, summed over redesigns (those modes kept their
+        controller; modes not selected for a redesign are not counted)."""
+        return int(
+            sum(
+                (~r.certified & (True if r.selected is None else r.selected)).sum()
+                for r in self.redesigns
+            )
+        )
+
+    @property
+    def n_designed_modes(self) -> int:
+        """Mode designs, summed over redesigns (every mode, or the selected ones)."""
+        return int(
+            sum(
+                r.certified.size if r.selected is None else r.selected.sum() for r in self.redesigns
+            )
+        )
+
+    @property
+    def switch_frames(self) -> list[int]:
+        """Frames at which a new bank started."""
+        return [r.switch_frame for r in self.redesigns if r.switch_frame is not None]
+
+
+def bumpless_outputs(
+    bank: IIRBank, measurements: np.ndarray, commands: np.ndarray, *, fit_frames: int
+) -> np.ndarray:
+    """Past outputs for a new filter entering a running loop: the bumpless initial state.
+
+    Setting a new filter's Direct-Form I history to the commands another controller applied
+    makes its next command an extrapolation of a trajectory that is not its own: with poles
+    near ``z = 1`` (an LQG's turbulence model, a high-order data-driven filter) that
+    extrapolation of the old filter's shape is a transient of many times the disturbance.
+    Instead, per mode, the new filter is run over the last ``fit_frames`` frames on the
+    measurements actually received, from the initial past outputs ``c`` (``na - 1`` values)
+    that bring its outputs closest to the commands actually applied (least squares,
+    ``min ||u - (zero-state response + F c)||``, ``F`` its free responses). Its virtual
+    outputs then track the applied commands over the fit (exactly when the new filter is the
+    old one), and its state is its own: the first command continues the loop without a jump
+    and without the extrapolation transient.
+
+    Parameters
+    ----------
+    bank : IIRBank
+        The new filters.
+    measurements, commands : ndarray, shape (n_frames, n_modes)
+        Recent measurements and applied commands, oldest first.
+    fit_frames : int
+        Frames at the end of the history over which the outputs are fitted (the frames
+        before them give the measurements' initial state).
+
+    Returns
+    -------
+    ndarray, shape (fit_frames, n_modes)
+        The new filters' outputs over the fit, for :meth:`IIRBank.set_history`.
+    """
+    from scipy import signal
+
+    m = np.asarray(measurements, dtype=float)
+    u = np.asarray(commands, dtype=float)
+    n_total = m.shape[0]
+    fit = check_int("fit_frames", fit_frames, minimum=0, maximum=n_total)
+    if fit == 0 or bank.a.shape[1] == 1:
+        return u[n_total - fit :]
+    pre = n_total - fit
+    # Recent frames count more (e-folding BUMPLESS_MEMORY frames); the last one most: the
+    # first new command continues the last applied one.
+    age = np.arange(fit)[::-1]
+    weight = np.exp(-age / BUMPLESS_MEMORY)
+    weight[-1] = BUMPLESS_LAST_WEIGHT
+    out = np.empty((fit, bank.n_modes))
+    nb, na = bank.b.shape[1], bank.a.shape[1]
+    for i in range(bank.n_modes):  # at a switch only: a short loop of short filters
+        b, a = bank.b[i], bank.a[i]
+        x_past = m[max(pre - nb + 1, 0) : pre, i][::-1]
+        zi = signal.lfiltic(b, a, np.zeros(na - 1), x_past)
+        zero_state = signal.lfilter(b, a, m[pre:, i], zi=zi)[0]
+        free = np.empty((fit, na - 1))
+        for j in range(na - 1):
+            y0 = np.zeros(na - 1)
+            y0[j] = 1.0
+            free[:, j] = signal.lfilter(b, a, np.zeros(fit), zi=signal.lfiltic(b, a, y0))[0]
+        c, *_ = np.linalg.lstsq(
+            free * weight[:, None], (u[pre:, i] - zero_state) * weight, rcond=None
+        )
+        out[:, i] = zero_state + free @ c
+    return out
+
+
+class AdaptiveController(ControllerBank):
+    """An IIR bank that redesigns, certifies and bumplessly switches its own controllers.
+
+    Parameters
+    ----------
+    initial : IIRBank
+        The bank the loop starts with (e.g. an :class:`~aocontrol.controllers.Integrator`).
+    plant : control.TransferFunction
+        Loop plant (command to measurement, :func:`aocontrol.loop_plant`), used for the pseudo
+        open loop and the certificates.
+    designer : callable
+        ``designer(telemetry_psd, plant, current_bank) -> Proposal``, e.g.
+        :func:`datadriven_designer`.
+    period : float
+        Time between designs ``T`` [s], > 0.
+    window : float
+        Telemetry used by a design ``W`` [s]: at least ``MIN_WINDOW_FRAMES`` frames and
+        ``nperseg`` frames.
+    latency : float or None, default None
+        Design latency [s] (switch ``ceil(latency fs)`` frames after the request; must be
+        shorter than ``period``). ``None``: the measured compute time (runs are then not
+        reproducible bit for bit).
+    modulus_margin : float, default 0.5
+        Margin every switched-in controller must have (certificate).
+    max_pole_radius : float, default 1.0
+        Largest controller pole modulus accepted (certificate).
+    nperseg : int, optional
+        Welch segment [frames] (default ``min(window frames, 1024)``).
+    noise_band : (float, float), default (0.8, 1.0)
+        Noise-floor band of :func:`~aocontrol.synthesis.disturbance_from_telemetry`.
+    estimator : callable, optional
+        ``estimator(pol, plant) -> TelemetryPSD`` from the window's pseudo-open loop
+        ``(n_frames, n_modes)``; default
+        :func:`~aocontrol.synthesis.disturbance_from_telemetry` (``pol`` as measurements,
+        zero commands) with ``nperseg`` and ``noise_band``. E.g. a pre-whitened estimate.
+    max_designs : int, optional
+        Stop after this many designs (``1``: a fixed design from the first window).
+    oracle : callable, optional
+        ``oracle(frame) -> TelemetryPSD``: the disturbance and noise PSDs to design from at
+        ``frame`` instead of the telemetry estimate (a yardstick that knows the truth, e.g. in
+        a simulation; its ``pseudo_open_loop`` is not used).
+    select : float, optional
+        Redesign only the modes whose disturbance changed enough to matter: the fewest modes,
+        largest first, whose residual shifts (:func:`residual_shift`: how far the current
+        controller's residual moved from what a change of the disturbance's scale explains,
+        since its design) cover this share, in (0, 1], of the total;
+        modes never designed always. ``None`` (default): every mode at every design. The
+        others keep their controller (not counted as rejected). See :func:`select_modes`.
+    max_modes : int, optional
+        At most this many modes per design (with ``select``; the largest predicted gains).
+
+    Attributes
+    ----------
+    current : IIRBank
+        The bank in use.
+    run : AdaptiveRun
+        Record of the run in progress; :attr:`last_run` that of the previous one.
+    """
+
+    def __init__(
+        self,
+        initial: IIRBank,
+        plant: control.TransferFunction,
+        designer: Designer,
+        *,
+        period: float,
+        window: float,
+        latency: float | None = None,
+        modulus_margin: float = 0.5,
+        max_pole_radius: float = 1.0,
+        nperseg: int | None = None,
+        noise_band: tuple[float, float] = (0.8, 1.0),
+        estimator: Callable[[np.ndarray, control.TransferFunction], TelemetryPSD] | None = None,
+        max_designs: int | None = None,
+        oracle: Callable[[int], TelemetryPSD] | None = None,
+        select: float | None = None,
+        max_modes: int | None = None,
+    ) -> None:
+        if not isinstance(initial, IIRBank):
+            raise TypeError(f"initial must be an IIRBank, got {type(initial).__name__}")
+        if not isinstance(plant, control.TransferFunction):
+            raise TypeError(f"plant must be a control.TransferFunction, got {type(plant).__name__}")
+        fs = plant_fs(plant)
+        check_system("initial", initial.transfer_function(0), fs, rate_of="the plant")
+        if not callable(designer):
+            raise TypeError(f"designer must be callable, got {designer!r}")
+        self._initial = initial
+        self._plant = plant
+        self._designer = designer
+        self._fs = fs
+        self._period = check_positive("period", period)
+        self._window = check_positive("window", window)
+        self._period_frames = max(1, round(self._period * fs))
+        self._window_frames = round(self._window * fs)
+        if self._window_frames < MIN_WINDOW_FRAMES:
+            raise ValueError(
+                f"window must hold at least {MIN_WINDOW_FRAMES} frames for a PSD "
+                f"({MIN_WINDOW_FRAMES / fs:.3g} s at {fs:g} Hz), got {window!r} s"
+            )
+        if nperseg is not None:
+            nperseg = check_int("nperseg", nperseg, minimum=8)
+            if nperseg > self._window_frames:
+                raise ValueError(
+                    f"window must hold at least nperseg={nperseg} frames "
+                    f"({nperseg / fs:.3g} s), got {window!r} s"
+                )
+        self._nperseg = nperseg
+        self._noise_band = noise_band
+        self._max_designs = (
+            None if max_designs is None else check_int("max_designs", max_designs, minimum=1)
+        )
+        if oracle is not None and not callable(oracle):
+            raise TypeError(f"oracle must be callable, got {oracle!r}")
+        self._oracle = oracle
+        self._select = (
+            None
+            if select is None
+            else check_in_range("select", select, 0.0, 1.0, low_inclusive=False)
+        )
+        self._max_modes = (
+            None if max_modes is None else check_int("max_modes", max_modes, minimum=1)
+        )
+        if estimator is not None and not callable(estimator):
+            raise TypeError(f"estimator must be callable, got {estimator!r}")
+        self._estimator = estimator
+        if latency is None:
+            self._latency_frames = None
+        else:
+            latency = check_nonnegative("latency", latency)
+            if latency >= self._period:
+                raise ValueError(
+                    f"latency must be shorter than period={self._period:g} s, got {latency!r} s"
+                )
+            self._latency_frames = math.ceil(latency * fs - 1e-9)
+        self._mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, high_inclusive=False)
+        self._rmax = check_positive("max_pole_radius", max_pole_radius)
+        b, a = z_inverse_coefficients(plant, "plant")
+        # Frames of the pseudo open loop's start-up transient (the plant's memory), dropped.
+        self._lead = max(b.size, a.size)
+        self.last_run: AdaptiveRun | None = None
+        self.run = AdaptiveRun()
+        self.reset()
+
+    # -- interface ------------------------------------------------------------------------
+    @property
+    def n_modes(self) -> int:
+        return self._initial.n_modes
+
+    @property
+    def fs(self) -> float:
+        return self._fs
+
+    @property
+    def period(self) -> float:
+        """Time between designs [s]."""
+        return self._period
+
+    @property
+    def window(self) -> float:
+        """Telemetry window of a design [s]."""
+        return self._window
+
+    def reset(self) -> None:
+        if self.run.frames:
+            self.run.final = self.current
+            self.last_run = self.run
+        self.run = AdaptiveRun()
+        self.current = _merge(self._initial, self._initial, np.zeros(self.n_modes, dtype=bool))
+        self._last_ratio = np.full(self.n_modes, np.nan)
+        cap = self._window_frames + self._lead
+        self._cap = cap
+        self._m = np.zeros((cap, self.n_modes))
+        self._u = np.zeros((cap, self.n_modes))
+        self._k = 0
+        self._pending: tuple[int, IIRBank] | None = None
+
+    def transfer_function(self, mode: int = 0) -> control.TransferFunction:
+        """The current bank's controller of ``mode`` (it changes at each switch)."""
+        return self.current.transfer_function(mode)
+
+    def _step(self, m: np.ndarray) -> np.ndarray:
+        k = self._k
+        if self._pending is not None and self._pending[0] == k:
+            self._switch(self._pending[1])
+            self._pending = None
+        due = k and k % self._period_frames == 0 and k >= self._window_frames
+        if due and self._max_designs is not None:
+            due = len(self.run.redesigns) < self._max_designs
+        if due:
+            if self._pending is None:
+                self._redesign(k)
+                if self._pending is not None and self._pending[0] == k:  # zero latency
+                    self._switch(self._pending[1])
+                    self._pending = None
+            else:
+                self.run.n_skipped += 1
+        u = self.current.step(m)
+        slot = k % self._cap
+        self._m[slot] = m
+        self._u[slot] = u
+        self._k = k + 1
+        self.run.frames = self._k
+        return u
+
+    # -- internals ------------------------------------------------------------------------
+    def _history(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """The last ``n`` frames of (m, u), oldest first (fewer if fewer were stepped)."""
+        n = min(n, self._k, self._cap)
+        idx = np.arange(self._k - n, self._k) % self._cap
+        return self._m[idx], self._u[idx]
+
+    def _switch(self, bank: IIRBank) -> None:
+        depth = max(bank.b.shape[1], bank.a.shape[1])
+        m, u = self._history(max(BUMPLESS_FRAMES, 4 * depth) + depth)
+        bank.reset()
+        bank.set_history(m, bumpless_outputs(bank, m, u, fit_frames=m.shape[0] - depth))
+        self.current = bank
+
+    def _estimate(self, k: int) -> TelemetryPSD:
+        """The disturbance and noise estimate of a design requested at frame ``k``."""
+        if self._oracle is not None:
+            return self._oracle(k)
+        m, u = self._history(self._window_frames + self._lead)
+        lead = m.shape[0] - self._window_frames
+        pol = pseudo_open_loop(m, u, self._plant)[lead:]
+        if self._estimator is not None:
+            return self._estimator(pol, self._plant)
+        return disturbance_from_telemetry(
+            pol,
+            np.zeros_like(pol),
+            self._plant,
+            nperseg=self._nperseg,
+            noise_band=self._noise_band,
+        )
+
+    def _redesign(self, k: int) -> None:
+        t0 = time.perf_counter()
+        tel = self._estimate(k)
+        up = redesign(
+            self._plant,
+            self.current,
+            tel,
+            self._designer,
+            modulus_margin=self._mu,
+            max_pole_radius=self._rmax,
+            last_ratio=self._last_ratio if self._select is not None else None,
+            select=self._select,
+            max_modes=self._max_modes,
+        )
+        if up.ratio is not None:
+            self._last_ratio = up.ratio
+        seconds = time.perf_counter() - t0
+        latency = (
+            math.ceil(seconds * self._fs) if self._latency_frames is None else self._latency_frames
+        )
+        switch = None
+        if up.certified.any():
+            switch = k + latency
+            self._pending = (switch, up.bank)
+        elif up.selected is None or up.selected.any():
+            logger.warning(
+                "redesign at frame %d: no mode certified, the current bank stays (%s)",
+                k,
+                "; ".join(f"mode {i}: {r}" for i, r in list(up.reasons.items())[:5]),
+            )
+        if up.reasons:
+            logger.info("redesign at frame %d: %d modes kept their controller", k, len(up.reasons))
+        self.run.redesigns.append(
+            Redesign(
+                frame=k,
+                switch_frame=switch,
+                design_seconds=seconds,
+                certified=up.certified,
+                reasons=up.reasons,
+                modulus_margin=up.modulus_margin,
+                disturbance_variance=np.trapezoid(tel.psd, tel.freqs, axis=-1),
+                noise_variance=tel.noise_variance,
+                selected=up.selected,
+            )
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"AdaptiveController(n_modes={self.n_modes}, fs={self._fs:g}, period={self._period:g}"
+            f" s, window={self._window:g} s, designer={getattr(self._designer, '__name__', '?')})"
+        )
