@@ -31,12 +31,15 @@ the seeing over the same interval), ``stochastic`` (the Paranal model of
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from aocontrol._atomic import atomic_path
 from aocontrol.adaptive import (
     AdaptiveController,
     AdaptiveRun,
@@ -226,12 +229,15 @@ class AdaptStudy:
     duration : float
         Simulated time [s].
     rows : tuple of AdaptRow
+    settings : dict
+        The run's settings (latency, order, design and adaptive options, seed, modes).
     """
 
     case: str
     scenario: str
     duration: float
     rows: tuple[AdaptRow, ...]
+    settings: dict = dataclasses.field(default_factory=dict)
 
     def row(self, strategy: str, period: float | None = None) -> AdaptRow:
         """The first row of ``strategy`` (at ``period`` if given)."""
@@ -239,6 +245,43 @@ class AdaptStudy:
             if r.strategy == strategy and (period is None or r.period == period):
                 return r
         raise KeyError(f"no row for strategy {strategy!r} and period {period!r}")
+
+    def to_dataset(self) -> object:
+        """The rows as an :class:`xarray.Dataset` (dimension ``row``; units in ``attrs``)."""
+        import xarray as xr
+
+        cols = {
+            f.name: [getattr(r, f.name) for r in self.rows] for f in dataclasses.fields(AdaptRow)
+        }
+        units = {
+            "period": "s",
+            "window": "s",
+            "residual": "nm^2",
+            "residual_late": "nm^2",
+            "design_seconds": "s",
+        }
+        data = {
+            k: xr.Variable("row", np.asarray(v), attrs={"units": units[k]} if k in units else {})
+            for k, v in cols.items()
+        }
+        return xr.Dataset(
+            data,
+            attrs={
+                "format": "aocontrol-adapt-study",
+                "case": self.case,
+                "scenario": self.scenario,
+                "duration_s": self.duration,
+                "settings_json": json.dumps(self.settings, default=str),
+            },
+        )
+
+    def save(self, path: str | os.PathLike) -> str:
+        """Write :meth:`to_dataset` as HDF5 (netCDF-4, ``xarray.open_dataset`` opens it),
+        atomically; returns the path."""
+        path = os.fspath(path)
+        with atomic_path(path) as tmp:
+            self.to_dataset().to_netcdf(tmp, engine="h5netcdf")
+        return path
 
     def table(self) -> str:
         """Plain-text table: residual, ratios to the fixed design and to the oracle."""
@@ -455,4 +498,15 @@ def run_adapt(
                 )
             )
             logger.info("%s", rows[-1])
-    return AdaptStudy(c.name, scenario, float(duration), tuple(rows))
+    settings = dict(
+        latency=latency,
+        order=order,
+        modulus_margin=modulus_margin,
+        quick=quick,
+        seed=seed,
+        n_modes=st.n_modes,
+        fs=st.fs,
+        design_options=dict(design_options or {}),
+        adaptive_options=dict(adaptive_options or {}),
+    )
+    return AdaptStudy(c.name, scenario, float(duration), tuple(rows), settings)
