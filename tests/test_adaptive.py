@@ -162,13 +162,14 @@ def test_certify_checks_margin_and_controller_poles():
 
 # ---------------------------------------------------------------------------- adaptation
 def test_schedule_and_impulse_response():
-    # Designs at every period once a window is available, switches latency frames later;
+    # The first design once a window is available (700 frames), then every period (400);
+    # switches latency frames later;
     # before the first switch the real-time path is the initial bank's transfer function.
     d = _drifting()
     ctrl = _adaptive(_same, period=0.4, window=0.7, latency=0.05)
     _run(ctrl, d)
     frames = [r.frame for r in ctrl.last_run.redesigns]
-    assert frames == [800, 1200, 1600, 2000, 2400, 2800]
+    assert frames == [700, 1100, 1500, 1900, 2300, 2700]
     assert ctrl.last_run.switch_frames == [f + 50 for f in frames]
     h = ctrl.impulse_response(40)
     np.testing.assert_allclose(h[:, 0], 0.3, rtol=1e-12)  # g / (1 - z^-1): steps of g

@@ -31,7 +31,8 @@ commands it returns, and every ``period`` seconds:
 
 Timing: frame ``k`` (counted from :meth:`reset`; a frame rejected for a non-finite measurement
 is not stepped, hence not counted) is at ``k / fs``. Designs are requested at
-the frames ``j * period * fs`` (``j >= 1``) that have a full window behind them, on the
+the frames ``(window + j * period) * fs`` (``j >= 0``: the first once a full window is
+available, so every period starts from the same first design), on the
 telemetry up to the previous frame; the switch happens at the start of frame
 ``k_design + latency_frames``. A design requested while the previous one is still pending
 (latency longer than the period) is skipped and counted. In a simulation the design runs

@@ -382,7 +382,10 @@ class AdaptiveController(ControllerBank):
         if self._pending is not None and self._pending[0] == k:
             self._switch(self._pending[1])
             self._pending = None
-        due = k and k % self._period_frames == 0 and k >= self._window_frames
+        # The first design once a window is available, then every period: every period
+        # starts from the same first design (that of the fixed strategy).
+        w = self._window_frames
+        due = k >= w and (k - w) % self._period_frames == 0
         if due and self._max_designs is not None:
             due = len(self.run.redesigns) < self._max_designs
         if due:
