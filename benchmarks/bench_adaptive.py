@@ -165,6 +165,55 @@ def part_c(args: argparse.Namespace) -> None:
     )
 
 
+def study(args: argparse.Namespace) -> None:
+    """The study (issue 17, part 3): every strategy at every period, per scenario, one
+    period at a time (longest first) so that a partial run still gives whole rows; the
+    rows of each scenario as HDF5 (:meth:`AdaptStudy.save`) and one plot."""
+    import dataclasses
+    import os
+
+    from aocontrol.study.adapt import AdaptStudy
+    from aocontrol.study.plot import plot_adapt, use_file_backend
+
+    os.makedirs(args.out, exist_ok=True)
+    opts = dict(n_grid=24, max_iter=8) if args.quick else {}
+    periods = sorted((float(x) for x in args.periods.split(",")), reverse=True)
+    windows = tuple(float(x) for x in args.windows.split(","))
+    tables = {}
+    use_file_backend()
+    for scenario in args.scenarios.split(","):
+        rows: list = []
+        for i, period in enumerate(periods):
+            strategies = ("adaptive", "oracle", "modal-gain", "lqg")
+            part = run_adapt(
+                "bright1-best",
+                scenario=scenario,
+                periods=(period,),
+                windows=windows,
+                duration=args.seconds,
+                strategies=(("fixed",) if i == 0 else ()) + strategies,
+                latency=args.latency,
+                order=2 if args.quick else 5,
+                quick=args.quick,
+                n_jobs=args.jobs,
+                design_options=opts,
+                adaptive_options={"select": args.select} if args.select else {},
+            )
+            rows.extend(part.rows)
+            whole = AdaptStudy(part.case, scenario, part.duration, tuple(rows), part.settings)
+            stem = os.path.join(args.out, f"adapt_{part.case}_{scenario}")
+            whole.save(stem + ".h5")
+            with open(stem + ".txt", "w") as fh:
+                fh.write(whole.table() + "\n")
+            print(whole.table().splitlines()[-len(part.rows) :], flush=True)
+            tables[scenario] = [dataclasses.asdict(r) for r in rows]
+            plot_adapt(
+                tables,
+                title=f"{part.case}, {args.seconds:g} s",
+                path=os.path.join(args.out, f"adapt_{part.case}.png"),
+            )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="24 modes, short runs")
@@ -174,12 +223,24 @@ def main() -> None:
     parser.add_argument("--latency", type=float, default=0.5, help="design latency [s]")
     parser.add_argument("--n-modes", type=int, default=540, help="modes of part (c)")
     parser.add_argument("--jobs", type=int, default=None, help="worker processes per design")
-    parser.add_argument("--select", type=float, default=0.9, help="share of part (c)")
+    parser.add_argument(
+        "--select", type=float, default=0.9, help="share of the residual shift redesigned"
+    )
     parser.add_argument("--max-modes", type=int, default=None, help="mode budget of (c)")
     parser.add_argument("--parts", default="abc", help="parts to run, e.g. 'ac'")
+    parser.add_argument("--study", action="store_true", help="run the study instead of parts")
+    parser.add_argument("--periods", default="1,2,5,10,30,60", help="study: periods T [s]")
+    parser.add_argument("--windows", default="1", help="study: windows W [s]")
+    parser.add_argument(
+        "--scenarios", default="wind-doubles,seeing-worsens", help="study: scenarios"
+    )
+    parser.add_argument("--out", default="adapt-study", help="study: output folder")
     args = parser.parse_args()
     warnings.simplefilter("ignore")
     logging.disable(logging.WARNING)
+    if args.study:
+        study(args)
+        return
     for part, fun in (("a", part_a), ("b", part_b), ("c", part_c)):
         if part in args.parts:
             fun(args)
