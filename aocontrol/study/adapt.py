@@ -74,6 +74,10 @@ STRATEGIES = ("fixed", "adaptive", "oracle", "modal-gain", "lqg")
 #: pseudo-open-loop estimate); the prophet oracle (this run's own coming disturbance, no
 #: latency: it sees the realisation it will face).
 DIAGNOSTICS = ("adaptive-nolatency", "adaptive-truth", "oracle-prophet")
+# Offset of the seed of the oracle's independent realisation of the drift.
+_INDEPENDENT_SEED = 7919
+# The last disturbances generated ((key, seed) -> array), at most two.
+_DISTURBANCES: dict = {}
 # Fractions of the run between which the scripted scenarios ramp.
 _RAMP = (0.2, 0.5)
 
@@ -443,11 +447,21 @@ def run_adapt(
     )
     st = scene.stage2
     n = int(round(duration * st.fs))
-    d = drifting_disturbance(scene, drift, n, seed)
+    key = json.dumps([case, quick, overrides, scenario, duration, seed], default=str)
+
+    def disturbance(s: int) -> np.ndarray:
+        # Kept for the next call on the same run (a study calls once per period).
+        if (key, s) not in _DISTURBANCES:
+            if len(_DISTURBANCES) >= 2:
+                _DISTURBANCES.clear()
+            _DISTURBANCES[key, s] = drifting_disturbance(scene, drift, n, s)
+        return _DISTURBANCES[key, s]
+
+    d = disturbance(seed)
     # An independent realisation of the same drift: what the oracle knows is the disturbance's
     # statistics, not the realisation the loop will face.
     needs = {"oracle", "adaptive-truth"} & set(strategies)
-    independent = drifting_disturbance(scene, drift, n, seed + 7919) if needs else d
+    independent = disturbance(seed + _INDEPENDENT_SEED) if needs else d
     rows = []
     late = int(0.7 * n)
     for strategy in strategies:
