@@ -13,11 +13,18 @@ Strategies (each a bank of per-mode controllers starting from the case's integra
 * ``adaptive``: data-driven, redesigned every ``period`` from the last ``window`` of its own
   telemetry (warm-started, certified, switched after the design latency, bumplessly);
 * ``oracle``: data-driven, redesigned every ``period`` from the true disturbance of the
-  coming period (the disturbance series itself plus white noise of the true level, through
-  the same pre-whitened estimator), switched with no latency: what knowing the drift in
-  advance would give;
+  period each design will serve (from its switch; at least a window long), switched after
+  the same latency: an independent realisation of the same drift plus white noise of the
+  true level, through the same pre-whitened estimator. It knows the disturbance's
+  statistics as they will be, not the realisation the loop will face (a design fitted to
+  that realisation's own Welch estimate is a prophet: ``oracle-prophet`` below);
 * ``modal-gain``: the optimised integrator gain, adapted like ``adaptive``;
 * ``lqg``: LQG re-identified from the same windows, adapted like ``adaptive``.
+
+Diagnostics of the adaptive / oracle gap (:data:`DIAGNOSTICS`): ``adaptive-nolatency`` (no
+design latency), ``adaptive-truth`` (the adaptive's own window, but of the true disturbance
+of an independent realisation plus true noise: no pseudo-open-loop reconstruction from
+closed-loop data), ``oracle-prophet`` (the run's own coming disturbance, no latency).
 
 Figures: the residual variance summed over modes [nm^2] after the first window (the part the
 strategies differ on) and its ratio to ``fixed`` and ``oracle``; switches and rejected
@@ -60,6 +67,7 @@ __all__ = [
     "STRATEGIES",
     "AdaptRow",
     "AdaptStudy",
+    "DIAGNOSTICS",
     "drifting_disturbance",
     "run_adapt",
     "scenario_drift",
