@@ -2,7 +2,7 @@
 
 :class:`AdaptiveController` is a :class:`~aocontrol.controllers.ControllerBank` wrapping an
 :class:`~aocontrol.controllers.IIRBank`. It records the measurements it receives and the
-commands it returns, and every ``period`` seconds:
+commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 to 4 as a function):
 
 1. **Estimate.** Pseudo-open-loop PSDs and white noise levels from the last ``window``
    seconds of its telemetry, with the control layer's pipeline
@@ -10,12 +10,16 @@ commands it returns, and every ``period`` seconds:
    :func:`aocontrol.synthesis.disturbance_from_telemetry`). The pseudo open loop ``m + G u``
    is rebuilt over the window plus a lead-in of the plant's delay, which is dropped: a
    window cut from a running loop has no transient of unknown earlier commands.
-2. **Design.** A *designer* proposes a new bank from those PSDs, warm-started from the
-   current one: :func:`datadriven_designer` (``datadriven(..., initial=current)``),
+2. **Select** (optional, ``select``): only the modes whose disturbance changed enough to
+   matter are redesigned (:func:`residual_shift`, :func:`select_modes`); the others keep
+   their controller. On 540 modes this is what makes a redesign fit in its period.
+3. **Design.** A *designer* proposes new controllers for those modes, warm-started from the
+   current ones: :func:`datadriven_designer` (``datadriven(..., initial=current)``, each
+   mode's structure kept, few iterations),
    :func:`modal_gain_designer` (the optimised integrator gain of Gendron & Léna, the usual
    practice today) or :func:`lqg_designer` (LQG re-identified from the same window, run as
    its exact transfer function).
-3. **Certify.** Each mode of the proposal is checked here, whatever the designer said:
+4. **Certify.** Each mode of the proposal is checked here, whatever the designer said:
    closed-loop stability (:func:`aocontrol.analysis.is_stable` through
    :func:`aocontrol.analysis.margins`), modulus margin at least ``modulus_margin`` (the
    margin of :func:`~aocontrol.analysis.margins`, the certificate the analysis layer owns)
@@ -24,7 +28,7 @@ commands it returns, and every ``period`` seconds:
    designer could not design, keeps its current controller and is reported; a proposal
    with no certified mode is not switched in at all (counted). **An uncertified controller
    is never used.**
-4. **Switch** after the design latency (a set value, or the measured compute time rounded up
+5. **Switch** after the design latency (a set value, or the measured compute time rounded up
    to frames), **bumplessly**: the new bank's Direct-Form I state is set from the recent
    measurements and the commands actually applied (:meth:`IIRBank.set_history`), so the
    first command of the new filter continues the loop instead of restarting from zero.
