@@ -747,6 +747,10 @@ def plot_adapt(
                 ax.axhline(v[0], ls="--", lw=1.0, color="0.3", label=label)
             else:
                 ax.semilogx(t, v, "o-", ms=4, lw=1.0, label=label)
+        periods = sorted({r["period"] for r in rows})
+        if len(periods) > 1:
+            ax.set_xticks(periods, [f"{p:g}" for p in periods])
+            ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
         ax.set_xlabel("update period T [s]")
         ax.set_ylabel("residual variance [nm$^2$]")
         ax.set_title(scenario)
