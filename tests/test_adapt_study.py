@@ -67,3 +67,22 @@ def test_bad_study_arguments():
 def test_adapt_command_refuses_bad_input(argv, words, capsys):
     assert main(["adapt", "bright1-best", "--quick", *argv]) == 2
     assert words in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_adapt_command_writes_table_hdf5_and_plot(tmp_path, capsys):
+    # Two scenarios, the modal gain at two periods: the table's rows are in the HDF5 file
+    # (xarray opens it, units kept) and the plot is written.
+    import xarray as xr
+
+    argv = ["adapt", "bright1-best", "--quick", "--scenario", "wind-doubles,seeing-worsens"]
+    argv += ["--seconds", "1.2", "--period", "0.2,0.4", "--window", "0.2"]
+    argv += ["--latency", "0.05", "--strategies", "modal-gain", "--out", str(tmp_path)]
+    assert main(argv) == 0
+    for scenario in ("wind-doubles", "seeing-worsens"):
+        ds = xr.open_dataset(tmp_path / f"adapt_bright1-best_{scenario}.h5", engine="h5netcdf")
+        assert list(ds["period"].values) == [0.2, 0.4]
+        assert ds["residual"].attrs["units"] == "nm^2" and ds.attrs["scenario"] == scenario
+        assert np.all(ds["n_switches"].values > 0)
+        ds.close()
+    assert (tmp_path / "adapt_bright1-best.png").stat().st_size > 1000

@@ -22,9 +22,11 @@ from aocontrol.adaptive import (
     certify,
     datadriven_designer,
     modal_gain_designer,
+    select_modes,
 )
 from aocontrol.controllers import IIRBank, Integrator
 from aocontrol.sim import LinearModalSensor, LoopDivergedError, ModalTimeSeries, Stage, run_loop
+from aocontrol.synthesis import TelemetryPSD
 
 FS = 1000.0
 LATENCY = 0.83
@@ -160,13 +162,14 @@ def test_certify_checks_margin_and_controller_poles():
 
 # ---------------------------------------------------------------------------- adaptation
 def test_schedule_and_impulse_response():
-    # Designs at every period once a window is available, switches latency frames later;
+    # The first design once a window is available (700 frames), then every period (400);
+    # switches latency frames later;
     # before the first switch the real-time path is the initial bank's transfer function.
     d = _drifting()
     ctrl = _adaptive(_same, period=0.4, window=0.7, latency=0.05)
     _run(ctrl, d)
     frames = [r.frame for r in ctrl.last_run.redesigns]
-    assert frames == [800, 1200, 1600, 2000, 2400, 2800]
+    assert frames == [700, 1100, 1500, 1900, 2300, 2700]
     assert ctrl.last_run.switch_frames == [f + 50 for f in frames]
     h = ctrl.impulse_response(40)
     np.testing.assert_allclose(h[:, 0], 0.3, rtol=1e-12)  # g / (1 - z^-1): steps of g
@@ -223,3 +226,43 @@ def test_adaptive_datadriven_beats_the_fixed_design():
 def test_bad_adaptive_arguments(kw, words):
     with pytest.raises(ValueError, match=words):
         _adaptive(_same, **kw)
+
+
+# ---------------------------------------------------------------------------- selection
+def test_select_modes_covers_the_share_largest_first():
+    # Oracle by hand: gains 5, 3, 1, 1 (total 10): a share of 0.75 needs 5 + 3 (8 >= 7.5);
+    # 0.8 needs 5 + 3 (8 >= 8: the third mode starts at 8, not below 8); 0.81 needs three.
+    # A mode never designed (inf) is always taken, a zero gain never.
+    gain = np.array([1.0, 5.0, 0.0, 3.0, 1.0, np.inf])
+    np.testing.assert_array_equal(select_modes(gain, 0.75), [0, 1, 0, 1, 0, 1])
+    np.testing.assert_array_equal(select_modes(gain, 0.8), [0, 1, 0, 1, 0, 1])
+    assert select_modes(gain, 0.81).sum() == 4
+    assert select_modes(gain, 1.0).sum() == 5  # every positive gain
+    np.testing.assert_array_equal(select_modes(gain, 1.0, max_modes=2), [0, 1, 0, 0, 0, 1])
+
+
+def test_selection_redesigns_only_modes_whose_disturbance_changed():
+    # Invariant: with the true PSD given (oracle), a second design on the same PSD is predicted
+    # to gain nothing (the current controllers are those designed on it): no mode is
+    # redesigned, nothing is switched, nothing counted as rejected. When only mode 1's
+    # bandwidth doubles, mode 1 is the one redesigned.
+    f = np.linspace(0.0, FS / 2, 257)
+    fc = np.array([5.0, 5.0, 5.0])
+    # Noise of 1000 units^2 per frame: the optimal gain (0.42 at 5 Hz, 0.53 at 10 Hz, the
+    # margin's limit) depends on the bandwidth.
+    noise = np.full(N_MODES, 2 * 1000.0 / FS)
+
+    def psd(frame):
+        c = fc * np.where((np.arange(N_MODES) == 1) & (frame >= 2000), 2.0, 1.0)
+        p = 1e4 / (1.0 + (f[None, :] / c[:, None]) ** 4)
+        return TelemetryPSD(f, p, noise, np.zeros((8, N_MODES)), p, FS, (0.8, 1.0))
+
+    ctrl = _adaptive(modal_gain_designer(), oracle=psd, select=0.9)
+    _run(ctrl, _drifting())
+    sel = [r.selected for r in ctrl.last_run.redesigns]
+    assert sel[0].all()  # never designed: every mode
+    assert not sel[1].any() and not sel[2].any()  # frames 1000, 1500: nothing changed
+    np.testing.assert_array_equal(sel[3], [False, True, False])  # frame 2000: mode 1
+    assert not ctrl.last_run.redesigns[1].switched
+    assert ctrl.last_run.n_rejected_banks == 0
+    assert ctrl.last_run.n_designed_modes == N_MODES + 1 + sum(s.sum() for s in sel[4:])

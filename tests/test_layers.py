@@ -26,7 +26,7 @@ CONTROL = [
     "synthesis",
     "io",
     "disturbance.py",
-    "adaptive.py",
+    "adaptive",
     "_validation.py",
     "_deprecation.py",
 ]

@@ -13,11 +13,18 @@ Strategies (each a bank of per-mode controllers starting from the case's integra
 * ``adaptive``: data-driven, redesigned every ``period`` from the last ``window`` of its own
   telemetry (warm-started, certified, switched after the design latency, bumplessly);
 * ``oracle``: data-driven, redesigned every ``period`` from the true disturbance of the
-  coming period (the disturbance series itself plus white noise of the true level, through
-  the same pre-whitened estimator), switched with no latency: what knowing the drift in
-  advance would give;
+  period each design will serve (from its switch; at least a window long), switched after
+  the same latency: an independent realisation of the same drift plus white noise of the
+  true level, through the same pre-whitened estimator. It knows the disturbance's
+  statistics as they will be, not the realisation the loop will face (a design fitted to
+  that realisation's own Welch estimate is a prophet: ``oracle-prophet`` below);
 * ``modal-gain``: the optimised integrator gain, adapted like ``adaptive``;
 * ``lqg``: LQG re-identified from the same windows, adapted like ``adaptive``.
+
+Diagnostics of the adaptive / oracle gap (:data:`DIAGNOSTICS`): ``adaptive-nolatency`` (no
+design latency), ``adaptive-truth`` (the adaptive's own window, but of the true disturbance
+of an independent realisation plus true noise: no pseudo-open-loop reconstruction from
+closed-loop data), ``oracle-prophet`` (the run's own coming disturbance, no latency).
 
 Figures: the residual variance summed over modes [nm^2] after the first window (the part the
 strategies differ on) and its ratio to ``fixed`` and ``oracle``; switches and rejected
@@ -31,12 +38,15 @@ the seeing over the same interval), ``stochastic`` (the Paranal model of
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from aocontrol._atomic import atomic_path
 from aocontrol.adaptive import (
     AdaptiveController,
     AdaptiveRun,
@@ -57,6 +67,7 @@ __all__ = [
     "STRATEGIES",
     "AdaptRow",
     "AdaptStudy",
+    "DIAGNOSTICS",
     "drifting_disturbance",
     "run_adapt",
     "scenario_drift",
@@ -66,6 +77,15 @@ logger = logging.getLogger(__name__)
 
 SCENARIOS = ("wind-doubles", "seeing-worsens", "stochastic", "case")
 STRATEGIES = ("fixed", "adaptive", "oracle", "modal-gain", "lqg")
+#: Strategies that decompose the adaptive / oracle gap: the adaptive loop with no design
+#: latency; the adaptive loop designing from the true disturbance of its window (no
+#: pseudo-open-loop estimate); the prophet oracle (this run's own coming disturbance, no
+#: latency: it sees the realisation it will face).
+DIAGNOSTICS = ("adaptive-nolatency", "adaptive-truth", "oracle-prophet")
+# Offset of the seed of the oracle's independent realisation of the drift.
+_INDEPENDENT_SEED = 7919
+# The last disturbances generated ((key, seed) -> array), at most two.
+_DISTURBANCES: dict = {}
 # Fractions of the run between which the scripted scenarios ramp.
 _RAMP = (0.2, 0.5)
 
@@ -155,16 +175,26 @@ def _prewhitened(pol: np.ndarray, plant: object) -> TelemetryPSD:
     return dataclasses.replace(tel, psd=psd)
 
 
-def _oracle(d: np.ndarray, scene: Scene, period_frames: int, nperseg: int, seed: int):
-    """PSDs of the true disturbance of the coming period: the disturbance itself (no loop, no
-    latency) plus white noise of the true level, through the same estimator as the loops."""
+def _truth(
+    d: np.ndarray,
+    scene: Scene,
+    frames: int,
+    seed: int,
+    *,
+    offset: int,
+    centre: float,
+):
+    """A design source that knows the true disturbance: ``frames`` frames of a realisation
+    ``d`` (an independent one for the fair oracle) plus white noise of the true level, through
+    the loops' estimator. The segment starts at ``frame + offset - centre * frames``
+    (clipped to the run): ``offset`` = the switch latency and ``centre`` = 0 is the period a
+    design will serve; ``offset`` = 0 and ``centre`` = 1 the window behind the request."""
     st = scene.stage2
     rng = np.random.default_rng([seed, 23])
 
     def oracle(frame: int) -> TelemetryPSD:
-        length = max(period_frames, 4 * nperseg)
-        start = max(0, min(frame, d.shape[0] - length))
-        seg = np.asarray(d[start : start + length], dtype=float)
+        start = int(max(0, min(frame + offset - round(centre * frames), d.shape[0] - frames)))
+        seg = np.asarray(d[start : start + frames], dtype=float)
         seg = seg + rng.standard_normal(seg.shape) * st.noise_std
         return _prewhitened(seg, st.plant)
 
@@ -211,12 +241,15 @@ class AdaptStudy:
     duration : float
         Simulated time [s].
     rows : tuple of AdaptRow
+    settings : dict
+        The run's settings (latency, order, design and adaptive options, seed, modes).
     """
 
     case: str
     scenario: str
     duration: float
     rows: tuple[AdaptRow, ...]
+    settings: dict = dataclasses.field(default_factory=dict)
 
     def row(self, strategy: str, period: float | None = None) -> AdaptRow:
         """The first row of ``strategy`` (at ``period`` if given)."""
@@ -224,6 +257,43 @@ class AdaptStudy:
             if r.strategy == strategy and (period is None or r.period == period):
                 return r
         raise KeyError(f"no row for strategy {strategy!r} and period {period!r}")
+
+    def to_dataset(self) -> object:
+        """The rows as an :class:`xarray.Dataset` (dimension ``row``; units in ``attrs``)."""
+        import xarray as xr
+
+        cols = {
+            f.name: [getattr(r, f.name) for r in self.rows] for f in dataclasses.fields(AdaptRow)
+        }
+        units = {
+            "period": "s",
+            "window": "s",
+            "residual": "nm^2",
+            "residual_late": "nm^2",
+            "design_seconds": "s",
+        }
+        data = {
+            k: xr.Variable("row", np.asarray(v), attrs={"units": units[k]} if k in units else {})
+            for k, v in cols.items()
+        }
+        return xr.Dataset(
+            data,
+            attrs={
+                "format": "aocontrol-adapt-study",
+                "case": self.case,
+                "scenario": self.scenario,
+                "duration_s": self.duration,
+                "settings_json": json.dumps(self.settings, default=str),
+            },
+        )
+
+    def save(self, path: str | os.PathLike) -> str:
+        """Write :meth:`to_dataset` as HDF5 (netCDF-4, ``xarray.open_dataset`` opens it),
+        atomically; returns the path."""
+        path = os.fspath(path)
+        with atomic_path(path) as tmp:
+            self.to_dataset().to_netcdf(tmp, engine="h5netcdf")
+        return path
 
     def table(self) -> str:
         """Plain-text table: residual, ratios to the fixed design and to the oracle."""
@@ -248,7 +318,7 @@ class AdaptStudy:
 def _controller(
     strategy: str,
     scene: Scene,
-    d: np.ndarray,
+    truth: tuple[np.ndarray, np.ndarray],
     period: float,
     window: float,
     latency: float | None,
@@ -257,33 +327,52 @@ def _controller(
     n_jobs: int | None,
     seed: int,
     design_options: dict,
+    adaptive_options: dict,
 ) -> AdaptiveController:
+    """The controller of one strategy (``truth``: the run's disturbance and an independent
+    realisation of the same drift)."""
     st = scene.stage2
     initial = Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes)
     window_frames = round(window * st.fs)
-    nperseg = min(1024, 2 ** int(np.log2(max(window_frames // 4, 8))))
+    period_frames = round(period * st.fs)
     dd = datadriven_designer(
         order=order, modulus_margin=modulus_margin, n_jobs=n_jobs, **design_options
     )
     designer = {
-        "fixed": dd,
-        "adaptive": dd,
-        "oracle": dd,
         "modal-gain": modal_gain_designer(modulus_margin=modulus_margin),
         "lqg": lqg_designer(),
-    }[strategy]
+    }.get(strategy, dd)
+    lat = 0.0 if strategy in ("adaptive-nolatency", "oracle-prophet") else latency
     kwargs = dict(
         period=window if strategy == "fixed" else period,
         window=window,
-        latency=0.0 if strategy == "oracle" else latency,
+        latency=lat,
         modulus_margin=modulus_margin if strategy != "lqg" else min(modulus_margin, 0.3),
-        nperseg=nperseg,
         estimator=_prewhitened,
+        **adaptive_options,
     )
     if strategy == "fixed":
         kwargs["max_designs"] = 1
+    lat_frames = 0 if lat is None else round(lat * st.fs)
+    d, independent = truth
     if strategy == "oracle":
-        kwargs["oracle"] = _oracle(d, scene, round(period * st.fs), nperseg, seed)
+        # The period the design will serve (from its switch), at least a window long.
+        kwargs["oracle"] = _truth(
+            independent,
+            scene,
+            max(period_frames, window_frames),
+            seed,
+            offset=lat_frames + period_frames // 2,
+            centre=0.5,
+        )
+    elif strategy == "oracle-prophet":
+        # The old oracle: this run's own coming disturbance, no latency.
+        kwargs["oracle"] = _truth(
+            d, scene, max(period_frames, window_frames), seed, offset=0, centre=0.0
+        )
+    elif strategy == "adaptive-truth":
+        # The adaptive's window, on the true disturbance (no pseudo-open-loop estimate).
+        kwargs["oracle"] = _truth(independent, scene, window_frames, seed, offset=0, centre=1.0)
     return AdaptiveController(initial, st.plant, designer, **kwargs)
 
 
@@ -303,6 +392,7 @@ def run_adapt(
     n_jobs: int | None = 1,
     overrides: dict | None = None,
     design_options: dict | None = None,
+    adaptive_options: dict | None = None,
 ) -> AdaptStudy:
     """Run the strategies on one drifting scenario for every (period, window).
 
@@ -336,6 +426,9 @@ def run_adapt(
     design_options : dict, optional
         Other keyword arguments of :func:`aocontrol.synthesis.datadriven` (e.g. ``n_grid``,
         ``max_iter`` for quick runs).
+    adaptive_options : dict, optional
+        Other keyword arguments of :class:`~aocontrol.adaptive.AdaptiveController` (e.g.
+        ``select``).
 
     Returns
     -------
@@ -347,9 +440,9 @@ def run_adapt(
         Unknown scenario or strategy, a window not shorter than the run, a period not longer
         than the latency.
     """
-    bad = [s for s in strategies if s not in STRATEGIES]
+    bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS]
     if bad:
-        raise ValueError(f"strategies must be among {list(STRATEGIES)}, got {bad}")
+        raise ValueError(f"strategies must be among {list(STRATEGIES + DIAGNOSTICS)}, got {bad}")
     if scenario not in SCENARIOS:
         raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {scenario!r}")
     for w in windows:
@@ -362,7 +455,21 @@ def run_adapt(
     )
     st = scene.stage2
     n = int(round(duration * st.fs))
-    d = drifting_disturbance(scene, drift, n, seed)
+    key = json.dumps([case, quick, overrides, scenario, duration, seed], default=str)
+
+    def disturbance(s: int) -> np.ndarray:
+        # Kept for the next call on the same run (a study calls once per period).
+        if (key, s) not in _DISTURBANCES:
+            if len(_DISTURBANCES) >= 2:
+                _DISTURBANCES.clear()
+            _DISTURBANCES[key, s] = drifting_disturbance(scene, drift, n, s)
+        return _DISTURBANCES[key, s]
+
+    d = disturbance(seed)
+    # An independent realisation of the same drift: what the oracle knows is the disturbance's
+    # statistics, not the realisation the loop will face.
+    needs = {"oracle", "adaptive-truth"} & set(strategies)
+    independent = disturbance(seed + _INDEPENDENT_SEED) if needs else d
     rows = []
     late = int(0.7 * n)
     for strategy in strategies:
@@ -376,7 +483,7 @@ def run_adapt(
             ctrl = _controller(
                 strategy,
                 scene,
-                d,
+                (d, independent),
                 period,
                 window,
                 latency,
@@ -385,6 +492,7 @@ def run_adapt(
                 n_jobs,
                 seed,
                 dict(design_options or {}),
+                dict(adaptive_options or {}),
             )
             stage = Stage(ctrl, st.sensor, st.spec.latency_frames, name="stage 2")
             res = run_loop(
@@ -412,4 +520,15 @@ def run_adapt(
                 )
             )
             logger.info("%s", rows[-1])
-    return AdaptStudy(c.name, scenario, float(duration), tuple(rows))
+    settings = dict(
+        latency=latency,
+        order=order,
+        modulus_margin=modulus_margin,
+        quick=quick,
+        seed=seed,
+        n_modes=st.n_modes,
+        fs=st.fs,
+        design_options=dict(design_options or {}),
+        adaptive_options=dict(adaptive_options or {}),
+    )
+    return AdaptStudy(c.name, scenario, float(duration), tuple(rows), settings)

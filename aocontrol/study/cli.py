@@ -17,6 +17,7 @@ no traceback), 1 when a run fails (e.g. a diverging loop).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import difflib
 import logging
 import os
@@ -710,6 +711,7 @@ def _floats(name: str, text: str) -> tuple[float, ...]:
 
 def _adapt(args: argparse.Namespace) -> int:
     from aocontrol.study.adapt import STRATEGIES, run_adapt
+    from aocontrol.study.plot import plot_adapt, use_file_backend
 
     periods = _floats("--period", args.period)
     windows = _floats("--window", args.window)
@@ -717,26 +719,37 @@ def _adapt(args: argparse.Namespace) -> int:
     latency = None if args.latency < 0 else args.latency
     if latency is not None and latency >= min(periods):
         raise UserError(f"--latency {latency:g} s must be shorter than every --period")
-    study = run_adapt(
-        _check_case(args.case),
-        scenario=args.scenario,
-        periods=periods,
-        windows=windows,
-        duration=args.seconds,
-        strategies=strategies,
-        latency=latency,
-        order=args.order,
-        quick=args.quick,
-        seed=args.seed,
-        n_jobs=args.jobs,
-    )
-    table = study.table()
-    print(table)
+    design = {k: v for k, v in (("n_grid", args.n_grid), ("max_iter", args.max_iter)) if v}
+    adaptive = {} if args.select is None else {"select": args.select}
     os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, f"adapt_{study.case}_{study.scenario}.txt")
-    with open(path, "w") as fh:
-        fh.write(table + "\n")
-    print(f"table: {path}")
+    tables = {}
+    for scenario in args.scenario.split(","):
+        study = run_adapt(
+            _check_case(args.case),
+            scenario=scenario,
+            periods=periods,
+            windows=windows,
+            duration=args.seconds,
+            strategies=strategies,
+            latency=latency,
+            order=args.order,
+            quick=args.quick,
+            seed=args.seed,
+            n_jobs=args.jobs,
+            design_options=design,
+            adaptive_options=adaptive,
+        )
+        table = study.table()
+        print(table)
+        stem = os.path.join(args.out, f"adapt_{study.case}_{study.scenario}")
+        with open(stem + ".txt", "w") as fh:
+            fh.write(table + "\n")
+        print(f"table: {stem}.txt, results: {study.save(stem + '.h5')}")
+        tables[scenario] = [dataclasses.asdict(r) for r in study.rows]
+    use_file_backend()
+    png = os.path.join(args.out, f"adapt_{study.case}.png")
+    plot_adapt(tables, title=f"{study.case}, {args.seconds:g} s", path=png)
+    print(f"plot: {png}")
     return 0
 
 
@@ -892,7 +905,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--scenario",
         default="wind-doubles",
-        help="wind-doubles, seeing-worsens, stochastic, or case (the case's [atmosphere.drift])",
+        help="wind-doubles, seeing-worsens, stochastic, or case (the case's [atmosphere.drift]);"
+        " comma-separated for several",
     )
     p.add_argument("--period", default="1", help="update periods T [s], comma-separated")
     p.add_argument("--window", default="1", help="telemetry windows W [s], comma-separated")
@@ -912,7 +926,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes of each design")
     p.add_argument("--quick", action="store_true", help="reduced modes and pupil (smoke runs)")
-    p.add_argument("--out", default="adapt-output", help="folder of the table")
+    p.add_argument(
+        "--select",
+        type=float,
+        default=None,
+        help="redesign only the modes covering this share of the residual shift (e.g. 0.9)",
+    )
+    p.add_argument("--n-grid", type=int, default=None, help="data-driven design grid size")
+    p.add_argument("--max-iter", type=int, default=None, help="data-driven iterations (cold)")
+    p.add_argument("--out", default="adapt-output", help="folder of the table, HDF5 and plot")
 
     p = add(
         "demo",

@@ -32,6 +32,7 @@ __all__ = [
     "plot_vibration",
     "plot_modal_margins",
     "plot_modal_residuals",
+    "plot_adapt",
     "plot_rejection_modes",
     "figure_png",
     "save_figure",
@@ -707,3 +708,55 @@ def save_figure(fig: Any, path: str, *, dpi: int = 120) -> str:
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
+
+
+def plot_adapt(
+    tables: Mapping[str, Sequence[Mapping[str, Any]]],
+    *,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Residual against the update period, one panel per scenario, one line per strategy.
+
+    Parameters
+    ----------
+    tables : mapping scenario -> sequence of rows
+        Rows with keys ``strategy``, ``period`` [s], ``window`` [s] and ``residual`` [nm^2]
+        (e.g. ``dataclasses.asdict`` of :class:`aocontrol.study.adapt.AdaptRow`). A strategy
+        with one row (the fixed design) is drawn as a horizontal line.
+    title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    n = max(len(tables), 1)
+    fig, axes = plt.subplots(1, n, figsize=(5.0 * n, 4.2), squeeze=False)
+    for ax, (scenario, rows) in zip(axes[0], tables.items(), strict=False):
+        lines: dict[tuple[str, float], list[tuple[float, float]]] = {}
+        for r in rows:
+            lines.setdefault((r["strategy"], r["window"]), []).append((r["period"], r["residual"]))
+        for (strategy, window), pts in sorted(lines.items()):
+            pts.sort()
+            t, v = np.array(pts).T
+            label = f"{strategy} (W = {window:g} s)"
+            if t.size == 1:
+                ax.axhline(v[0], ls="--", lw=1.0, color="0.3", label=label)
+            else:
+                ax.semilogx(t, v, "o-", ms=4, lw=1.0, label=label)
+        periods = sorted({r["period"] for r in rows})
+        if len(periods) > 1:
+            ax.set_xticks(periods, [f"{p:g}" for p in periods])
+            ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+        ax.set_xlabel("update period T [s]")
+        ax.set_ylabel("residual variance [nm$^2$]")
+        ax.set_title(scenario)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize="x-small")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _finish(fig, path)

@@ -1,0 +1,99 @@
+"""A controller bank that redesigns itself from its own telemetry (adaptive control).
+
+:class:`AdaptiveController` is a :class:`~aocontrol.controllers.ControllerBank` wrapping an
+:class:`~aocontrol.controllers.IIRBank`. It records the measurements it receives and the
+commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 to 4 as a function):
+
+1. **Estimate.** Pseudo-open-loop PSDs and white noise levels from the last ``window``
+   seconds of its telemetry, with the control layer's pipeline
+   (:func:`aocontrol.synthesis.pseudo_open_loop`, then
+   :func:`aocontrol.synthesis.disturbance_from_telemetry`). The pseudo open loop ``m + G u``
+   is rebuilt over the window plus a lead-in of the plant's delay, which is dropped: a
+   window cut from a running loop has no transient of unknown earlier commands.
+2. **Select** (optional, ``select``): only the modes whose disturbance changed enough to
+   matter are redesigned (:func:`residual_shift`, :func:`select_modes`); the others keep
+   their controller. On 540 modes this is what makes a redesign fit in its period.
+3. **Design.** A *designer* proposes new controllers for those modes, warm-started from the
+   current ones: :func:`datadriven_designer` (``datadriven(..., initial=current)``, each
+   mode's structure kept, few iterations),
+   :func:`modal_gain_designer` (the optimised integrator gain of Gendron & Léna, the usual
+   practice today) or :func:`lqg_designer` (LQG re-identified from the same window, run as
+   its exact transfer function).
+4. **Certify.** Each mode of the proposal is checked here, whatever the designer said:
+   closed-loop stability (:func:`aocontrol.analysis.is_stable` through
+   :func:`aocontrol.analysis.margins`), modulus margin at least ``modulus_margin`` (the
+   margin of :func:`~aocontrol.analysis.margins`, the certificate the analysis layer owns)
+   and every controller pole of modulus at most ``max_pole_radius`` (a controller that
+   survives an open loop: a WFS dropout, a saturated DM). A mode that fails, or that the
+   designer could not design, keeps its current controller and is reported; a proposal
+   with no certified mode is not switched in at all (counted). **An uncertified controller
+   is never used.**
+5. **Switch** after the design latency (a set value, or the measured compute time rounded up
+   to frames), **bumplessly**: the new bank's Direct-Form I state is set from the recent
+   measurements and the commands actually applied (:meth:`IIRBank.set_history`), so the
+   first command of the new filter continues the loop instead of restarting from zero.
+
+Timing: frame ``k`` (counted from :meth:`reset`; a frame rejected for a non-finite measurement
+is not stepped, hence not counted) is at ``k / fs``. Designs are requested at
+the frames ``(window + j * period) * fs`` (``j >= 0``: the first once a full window is
+available, so every period starts from the same first design), on the
+telemetry up to the previous frame; the switch happens at the start of frame
+``k_design + latency_frames``. A design requested while the previous one is still pending
+(latency longer than the period) is skipped and counted. In a simulation the design runs
+synchronously inside :meth:`step` (the simulated loop waits; its frames are unchanged), and
+the latency is simulated by the scheduled switch.
+
+Run by :func:`aocontrol.sim.run_loop` like any bank. The runner resets the controller at the
+start and the end of a run; the record of the last run (:class:`Redesign` events and
+counters) survives that reset as :attr:`AdaptiveController.last_run`.
+
+Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+"""
+
+from __future__ import annotations
+
+from aocontrol.adaptive._controller import (
+    BUMPLESS_FRAMES,
+    BUMPLESS_LAST_WEIGHT,
+    BUMPLESS_MEMORY,
+    MIN_WINDOW_FRAMES,
+    AdaptiveController,
+    AdaptiveRun,
+    Redesign,
+    bumpless_outputs,
+)
+from aocontrol.adaptive._designers import (
+    datadriven_designer,
+    lqg_designer,
+    modal_gain_designer,
+)
+from aocontrol.adaptive._redesign import (
+    Designer,
+    Proposal,
+    Update,
+    certify,
+    redesign,
+    residual_shift,
+    select_modes,
+)
+
+__all__ = [
+    "BUMPLESS_FRAMES",
+    "BUMPLESS_LAST_WEIGHT",
+    "BUMPLESS_MEMORY",
+    "MIN_WINDOW_FRAMES",
+    "AdaptiveController",
+    "AdaptiveRun",
+    "Designer",
+    "Proposal",
+    "Redesign",
+    "Update",
+    "bumpless_outputs",
+    "certify",
+    "datadriven_designer",
+    "lqg_designer",
+    "modal_gain_designer",
+    "redesign",
+    "residual_shift",
+    "select_modes",
+]

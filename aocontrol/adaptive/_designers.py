@@ -1,0 +1,178 @@
+"""Designers of :class:`aocontrol.adaptive.AdaptiveController`: data-driven, modal gain, LQG."""
+
+from __future__ import annotations
+
+import logging
+
+import control
+import numpy as np
+
+from aocontrol._validation import check_int, check_nonnegative
+from aocontrol.adaptive._redesign import Designer, Proposal, _join, _rows, _subset
+from aocontrol.controllers import IIRBank
+from aocontrol.synthesis import (
+    DataDrivenError,
+    InitialPoleRadiusError,
+    ModalGainError,
+    TelemetryPSD,
+    datadriven,
+    lqg,
+    optimal_modal_gain,
+)
+
+logger = logging.getLogger(__name__)
+
+# Relative size of a(1) below which a controller has a pole at z = 1 (integral action).
+_INTEGRATOR_RTOL = 1e-9
+
+
+def _has_integrator(bank: IIRBank) -> np.ndarray:
+    """Modes whose controller has a pole at ``z = 1`` (``a(1) = 0``: integral action),
+    shape (n_modes,)."""
+    scale = np.abs(bank.a).sum(axis=1)
+    return np.abs(bank.a.sum(axis=1)) <= _INTEGRATOR_RTOL * scale
+
+
+def datadriven_designer(
+    *,
+    order: int = 5,
+    modulus_margin: float = 0.5,
+    n_jobs: int | None = 1,
+    warm_max_iter: int | None = 8,
+    warm_tol: float = 1e-2,
+    **options: object,
+) -> Designer:
+    """Designer: :func:`aocontrol.synthesis.datadriven` warm-started from the current bank.
+
+    A warm start keeps each mode's structure: the modes whose current controller has integral
+    action (a pole at ``z = 1``) are redesigned with that factor fixed
+    (``fixed_denominator = 1 - z^-1``), the others with every pole free, in two calls; the
+    synthesis certifies both. A warm start is close to the optimum after a drift, so it runs
+    at most ``warm_max_iter`` convex iterations with tolerance ``warm_tol`` (the synthesis
+    never returns a design worse than its start). The loop's first bank (order below
+    ``order``, e.g. the starting integrator) is not a warm start: that design starts cold
+    (the synthesis chooses each mode's structure), with the full ``options``. A warm start the
+    synthesis refuses anyway falls back to a cold start (logged).
+
+    Parameters
+    ----------
+    order : int, default 5
+        Controller order.
+    modulus_margin : float, default 0.5
+        Margin the synthesis enforces (certify with the same or a lower value).
+    n_jobs : int or None, default 1
+        Worker processes of the synthesis.
+    warm_max_iter : int or None, default 8
+        ``max_iter`` of a warm-started design (``None``: that of ``options``). Measured on
+        turbulence modes after a 20 % wind change (3 kHz, 0.83 frame): 5 iterations reach
+        the residual of 60 within 0.5 %.
+    warm_tol : float, default 1e-2
+        ``tol`` of a warm-started design.
+    **options
+        Other keyword arguments of :func:`~aocontrol.synthesis.datadriven` (``n_grid``,
+        ``max_iter``, ``hinf_weight``...).
+    """
+    if warm_max_iter is not None:
+        warm_max_iter = check_int("warm_max_iter", warm_max_iter, minimum=1)
+    warm_tol = check_nonnegative("warm_tol", warm_tol)
+
+    def design(tel: TelemetryPSD, plant: control.TransferFunction, current: IIRBank) -> Proposal:
+        kwargs = dict(
+            noise_psd=tel.noise_psd,
+            order=order,
+            modulus_margin=modulus_margin,
+            n_jobs=n_jobs,
+            progress=False,
+        )
+        kwargs.update(options)
+
+        def run(psd: TelemetryPSD, initial: IIRBank | None, **extra: object) -> Proposal:
+            kw = {**kwargs, "noise_psd": psd.noise_psd, **extra}
+            try:
+                res = datadriven(plant, psd.freqs, psd.psd, initial=initial, **kw)
+            except DataDrivenError as exc:
+                return Proposal(exc.result.controller, dict(exc.failed))
+            return Proposal(res.controller)
+
+        if current.a.shape[1] - 1 < order:
+            return run(tel, None)  # the loop's first bank: a cold design
+        warm: dict[str, object] = {"tol": warm_tol}
+        if warm_max_iter is not None:
+            warm["max_iter"] = warm_max_iter
+        integral = _has_integrator(current)
+        parts = []
+        try:
+            for take, fixed in ((integral, [1.0, -1.0]), (~integral, None)):
+                modes = np.flatnonzero(take)
+                if modes.size:
+                    sub = run(
+                        _subset(tel, modes),
+                        _rows(current, modes),
+                        fixed_denominator=fixed,
+                        **warm,
+                    )
+                    parts.append((modes, sub))
+        except InitialPoleRadiusError as exc:
+            # The synthesis refuses a start whose free poles lie outside its max_pole_radius
+            # (e.g. the loop's first controller): start from its own default instead (cold).
+            logger.info("warm start refused (%s): cold start", exc)
+            return run(tel, None)
+        return _join(current, parts)
+
+    design.__name__ = design.__qualname__ = f"datadriven(order={order})"
+    return design
+
+
+def modal_gain_designer(*, modulus_margin: float | None = 0.5, leak: float = 0.0) -> Designer:
+    """Designer: the residual-minimising integrator gain per mode
+    (:func:`aocontrol.synthesis.optimal_modal_gain`), the usual adaptive practice.
+
+    Parameters
+    ----------
+    modulus_margin : float or None, default 0.5
+        Margin constraint of the gain search (``None``: stability limit only).
+    leak : float, default 0.0
+        Integrator leak.
+    """
+
+    def design(tel: TelemetryPSD, plant: control.TransferFunction, current: IIRBank) -> Proposal:
+        try:
+            bank = optimal_modal_gain(
+                plant, tel.freqs, tel.psd, tel.noise_psd, modulus_margin=modulus_margin, leak=leak
+            )
+            failed: dict[int, str] = {}
+        except ModalGainError as exc:
+            bank, failed = exc.result, dict(exc.failed)
+        return Proposal(IIRBank(bank.b, bank.a, bank.fs), failed)
+
+    design.__name__ = design.__qualname__ = "modal gain"
+    return design
+
+
+def lqg_designer(*, n_vibrations: int = 2, control_weight: float = 0.0) -> Designer:
+    """Designer: LQG re-identified from the window (:func:`aocontrol.synthesis.lqg` on the
+    estimated PSDs), run as its exact transfer function per mode (an :class:`IIRBank`), so
+    that it is certified, merged per mode and switched bumplessly like the others.
+
+    Parameters
+    ----------
+    n_vibrations : int, default 2
+        Resonances fitted per mode.
+    control_weight : float, default 0.0
+        Weight of ``u^2`` in the LQ cost.
+    """
+
+    def design(tel: TelemetryPSD, plant: control.TransferFunction, current: IIRBank) -> Proposal:
+        bank = lqg(
+            plant,
+            tel.freqs,
+            tel.psd,
+            noise_psd=tel.noise_psd,
+            n_vibrations=n_vibrations,
+            control_weight=control_weight,
+        )
+        tfs = [bank.transfer_function(i) for i in range(bank.n_modes)]
+        return Proposal(IIRBank.from_transfer_functions(tfs))
+
+    design.__name__ = design.__qualname__ = "LQG"
+    return design

@@ -1,0 +1,349 @@
+"""Certification, mode selection and one redesign of a bank (see :mod:`aocontrol.adaptive`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import control
+import numpy as np
+
+from aocontrol._validation import check_in_range, check_positive
+from aocontrol.analysis import margins, residual_variance
+from aocontrol.controllers import IIRBank
+from aocontrol.synthesis import TelemetryPSD
+
+# Relative slack on the modulus margin certificate (rounding of the margin computation).
+_MARGIN_RTOL = 1e-9
+# Slack on the controller pole radius (rounding of companion-matrix eigenvalues).
+_POLE_RTOL = 1e-9
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """A designer's answer: a bank and the modes it could not design.
+
+    Attributes
+    ----------
+    controller : IIRBank
+        Proposed bank, one row per mode.
+    failed : dict of int to str
+        Modes the designer could not design, with the reason (they are not certified and keep
+        the current controller).
+    """
+
+    controller: IIRBank
+    failed: dict[int, str] = field(default_factory=dict)
+
+
+Designer = Callable[[TelemetryPSD, control.TransferFunction, IIRBank], Proposal]
+
+
+def _pole_radius(a: np.ndarray) -> np.ndarray:
+    """Largest root modulus of each row of ``a`` (powers of ``z^-1``), shape (n_modes,)."""
+    nz = np.flatnonzero(np.any(a != 0, axis=0))
+    a = a[:, : nz[-1] + 1] / a[:, :1]
+    order = a.shape[1] - 1
+    if order == 0:
+        return np.zeros(a.shape[0])
+    comp = np.zeros((a.shape[0], order, order))
+    comp[:, 0, :] = -a[:, 1:]
+    idx = np.arange(order - 1)
+    comp[:, idx + 1, idx] = 1.0
+    return np.abs(np.linalg.eigvals(comp)).max(axis=1)
+
+
+def certify(
+    plant: control.TransferFunction,
+    bank: IIRBank,
+    *,
+    modulus_margin: float,
+    max_pole_radius: float = 1.0,
+    modes: object = None,
+) -> tuple[np.ndarray, np.ndarray, dict[int, str]]:
+    """Certificates of each mode of ``bank`` on ``plant``: what may be switched into a loop.
+
+    A mode passes when its closed loop is stable, its modulus margin ``min |1 + G K|`` is at
+    least ``modulus_margin`` (both from :func:`aocontrol.analysis.margins`) and every pole of
+    its controller has modulus at most ``max_pole_radius`` (batched companion matrices; 1
+    admits an integrator's pole at ``z = 1``).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+        Loop plant (e.g. :func:`aocontrol.loop_plant`).
+    bank : IIRBank
+        Controllers to certify.
+    modulus_margin : float
+        Required modulus margin, in [0, 1).
+    max_pole_radius : float, default 1.0
+        Largest controller pole modulus accepted, > 0.
+    modes : array_like of int, optional
+        Modes to check (default all); the others are reported as not certified.
+
+    Returns
+    -------
+    ok : ndarray of bool, shape (n_modes,)
+    margin : ndarray, shape (n_modes,)
+        Modulus margin of each checked mode (``nan`` for the others).
+    reasons : dict of int to str
+        Why each failing checked mode failed.
+    """
+    mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, high_inclusive=False)
+    rmax = check_positive("max_pole_radius", max_pole_radius)
+    n = bank.n_modes
+    todo = np.arange(n) if modes is None else np.asarray(modes, dtype=int)
+    ok = np.zeros(n, dtype=bool)
+    margin = np.full(n, np.nan)
+    reasons: dict[int, str] = {}
+    radius = _pole_radius(bank.a)
+    for i in todo:
+        i = int(i)
+        if radius[i] > rmax * (1 + _POLE_RTOL):
+            reasons[i] = f"controller pole radius {radius[i]:.6g} > {rmax:g}"
+            continue
+        m = margins(plant, bank.transfer_function(i))
+        margin[i] = m.modulus_margin
+        if not m.stable:
+            reasons[i] = "closed loop unstable"
+        elif m.modulus_margin < mu * (1 - _MARGIN_RTOL):
+            reasons[i] = f"modulus margin {m.modulus_margin:.4g} < {mu:g}"
+        else:
+            ok[i] = True
+    return ok, margin, reasons
+
+
+def _rows(bank: IIRBank, modes: np.ndarray) -> IIRBank:
+    """The rows ``modes`` of ``bank`` as a bank of their own."""
+    limit = None if bank.command_limit is None else bank.command_limit[modes]
+    return IIRBank(bank.b[modes], bank.a[modes], bank.fs, command_limit=limit)
+
+
+def _subset(tel: TelemetryPSD, modes: np.ndarray) -> TelemetryPSD:
+    """The modes ``modes`` of a telemetry estimate."""
+    return dataclasses.replace(
+        tel,
+        psd=tel.psd[modes],
+        noise_psd=tel.noise_psd[modes],
+        pseudo_open_loop=tel.pseudo_open_loop[:, modes],
+        pol_psd=tel.pol_psd[modes],
+    )
+
+
+def _join(current: IIRBank, parts: list[tuple[np.ndarray, Proposal]]) -> Proposal:
+    """One proposal from proposals for disjoint sets of modes (rows of ``current`` elsewhere)."""
+    nb = max([current.b.shape[1]] + [p.controller.b.shape[1] for _, p in parts])
+    na = max([current.a.shape[1]] + [p.controller.a.shape[1] for _, p in parts])
+    b = np.pad(current.b, ((0, 0), (0, nb - current.b.shape[1])))
+    a = np.pad(current.a, ((0, 0), (0, na - current.a.shape[1])))
+    failed: dict[int, str] = {}
+    for modes, p in parts:
+        c = p.controller
+        b[modes] = np.pad(c.b, ((0, 0), (0, nb - c.b.shape[1])))
+        a[modes] = np.pad(c.a, ((0, 0), (0, na - c.a.shape[1])))
+        failed.update({int(modes[i]): msg for i, msg in p.failed.items()})
+    return Proposal(IIRBank(b, a, current.fs, command_limit=current.command_limit), failed)
+
+
+def _merge(current: IIRBank, proposal: IIRBank, take: np.ndarray) -> IIRBank:
+    """Rows of ``proposal`` where ``take``, of ``current`` elsewhere (orders padded)."""
+    nb = max(current.b.shape[1], proposal.b.shape[1])
+    na = max(current.a.shape[1], proposal.a.shape[1])
+
+    def pad(x: np.ndarray, k: int) -> np.ndarray:
+        return np.pad(x, ((0, 0), (0, k - x.shape[1])))
+
+    b = np.where(take[:, None], pad(proposal.b, nb), pad(current.b, nb))
+    a = np.where(take[:, None], pad(proposal.a, na), pad(current.a, na))
+    return IIRBank(b, a, current.fs, command_limit=current.command_limit)
+
+
+def residual_shift(
+    current: IIRBank,
+    plant: control.TransferFunction,
+    tel: TelemetryPSD,
+    last_ratio: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far each mode's residual moved from what a change of scale explains [units^2].
+
+    ``rho = J / v``: the current controller's predicted residual on the estimate
+    (:func:`~aocontrol.analysis.residual_variance`) over the measured variance ``v`` (the
+    disturbance PSD integrated plus the per-frame noise variance). A change of scale of the
+    disturbance and noise (the seeing alone, noise-limited or not) leaves ``rho`` as it was;
+    a change of shape (the wind: the disturbance moves in frequency; the noise against the
+    disturbance) moves it, and the controller is then tuned to the wrong disturbance. The
+    shift ``v |rho - last_ratio|`` is the residual that change moved, in either direction (a
+    wind that drops leaves a controller too fast, its residual lower but not optimal): the
+    screen of :func:`select_modes`. A mode never designed (``last_ratio`` ``nan``) has an
+    infinite shift.
+
+    Parameters
+    ----------
+    current : IIRBank
+        The controllers in use (certified: their loops are stable).
+    plant : control.TransferFunction
+    tel : TelemetryPSD
+        The new estimate.
+    last_ratio : ndarray, shape (n_modes,)
+        ``rho`` of each mode's controller on the estimate it was designed from.
+
+    Returns
+    -------
+    shift : ndarray, shape (n_modes,)
+        ``v |rho - last_ratio|`` [units^2] (``inf`` where ``last_ratio`` is ``nan``).
+    rho : ndarray, shape (n_modes,)
+        ``J / v`` of the current controllers on the estimate.
+    """
+    v = np.trapezoid(tel.psd, tel.freqs, axis=-1) + tel.noise_variance
+    j = residual_variance(plant, current, tel.freqs, tel.psd, tel.noise_psd, check_stability=False)
+    rho = j / v
+    with np.errstate(invalid="ignore"):
+        shift = v * np.abs(rho - last_ratio)
+    return np.where(np.isnan(last_ratio), np.inf, shift), rho
+
+
+def select_modes(gain: np.ndarray, share: float, max_modes: int | None = None) -> np.ndarray:
+    """The fewest modes whose predicted gains cover ``share`` of their total, largest first.
+
+    Modes of infinite gain (never designed) come first and are always taken (``max_modes``
+    apart); modes of zero gain never.
+
+    Parameters
+    ----------
+    gain : ndarray, shape (n_modes,)
+        Predicted recoverable residual per mode (>= 0, ``inf`` allowed).
+    share : float
+        Share in (0, 1] of the total finite gain to cover.
+    max_modes : int, optional
+        At most this many modes.
+
+    Returns
+    -------
+    ndarray of bool, shape (n_modes,)
+    """
+    order = np.argsort(-gain, kind="stable")
+    g = gain[order]
+    finite = np.where(np.isfinite(g), g, 0.0)
+    total = finite.sum()
+    covered = np.cumsum(finite) - finite  # gain covered before taking each mode
+    take = (g > 0) & (np.isinf(g) | (covered < share * total))
+    if max_modes is not None:
+        take &= np.arange(g.size) < max_modes
+    out = np.zeros(gain.size, dtype=bool)
+    out[order[take]] = True
+    return out
+
+
+@dataclass(frozen=True)
+class Update:
+    """Result of :func:`redesign`.
+
+    Attributes
+    ----------
+    bank : IIRBank
+        The current bank with every certified mode replaced by its new design.
+    certified : ndarray of bool, shape (n_modes,)
+        Modes redesigned and certified (replaced in ``bank``).
+    modulus_margin : ndarray, shape (n_modes,)
+        Certified margin of each checked new design (``nan`` elsewhere).
+    reasons : dict of int to str
+        Why each redesigned mode that is not replaced was refused.
+    selected : ndarray of bool, shape (n_modes,) or None
+        Modes redesigned (``None``: all).
+    ratio : ndarray, shape (n_modes,) or None
+        ``last_ratio`` updated for the replaced modes (``None`` without selection).
+    """
+
+    bank: IIRBank
+    certified: np.ndarray
+    modulus_margin: np.ndarray
+    reasons: dict[int, str]
+    selected: np.ndarray | None
+    ratio: np.ndarray | None
+
+
+def redesign(
+    plant: control.TransferFunction,
+    current: IIRBank,
+    tel: TelemetryPSD,
+    designer: Designer,
+    *,
+    modulus_margin: float,
+    max_pole_radius: float = 1.0,
+    last_ratio: np.ndarray | None = None,
+    select: float | None = None,
+    max_modes: int | None = None,
+) -> Update:
+    """One redesign: select the modes, design them, certify them, merge the certified ones.
+
+    The step of :class:`AdaptiveController` at each period, as a function (a benchmark
+    times it alone).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+    current : IIRBank
+        The bank in use.
+    tel : TelemetryPSD
+        Disturbance and noise estimate.
+    designer : callable
+        As in :class:`AdaptiveController`.
+    modulus_margin, max_pole_radius : float
+        Certificates (:func:`certify`).
+    last_ratio : ndarray, shape (n_modes,), optional
+        Per mode, ``rho`` of :func:`residual_shift` when its controller was designed
+        (``nan``: never); with ``select``.
+    select : float, optional
+        Share of the total residual shift to cover (:func:`select_modes`);
+        ``None``: every mode.
+    max_modes : int, optional
+        At most this many modes (with ``select``).
+
+    Returns
+    -------
+    Update
+    """
+    n = current.n_modes
+    modes = np.arange(n)
+    selected = ratio = None
+    if select is not None:
+        last = np.full(n, np.nan) if last_ratio is None else np.asarray(last_ratio, float)
+        shift, _ = residual_shift(current, plant, tel, last)
+        selected = select_modes(shift, select, max_modes)
+        modes = np.flatnonzero(selected)
+        ratio = last.copy()
+    ok = np.zeros(n, dtype=bool)
+    margin = np.full(n, np.nan)
+    reasons: dict[int, str] = {}
+    if not modes.size:
+        return Update(current, ok, margin, reasons, selected, ratio)
+    proposal = designer(_subset(tel, modes), plant, _rows(current, modes))
+    if not isinstance(proposal, Proposal):
+        raise TypeError(f"the designer must return a Proposal, got {type(proposal).__name__}")
+    if proposal.controller.n_modes != modes.size:
+        raise ValueError(
+            f"the designer proposed {proposal.controller.n_modes} modes, it was asked for "
+            f"{modes.size}"
+        )
+    todo = [i for i in range(modes.size) if i not in proposal.failed]
+    ok_s, margin_s, reasons_s = certify(
+        plant,
+        proposal.controller,
+        modulus_margin=modulus_margin,
+        max_pole_radius=max_pole_radius,
+        modes=todo,
+    )
+    ok[modes], margin[modes] = ok_s, margin_s
+    reasons = {
+        **{int(modes[i]): f"design failed: {msg}" for i, msg in proposal.failed.items()},
+        **{int(modes[i]): msg for i, msg in reasons_s.items()},
+    }
+    if ratio is not None and ok_s.any():
+        take = np.flatnonzero(ok_s)
+        _, rho = residual_shift(
+            _rows(proposal.controller, take), plant, _subset(tel, modes[take]), ratio[modes[take]]
+        )
+        ratio[modes[take]] = rho
+    full = _join(current, [(modes, proposal)]).controller
+    return Update(_merge(current, full, ok), ok, margin, reasons, selected, ratio)
