@@ -363,3 +363,19 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return [_jsonable(v) for v in obj]
     return obj
+
+
+# Documented, pickled and shown under the package that exports them.
+for _cls in (
+    CaseError,
+    DriftSpec,
+    AtmosphereSpec,
+    StarSpec,
+    StageSpec,
+    ScienceSpec,
+    SimulationSpec,
+    VibrationSpec,
+    Case,
+):
+    _cls.__module__ = "aocontrol.study.cases"
+del _cls
