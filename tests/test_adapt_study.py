@@ -53,6 +53,11 @@ def test_bad_study_arguments():
         run_adapt("bright1-best", windows=(5.0,), duration=2.0, quick=True)
     with pytest.raises(ValueError, match="strategies must be among"):
         run_adapt("bright1-best", strategies=("pid",), quick=True)
+    # Refused before any run (the fixed design's period is its window), naming both values.
+    with pytest.raises(ValueError, match=r"latency=0.5 s and window=0.5 s"):
+        run_adapt("bright1-best", windows=(1.0, 0.5), periods=(2.0,), latency=0.5, quick=True)
+    with pytest.raises(ValueError, match=r"latency=0.5 s and period=0.5 s"):
+        run_adapt("bright1-best", strategies=("oracle",), periods=(0.5,), latency=0.5, quick=True)
 
 
 @pytest.mark.parametrize(

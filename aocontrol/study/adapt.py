@@ -437,8 +437,8 @@ def run_adapt(
     Raises
     ------
     ValueError
-        Unknown scenario or strategy, a window not shorter than the run, a period not longer
-        than the latency.
+        Unknown scenario or strategy, a window not shorter than the run, a period (or, with
+        ``fixed``, a window) not longer than the latency: all before any run.
     """
     bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS]
     if bad:
@@ -448,6 +448,17 @@ def run_adapt(
     for w in windows:
         if not 0 < w < duration:
             raise ValueError(f"window must be in (0, duration={duration:g}) s, got {w!r} s")
+    # Checked before any run: ``fixed`` designs once, a window in (its period is the window).
+    delayed = set(strategies) - {"adaptive-nolatency", "oracle-prophet"}
+    served = [("period", p) for p in periods if delayed - {"fixed"}]
+    served += [("window", w) for w in windows if "fixed" in delayed]
+    for name, t in served:
+        if latency is not None and latency >= t:
+            raise ValueError(
+                f"latency must be shorter than every {name} (the {name} of the "
+                f"{'fixed' if name == 'window' else 'redesigning'} strategies), got "
+                f"latency={latency!r} s and {name}={t!r} s"
+            )
     scene = build_scene(case, quick=quick, overrides=overrides)
     c = scene.case
     drift = scenario_drift(
