@@ -34,7 +34,7 @@ import math
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -49,6 +49,7 @@ from aocontrol.sim.loop import (
     run_cascade,
     run_loop,
 )
+from aocontrol.study._comparison import CaseComparison, Cell, table_from_files
 from aocontrol.study._registry import (
     CONTROLLER_ALIASES,
     CONTROLLERS,
@@ -484,123 +485,6 @@ def run_configuration(
 
 
 # ----------------------------------------------------------------------------- protocol
-@dataclass(frozen=True, eq=False)
-class Cell:
-    """One configuration of a case's table.
-
-    Parameters
-    ----------
-    controller, scheme : str
-    strehl : float
-        Long-exposure Strehl ratio at the science wavelength, in (0, 1].
-    mean_contrast_4_6 : float
-        Mean raw contrast over 4-6 lambda/D after the perfect coronagraph.
-    residual_rms_nm : float
-        Stage-2 modal residual RMS [nm] (measured).
-    predicted_rms_nm : float
-        Residual RMS predicted from the design PSDs (``residual_variance`` of the controller
-        on the calibration telemetry) [nm]; NaN when not available.
-    radii_ld, contrast_profile : ndarray
-        Radial contrast curve (radius [lambda/D], contrast).
-    settings : dict
-        As :attr:`RunOutcome.settings`.
-    path : str or None
-        Results file, if written.
-    bank : ControllerBank or None
-        The stage-2 controller that ran.
-    """
-
-    controller: str
-    scheme: str
-    strehl: float
-    mean_contrast_4_6: float
-    residual_rms_nm: float
-    predicted_rms_nm: float
-    radii_ld: np.ndarray = field(repr=False)
-    contrast_profile: np.ndarray = field(repr=False)
-    settings: dict = field(repr=False, default_factory=dict)
-    path: str | None = None
-    bank: ControllerBank | None = field(default=None, repr=False)
-
-
-@dataclass(frozen=True, eq=False)
-class CaseComparison:
-    """Results of :func:`compare_case`.
-
-    Parameters
-    ----------
-    case : str
-    cells : tuple of Cell
-        One per (scheme, controller).
-    reference_gains : dict
-        Scanned gain per scheme.
-    scan : dict
-        ``{scheme: [(gain, mean contrast), ...]}`` of the gain scan.
-    vibration : dict or None
-        For a case with a vibration: ``tilt_rms_nm`` per controller, ``relative_gain``, the
-        tilt residual PSDs ``(freqs, psd)`` per controller, and for the sensitivity plot the
-        frequencies, ``|S|^2`` per controller and the tilt disturbance PSD (pseudo-open loop
-        of the calibration telemetry) at the stage-2 input.
-    seconds : dict
-        Wall time per part [s].
-    designs : dict
-        ``{scheme: DesignInputs}``: the stage-2 plant and the calibration telemetry's PSDs
-        each scheme's controllers were designed from (margins and rejection of the report).
-    """
-
-    case: str
-    cells: tuple
-    reference_gains: dict
-    scan: dict
-    vibration: dict | None = None
-    seconds: dict = field(default_factory=dict)
-    designs: dict = field(default_factory=dict, repr=False)
-
-    def cell(self, controller: str, scheme: str) -> Cell:
-        """The cell of ``controller`` in ``scheme``."""
-        for c in self.cells:
-            if c.controller == controller and c.scheme == scheme:
-                return c
-        raise KeyError(f"no cell ({controller!r}, {scheme!r})")
-
-    def table(self) -> str:
-        """The paper's table: mean contrast 4-6 lambda/D and Strehl [%] per configuration."""
-        return format_table(self.case, self.cells)
-
-    @property
-    def contrast_curves(self) -> dict:
-        """``{(scheme, controller): (radii_ld, contrast)}`` for the radial contrast plot."""
-        return {(c.scheme, c.controller): (c.radii_ld, c.contrast_profile) for c in self.cells}
-
-
-def format_table(case: str, cells: Sequence[Any]) -> str:
-    """Text table of the cells (``scheme controller`` columns, contrast and Strehl rows).
-
-    Parameters
-    ----------
-    case : str
-        Title.
-    cells : sequence of Cell or dict
-        Objects or dicts with ``scheme``, ``controller``, ``mean_contrast_4_6``, ``strehl``.
-
-    Returns
-    -------
-    str
-    """
-    get = (lambda c, k: c[k]) if cells and isinstance(cells[0], dict) else getattr
-    heads = [f"{get(c, 'scheme')} {get(c, 'controller')}" for c in cells]
-    w = max(14, *(len(h) for h in heads))
-    lines = [case, " " * 22 + "".join(f"{h:>{w + 2}}" for h in heads)]
-    lines.append(
-        f"{'avg contrast 4-6 l/D':22}"
-        + "".join(f"{get(c, 'mean_contrast_4_6'):>{w + 2}.3e}" for c in cells)
-    )
-    lines.append(
-        f"{'Strehl [%]':22}" + "".join(f"{100 * get(c, 'strehl'):>{w + 2}.2f}" for c in cells)
-    )
-    return "\n".join(lines)
-
-
 def _scan_grid(scene: Scene, quick: bool, grid: Sequence[float] | None) -> list[float]:
     grid = list(grid if grid is not None else (QUICK_GAIN_GRID if quick else GAIN_GRID))
     limit = integrator_gain_limit(scene.stage2.plant, modulus_margin=MODULUS_MARGIN)
@@ -787,36 +671,3 @@ def _vibration_report(
         a, b = out["tilt_rms_nm"]["reference"], out["tilt_rms_nm"]["datadriven"]
         out["relative_gain"] = (a - b) / a
     return out
-
-
-def table_from_files(paths: Sequence[str | os.PathLike]) -> str:
-    """Rebuild a case table from results files, without rerunning.
-
-    Parameters
-    ----------
-    paths : sequence of path
-        Files written by :func:`compare_case` (``results_dir``).
-
-    Returns
-    -------
-    str
-        One table per case (as :meth:`CaseComparison.table`).
-    """
-    from aocontrol.study.results import load_result, read_settings
-
-    rows: dict[str, list[dict]] = {}
-    for p in paths:
-        st = read_settings(p)
-        res = load_result(p)
-        sci = res.science
-        strehl = sci["strehl"] if isinstance(sci, dict) else sci.strehl
-        con = sci["mean_contrast_4_6"] if isinstance(sci, dict) else sci.mean_contrast_4_6
-        rows.setdefault(st["case"], []).append(
-            {
-                "scheme": st["scheme"],
-                "controller": st["controller"]["name"],
-                "strehl": float(strehl),
-                "mean_contrast_4_6": float(con),
-            }
-        )
-    return "\n\n".join(format_table(k, v) for k, v in rows.items())
