@@ -197,8 +197,9 @@ def pseudo_open_loop(
     plant: control.TransferFunction,
     *,
     fs: float | None = None,
+    optical_gain: object = None,
 ) -> np.ndarray:
-    """Pseudo-open-loop reconstruction ``m + G u`` [units], shape ``(n_frames, n_modes)``.
+    """Pseudo-open-loop reconstruction ``m / og + G u`` [units], shape ``(n_frames, n_modes)``.
 
     ``G u`` is ``scipy.signal.lfilter`` of the plant's ``z^-1`` coefficients along the frame
     axis, zero initial state (the telemetry must start with the loop at rest, or the first
@@ -213,6 +214,11 @@ def pseudo_open_loop(
         Discrete plant (command to measurement), e.g. :func:`aocontrol.loop_plant`.
     fs : float, optional
         Loop rate [Hz] if the plant lost its ``dt``.
+    optical_gain : float or array_like of shape (n_modes,), optional
+        Optical gains ``og`` the measurements carry and the reconstructor did not compensate
+        (a pyramid read with its raw, flat-wavefront reconstructor: ``m = og z^-1 e + n``);
+        default 1, measurements in residual units (gains compensated, or a linear sensor).
+        See :func:`disturbance_from_telemetry`.
 
     Examples
     --------
@@ -235,7 +241,21 @@ def pseudo_open_loop(
             f"n_modes), got {m.shape} and {u.shape}"
         )
     b, a = z_inverse_coefficients(plant, "plant")
-    return m + signal.lfilter(b, a, u, axis=0)
+    return m / _check_optical_gain(optical_gain, m.shape[1]) + signal.lfilter(b, a, u, axis=0)
+
+
+def _check_optical_gain(optical_gain: object, n_modes: int) -> np.ndarray:
+    """Optical gains as an array of shape ``(n_modes,)``, all > 0 (1 if None)."""
+    if optical_gain is None:
+        return np.ones(n_modes)
+    og = check_finite_array("optical_gain", optical_gain, ndim=(0, 1))
+    og = np.broadcast_to(og, (n_modes,)) if og.ndim == 0 else og
+    if og.shape != (n_modes,) or np.any(og <= 0):
+        raise ValueError(
+            f"optical_gain must be a positive scalar or {n_modes} positive values (one per "
+            f"mode), got shape {og.shape} with min {float(np.min(og)) if og.size else None!r}"
+        )
+    return np.asarray(og, dtype=float)
 
 
 def _welch_dof(n_frames: int, nperseg: int) -> float:
@@ -305,6 +325,7 @@ def disturbance_from_telemetry(
     nperseg: int | None = None,
     noise_band: tuple[float, float] = (0.8, 1.0),
     method: str = "prewhitened",
+    optical_gain: object = None,
 ) -> TelemetryPSD:
     """Disturbance PSD and white noise level per mode from closed-loop telemetry.
 
@@ -377,6 +398,18 @@ def disturbance_from_telemetry(
         Band of the noise floor as fractions of the Nyquist frequency, ``0 <= lo < hi <= 1``.
     method : {"prewhitened", "welch"}, default "prewhitened"
         Disturbance estimator (steps 4-5).
+    optical_gain : float or array_like of shape (n_modes,), optional
+        Optical gains the measurements carry, uncompensated (default 1). With a pyramid
+        read by its flat-wavefront reconstructor (optical-gain setting ``"none"``) the
+        measurement is ``m = og z^-1 e + n``, so ``m + G u = og z^-1 d + (1 - og) G u + n``
+        is not the disturbance: ``m / og + G u = z^-1 d + n / og`` is. The estimate is then
+        the disturbance in residual units and the noise referred to the residual
+        (``n / og``); the loop's own plant is ``og G`` (an integrator of gain ``g`` acts as
+        one of gain ``og g`` on a unit-gain plant): predict its residual with that. With
+        compensated measurements (``"calibrated"``: divided by calibrated gains ``og_c``)
+        the default 1 assumes the true gains equal ``og_c``; pass ``og_true / og_c`` when
+        known. The gains are assumed constant over the record (not ``"tracked"``) and the
+        sensor linear around the loop's residual.
 
     Returns
     -------
@@ -389,13 +422,14 @@ def disturbance_from_telemetry(
     ValueError
         Telemetry with NaN/inf, of different shapes or not 1-D/2-D, fewer frames than
         ``nperseg`` (``nperseg + 1`` pre-whitened), a bad ``noise_band`` or one containing
-        no Welch bin, an unknown ``method``.
+        no Welch bin, an unknown ``method``, an ``optical_gain`` not positive or of the wrong
+        length.
     TypeError
         If ``plant`` is not a transfer function.
     """
     method = _check_method(method)
     fs_ = plant_fs(plant, fs)
-    pol = pseudo_open_loop(measurements, commands, plant, fs=fs_)
+    pol = pseudo_open_loop(measurements, commands, plant, fs=fs_, optical_gain=optical_gain)
     n_frames, n_modes = pol.shape
     # The telemetry is checked before the segment length it implies: a short or transposed
     # record is the telemetry's fault, not that of an nperseg the user never passed.
@@ -419,7 +453,9 @@ def disturbance_from_telemetry(
         return tel
     m = _check_telemetry("measurements", measurements)
     u = _check_telemetry("commands", commands)
-    diff = pseudo_open_loop(np.diff(m, axis=0), np.diff(u, axis=0), plant, fs=fs_)
+    diff = pseudo_open_loop(
+        np.diff(m, axis=0), np.diff(u, axis=0), plant, fs=fs_, optical_gain=optical_gain
+    )
     f, pxx_diff = _welch_differenced(diff, fs_, nperseg)
     # Divided by the expected Welch estimate of differenced white noise (_whitening).
     nseg = min(nperseg, diff.shape[0])
