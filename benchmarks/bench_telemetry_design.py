@@ -24,6 +24,10 @@ reference integrator; the residual it should have, predicted from its own teleme
 estimator (``residual_variance`` on the estimated disturbance and noise PSDs), over the one it
 had. The pseudo-open loop of a linear stage is exactly ``z^-1 d + n``, so the ratio shows the
 estimator's bias (and the Welch scatter), nothing of the calibration/exposure difference.
+``--sensor diffractive`` (with ``--optical-gain``) adds three columns that split the gap of
+the pyramid in the loop: the pseudo-open loop divided by the uncompensated optical gains,
+and predictions from the true disturbance (rebuilt from the recorded residuals) with the
+sensor's error beyond ``og e`` as white noise, then with its own (low-frequency) PSD.
 
 Timings are wall-clock on a shared machine (2 cores, other jobs running): read the ratios.
 """
@@ -146,13 +150,52 @@ def bench_estimators(args: argparse.Namespace) -> None:
                 )
 
 
+def _diffractive_diagnosis(m, u, e, st, gain, og):
+    """Predicted / measured of a diffractive stage 2, three ways (issue 15, section 3).
+
+    ``og``: the optical gains the measurements carry uncompensated (the calibrated ones for
+    the setting "none", 1 for "calibrated", which assumes the true gains are the calibrated
+    ones). Returns the ratios of: the pre-whitened estimate of ``m / og + G u`` with the
+    loop's gain ``og g``; the true disturbance (``z^-1 d = z^-1 e + G u`` from the recorded
+    residuals) with a white noise at the level of ``v = m - og z^-1 e``; the same with ``v``'s
+    own PSD as the noise (what the sensor adds beyond ``og e``: aliasing of the residual
+    outside the basis, nonlinearity, photon and read noise), which the loop injects through
+    ``T``, not ``S``.
+    """
+    from scipy import signal
+
+    from aocontrol.analysis import welch_psd
+    from aocontrol.controllers import Integrator
+    from aocontrol.plant import z_inverse_coefficients
+    from aocontrol.synthesis import disturbance_from_telemetry
+
+    n = st.n_modes
+    seen = Integrator(gain * og, fs=st.fs, n_modes=n)
+    meas = float(np.sqrt(e[1:].var(axis=0).sum()))
+    b, a = z_inverse_coefficients(st.plant, "plant")
+    d_del = e[:-1] + signal.lfilter(b, a, u, axis=0)[1:]
+    v = m[1:] - og * e[:-1]
+    tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, optical_gain=og)
+    pred_og = residual_variance(st.plant, seen, tel.freqs, tel.psd, tel.noise_psd).sum()
+    true = disturbance_from_telemetry(d_del, np.zeros_like(d_del), st.plant, fs=st.fs)
+    f, pv = welch_psd(v / og, st.fs, 512)
+    white = np.median(pv[:, f > 0.8 * st.fs / 2], axis=1)
+    colored = np.array([np.interp(true.freqs, f, row) for row in pv])
+    pred_white = residual_variance(st.plant, seen, true.freqs, true.psd, white).sum()
+    pred_v = residual_variance(st.plant, seen, true.freqs, true.psd, colored).sum()
+    return [float(np.sqrt(x)) / meas for x in (pred_og, pred_white, pred_v)]
+
+
 def bench_own(args: argparse.Namespace) -> None:
     from aocontrol.controllers import Integrator
     from aocontrol.synthesis import disturbance_from_telemetry
 
     quick = not args.full
+    diffractive = args.sensor == "diffractive"
+    extra = ("pw m/og", "true d+white", "true d+v") if diffractive else ()
+    print(f"stage-2 sensor {args.sensor}, optical gain {args.optical_gain or 'case default'}")
     print(f"{'case':14}{'scheme':12}{'frames':>8}{'meas[nm]':>10}" + "".join(
-        f"{m + ' p/m':>16}" for m in ("welch", "prewhitened")
+        f"{m + ' p/m':>16}" for m in ("welch", "prewhitened", *extra)
     ))  # fmt: skip
     for case in args.cases:
         scene = build_scene(case, quick=quick)
@@ -160,19 +203,26 @@ def bench_own(args: argparse.Namespace) -> None:
         cal_s = calibration_seconds(scene, quick)
         for scheme in args.schemes:
             out = run_configuration(
-                case, controller="reference", scheme=scheme, seconds=cal_s, seed=1000, quick=quick
+                case, controller="reference", scheme=scheme, seconds=cal_s, seed=1000,
+                quick=quick, sensor=args.sensor, optical_gain=args.optical_gain,
             )  # fmt: skip
             r2 = out.result.stages[1] if scheme != "single" else out.result
             k = r2.settle_frames
             m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
             u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
-            ref = Integrator(out.settings["reference_gain"], fs=st.fs, n_modes=st.n_modes)
+            gain = out.settings["reference_gain"]
+            ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
             meas = out.summary["residual_rms_nm"]
             cells = []
             for method in ("welch", "prewhitened"):
                 tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=method)
                 pred = residual_variance(st.plant, ref, tel.freqs, tel.psd, tel.noise_psd)
                 cells.append(f"{float(np.sqrt(np.sum(pred))) / meas:>16.3f}")
+            if diffractive:
+                e = np.asarray(r2.telemetry["residuals"][k:], dtype=float)
+                raw = (args.optical_gain or scene.case.stage2.optical_gain) == "none"
+                og = np.asarray(st.optical_gain) if raw else np.ones(st.n_modes)
+                cells += [f"{r:>16.3f}" for r in _diffractive_diagnosis(m, u, e, st, gain, og)]
             print(f"{case:14}{scheme:12}{m.shape[0]:>8}{meas:>10.2f}" + "".join(cells))
 
 
@@ -196,6 +246,11 @@ def main() -> None:
     )  # fmt: skip
     o.add_argument("--schemes", nargs="+", default=["standalone", "dcao"])
     o.add_argument("--full", action="store_true", help="full scenes instead of quick ones")
+    o.add_argument("--sensor", choices=["linear", "diffractive"], default="linear")
+    o.add_argument(
+        "--optical-gain", default=None, choices=["none", "calibrated", "tracked", "two-pass"],
+        help="stage 2's optical-gain setting (default the case's)",
+    )  # fmt: skip
     args = p.parse_args()
     t0 = time.perf_counter()
     {"aot": bench_aot, "estimators": bench_estimators, "own": bench_own}[args.part](args)

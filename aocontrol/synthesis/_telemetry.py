@@ -282,6 +282,11 @@ def _median_to_mean(dof: float) -> float:
 # of one segment is a chi-square(2) scatter that the designs would fit; pre-whitening makes
 # long segments unnecessary for the sub-hertz turbulence).
 _MIN_SEGMENTS, _MAX_NPERSEG, _MIN_NPERSEG = 8, 1024, 64
+# Longest segment of the finer levels below the second Welch bin (step 6). Its first bin,
+# fs / 4096 (0.73 Hz at 3 kHz, 0.24 Hz at 1 kHz), resolves the bright dCAO residual (1.4-s
+# records); finer points of one-segment scatter made the PSD too jagged for the FFT grids
+# that resample it (wiener_bound warned at 8192 frames); the rest goes to the 0-Hz bin.
+_MAX_FINE_NPERSEG = 4096
 
 
 def default_nperseg(n_frames: int, method: str = "prewhitened") -> int:
@@ -369,7 +374,8 @@ def disturbance_from_telemetry(
     6. Below the second Welch bin (``2 fs / nperseg``, 12 Hz for 512 frames at 3 kHz) a
        loop's ``|S|^2`` is not small when its gain is low, and a disturbance seen whole
        (tip/tilt in stage 2 of dCAO) has most of its variance there: segments twice, four
-       times ... as long, up to the whole record, each give their bins 2 and 3 below what
+       times ... as long, up to 4,096 frames or the whole record if shorter, each give their
+       bins 2 and 3 below what
        the shorter segments cover (a dyadic multi-resolution grid, each interval covered
        once; the finest level also gives its bin 1). Before, that variance sat in the 0-Hz
        bin, where ``|S|^2 = 0``, and the predicted residual came out 17-19 % low in the
@@ -516,13 +522,14 @@ def _whitening(f: np.ndarray, fs: float, nperseg: int) -> np.ndarray:
 
 
 def _finer_segments(nperseg: int, n_frames: int) -> list[int]:
-    """Segment lengths of the finer levels: ``2 nperseg, 4 nperseg, ...`` within the record,
-    then the whole record if it is at least 1.5 times the last (coarse to fine)."""
+    """Segment lengths of the finer levels: ``2 nperseg, 4 nperseg, ...`` within the record
+    and at most ``_MAX_FINE_NPERSEG``, then the whole record if it is at least 1.5 times the
+    last and within that limit (coarse to fine)."""
     out, seg = [], nperseg
-    while 2 * seg <= n_frames:
+    while 2 * seg <= min(n_frames, _MAX_FINE_NPERSEG):
         seg *= 2
         out.append(seg)
-    if n_frames >= 1.5 * seg:
+    if 1.5 * seg <= n_frames <= _MAX_FINE_NPERSEG:
         out.append(n_frames)
     return out
 
@@ -543,7 +550,8 @@ def _below_second_bin(
     25 % low there, 8 % at bin 2). So every level, segments ``2^j nperseg`` frames long (the
     last one the whole record, :func:`_finer_segments`), gives its bins 2 and up that lie
     below the lowest frequency already covered (``2 fs / nperseg`` for the main grid): bins
-    2 and 3 of each level, the levels tiling ``(0, 2 fs / nperseg)`` without double
+    2 and 3 of each level, the levels tiling ``(fs / L, 2 fs / nperseg)`` (``L`` the finest
+    segment, at most ``_MAX_FINE_NPERSEG``) without double
     counting (a dyadic, multi-resolution grid). The finest level also gives its bin 1, the
     lowest frequency the record resolves. A bin whose excess is below ``_DETECTION_SIGMAS``
     standard deviations of the noise's scatter at that level's degrees of freedom (the
