@@ -547,16 +547,15 @@ def _below_second_bin(
     The first bin of a pre-whitened Welch estimate is biased by the local slope of the
     spectrum (:func:`_whitening` adds the window's second moment, 33 % of ``|1 - z^-1|^2`` at
     bin 1, exact only for a spectrum flat over the main lobe: a ``f^-2`` spectrum comes out
-    25 % low there, 8 % at bin 2). So every level, segments ``2^j nperseg`` frames long (the
-    last one the whole record, :func:`_finer_segments`), gives its bins 2 and up that lie
-    below the lowest frequency already covered (``2 fs / nperseg`` for the main grid): bins
-    2 and 3 of each level, the levels tiling ``(fs / L, 2 fs / nperseg)`` (``L`` the finest
-    segment, at most ``_MAX_FINE_NPERSEG``) without double
-    counting (a dyadic, multi-resolution grid). The finest level also gives its bin 1, the
-    lowest frequency the record resolves. A bin whose excess is below ``_DETECTION_SIGMAS``
-    standard deviations of the noise's scatter at that level's degrees of freedom (the
-    disturbance not detected) takes the value of the next higher bin instead (the clip of a
-    chi-square scatter would bias it up, as in :func:`_debias`).
+    25 % low there, 8 % at bin 2). So every level, segments ``2^j nperseg`` frames long (up
+    to ``_MAX_FINE_NPERSEG`` or the whole record, :func:`_finer_segments`), gives its bins 2
+    and up that lie below the lowest frequency already covered (``2 fs / nperseg`` for the
+    main grid): bins 2 and 3 of each level, the levels tiling ``(fs / L, 2 fs / nperseg)``
+    (``L`` the finest segment) without double counting (a dyadic, multi-resolution grid).
+    The finest level also gives its bin 1, ``fs / L``. A bin whose excess is below
+    ``_DETECTION_SIGMAS`` standard deviations of the noise's scatter at that level's degrees
+    of freedom (the disturbance not detected) takes the value of the next higher bin instead
+    (the clip of a chi-square scatter would bias it up, as in :func:`_debias`).
 
     Parameters
     ----------
