@@ -195,7 +195,7 @@ def bench_own(args: argparse.Namespace) -> None:
     extra = ("pw m/og", "true d+white", "true d+v") if diffractive else ()
     print(f"stage-2 sensor {args.sensor}, optical gain {args.optical_gain or 'case default'}")
     print(f"{'case':14}{'scheme':12}{'frames':>8}{'meas[nm]':>10}" + "".join(
-        f"{m + ' p/m':>16}" for m in ("welch", "prewhitened", *extra)
+        f"{m + ' p/m':>18}" for m in ("welch", "prewhitened", *extra)
     ))  # fmt: skip
     for case in args.cases:
         scene = build_scene(case, quick=quick)
@@ -217,12 +217,12 @@ def bench_own(args: argparse.Namespace) -> None:
             for method in ("welch", "prewhitened"):
                 tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=method)
                 pred = residual_variance(st.plant, ref, tel.freqs, tel.psd, tel.noise_psd)
-                cells.append(f"{float(np.sqrt(np.sum(pred))) / meas:>16.3f}")
+                cells.append(f"{float(np.sqrt(np.sum(pred))) / meas:>18.3f}")
             if diffractive:
                 e = np.asarray(r2.telemetry["residuals"][k:], dtype=float)
                 raw = (args.optical_gain or scene.case.stage2.optical_gain) == "none"
                 og = np.asarray(st.optical_gain) if raw else np.ones(st.n_modes)
-                cells += [f"{r:>16.3f}" for r in _diffractive_diagnosis(m, u, e, st, gain, og)]
+                cells += [f"{r:>18.3f}" for r in _diffractive_diagnosis(m, u, e, st, gain, og)]
             print(f"{case:14}{scheme:12}{m.shape[0]:>8}{meas:>10.2f}" + "".join(cells))
 
 
