@@ -68,20 +68,25 @@ from aocontrol.adaptive._designers import (
     modal_gain_designer,
 )
 from aocontrol.adaptive._redesign import (
+    BOUND_N_FFT,
+    RANKINGS,
     Designer,
     Proposal,
     Update,
     certify,
+    recoverable_gain,
     redesign,
     residual_shift,
     select_modes,
 )
 
 __all__ = [
+    "BOUND_N_FFT",
     "BUMPLESS_FRAMES",
     "BUMPLESS_LAST_WEIGHT",
     "BUMPLESS_MEMORY",
     "MIN_WINDOW_FRAMES",
+    "RANKINGS",
     "AdaptiveController",
     "AdaptiveRun",
     "Designer",
@@ -93,6 +98,7 @@ __all__ = [
     "datadriven_designer",
     "lqg_designer",
     "modal_gain_designer",
+    "recoverable_gain",
     "redesign",
     "residual_shift",
     "select_modes",

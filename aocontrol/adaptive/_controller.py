@@ -12,7 +12,7 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_in_range, check_int, check_nonnegative, check_positive
-from aocontrol.adaptive._redesign import Designer, _merge, redesign
+from aocontrol.adaptive._redesign import RANKINGS, Designer, _merge, redesign
 from aocontrol.controllers import ControllerBank, IIRBank
 from aocontrol.plant import check_system, plant_fs, z_inverse_coefficients
 from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry, pseudo_open_loop
@@ -280,6 +280,7 @@ class AdaptiveController(ControllerBank):
         oracle: Callable[[int], TelemetryPSD] | None = None,
         select: float | None = None,
         max_modes: int | None = None,
+        rank: str = "bound",
     ) -> None:
         if not isinstance(initial, IIRBank):
             raise TypeError(f"initial must be an IIRBank, got {type(initial).__name__}")
@@ -325,6 +326,9 @@ class AdaptiveController(ControllerBank):
         self._max_modes = (
             None if max_modes is None else check_int("max_modes", max_modes, minimum=1)
         )
+        if rank not in RANKINGS:
+            raise ValueError(f"rank must be one of {list(RANKINGS)}, got {rank!r}")
+        self._rank = rank
         if estimator is not None and not callable(estimator):
             raise TypeError(f"estimator must be callable, got {estimator!r}")
         self._estimator = estimator
@@ -454,6 +458,7 @@ class AdaptiveController(ControllerBank):
             last_ratio=self._last_ratio if self._select is not None else None,
             select=self._select,
             max_modes=self._max_modes,
+            rank=self._rank,
         )
         if up.ratio is not None:
             self._last_ratio = up.ratio

@@ -58,18 +58,28 @@ from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.loop import ModalTimeSeries, Stage, TurbulenceSource, run_loop
+from aocontrol.study._adapt_cascade import (
+    CASCADE_STRATEGIES,
+    AdaptCascadeStudy,
+    CascadeRow,
+    run_adapt_cascade,
+)
 from aocontrol.study.compare import prewhitened_disturbance
 from aocontrol.study.scene import Scene, build_scene
 from aocontrol.synthesis import TelemetryPSD
 
 __all__ = [
+    "CASCADE_STRATEGIES",
     "SCENARIOS",
     "STRATEGIES",
+    "AdaptCascadeStudy",
     "AdaptRow",
     "AdaptStudy",
+    "CascadeRow",
     "DIAGNOSTICS",
     "drifting_disturbance",
     "run_adapt",
+    "run_adapt_cascade",
     "scenario_drift",
 ]
 
@@ -218,6 +228,9 @@ class AdaptRow:
         From the controller's :class:`~aocontrol.adaptive.AdaptiveRun`.
     design_seconds : float
         Median compute time of a design [s].
+    clipped : int
+        Actuator-frames clipped by the case's DM stroke (:attr:`LoopResult.actuator_saturation`
+        summed; 0 without an actuator stroke).
     """
 
     strategy: str
@@ -229,6 +242,7 @@ class AdaptRow:
     n_rejected_modes: int
     n_rejected_banks: int
     design_seconds: float
+    clipped: int = 0
 
 
 @dataclass(frozen=True)
@@ -505,7 +519,8 @@ def run_adapt(
                 dict(design_options or {}),
                 dict(adaptive_options or {}),
             )
-            stage = Stage(ctrl, st.sensor, st.spec.latency_frames, name="stage 2")
+            # The case's DM (its actuator stroke clips the commands, as in the comparisons).
+            stage = Stage(ctrl, st.sensor, st.spec.latency_frames, dm=st.modal_dm(), name="stage 2")
             res = run_loop(
                 stage,
                 ModalTimeSeries(d, st.fs),
@@ -517,6 +532,7 @@ def run_adapt(
             e = res.telemetry["residuals"]
             first = round(window * st.fs)
             secs = [r.design_seconds for r in run.redesigns]
+            sat = res.actuator_saturation
             rows.append(
                 AdaptRow(
                     strategy=strategy,
@@ -528,6 +544,7 @@ def run_adapt(
                     n_rejected_modes=run.n_rejected_modes,
                     n_rejected_banks=run.n_rejected_banks,
                     design_seconds=float(np.median(secs)) if secs else 0.0,
+                    clipped=int(np.sum(sat)) if sat is not None else 0,
                 )
             )
             logger.info("%s", rows[-1])
