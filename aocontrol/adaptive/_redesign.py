@@ -334,7 +334,7 @@ def redesign(
     last_ratio: np.ndarray | None = None,
     select: float | None = None,
     max_modes: int | None = None,
-    rank: str = "bound",
+    rank: str = "shift",
 ) -> Update:
     """One redesign: select the modes, design them, certify them, merge the certified ones.
 
@@ -361,7 +361,7 @@ def redesign(
         ``None``: every mode.
     max_modes : int, optional
         At most this many modes (with ``select``), the largest predicted gains first.
-    rank : {"bound", "shift"}, default "bound"
+    rank : {"bound", "shift"}, default "shift"
         What ranks the modes (with ``select``): the residual a redesign is predicted to
         recover (:func:`recoverable_gain`) or how far the residual moved since the design
         (:func:`residual_shift`). Measured (``benchmarks/bench_adaptive.py`` (c), 540 modes,

@@ -24,6 +24,7 @@ import numpy as np
 from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.loop import Stage, run_cascade
+from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller
 from aocontrol.study.scene import Scene, build_scene
 
 logger = logging.getLogger(__name__)
@@ -230,7 +231,7 @@ def run_adapt_cascade(
         Unknown scenario, strategy or scheme, a window not shorter than the run, a latency
         not shorter than a period or the window: before any run.
     """
-    from aocontrol.study.adapt import _INDEPENDENT_SEED, SCENARIOS, _controller, scenario_drift
+    from aocontrol.study.adapt import SCENARIOS, scenario_drift
 
     bad = [s for s in strategies if s not in CASCADE_STRATEGIES]
     if bad:
