@@ -24,7 +24,7 @@ import numpy as np
 from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.loop import Stage, run_cascade
-from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller
+from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller, _settings
 from aocontrol.study.scene import Scene, build_scene
 
 logger = logging.getLogger(__name__)
@@ -323,15 +323,7 @@ def run_adapt_cascade(
                 )
             )
             logger.info("%s", rows[-1])
-    settings = dict(
-        latency=latency,
-        order=order,
-        modulus_margin=modulus_margin,
-        quick=quick,
-        seed=seed,
-        n_modes=st.n_modes,
-        fs=st.fs,
-        design_options=dict(design_options or {}),
-        adaptive_options=dict(adaptive_options or {}),
+    settings = _settings(
+        st, latency, order, modulus_margin, quick, seed, design_options, adaptive_options
     )
     return AdaptCascadeStudy(c.name, scenario, scheme, float(duration), tuple(rows), settings)

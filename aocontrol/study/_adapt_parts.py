@@ -117,3 +117,27 @@ def _controller(
         # The adaptive's window, on the true disturbance (no pseudo-open-loop estimate).
         kwargs["oracle"] = _truth(independent, scene, window_frames, seed, offset=0, centre=1.0)
     return AdaptiveController(initial, st.plant, designer, **kwargs)
+
+
+def _settings(
+    stage: object,
+    latency: float | None,
+    order: int,
+    modulus_margin: float,
+    quick: bool,
+    seed: int,
+    design_options: dict | None,
+    adaptive_options: dict | None,
+) -> dict:
+    """The settings a study records with its rows (``stage``: the scene's stage 2)."""
+    return dict(
+        latency=latency,
+        order=order,
+        modulus_margin=modulus_margin,
+        quick=quick,
+        seed=seed,
+        n_modes=stage.n_modes,
+        fs=stage.fs,
+        design_options=dict(design_options or {}),
+        adaptive_options=dict(adaptive_options or {}),
+    )

@@ -59,7 +59,7 @@ from aocontrol.study._adapt_cascade import (
     CascadeRow,
     run_adapt_cascade,
 )
-from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller
+from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller, _settings
 from aocontrol.study.scene import Scene, build_scene
 
 __all__ = [
@@ -446,15 +446,7 @@ def run_adapt(
                 )
             )
             logger.info("%s", rows[-1])
-    settings = dict(
-        latency=latency,
-        order=order,
-        modulus_margin=modulus_margin,
-        quick=quick,
-        seed=seed,
-        n_modes=st.n_modes,
-        fs=st.fs,
-        design_options=dict(design_options or {}),
-        adaptive_options=dict(adaptive_options or {}),
+    settings = _settings(
+        st, latency, order, modulus_margin, quick, seed, design_options, adaptive_options
     )
     return AdaptStudy(c.name, scenario, float(duration), tuple(rows), settings)
