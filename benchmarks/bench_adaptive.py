@@ -46,8 +46,16 @@ from aocontrol.study.scene import build_scene
 from aocontrol.synthesis import TelemetryPSD, datadriven
 
 
+def _quick_options(args: argparse.Namespace) -> dict:
+    """Design options of a quick run: a coarser grid, but the cold design's iterations not
+    capped (capped at 8, the first design left tip and tilt 2.5x above their converged residual
+    and the warm redesigns at T = 2 s never recovered: 1.70x the oracle instead of 1.02x on
+    the seeing-worsens scenario, docs/adaptive.md)."""
+    return dict(n_grid=24) if args.quick else {}
+
+
 def part_a(args: argparse.Namespace) -> None:
-    opts = dict(n_grid=24, max_iter=8) if args.quick else {}
+    opts = _quick_options(args)
     study = run_adapt(
         "bright1-best",
         scenario="wind-doubles",
@@ -83,7 +91,7 @@ def part_b(args: argparse.Namespace) -> None:
     d = drifting_disturbance(
         scene, scenario_drift("wind-doubles", duration, scene.case.atmosphere.seeing), n, 0
     )
-    opts = dict(n_grid=24, max_iter=8) if args.quick else {}
+    opts = _quick_options(args)
     ctrl = AdaptiveController(
         Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes),
         st.plant,
@@ -282,7 +290,7 @@ def study(args: argparse.Namespace) -> None:
     from aocontrol.study.plot import plot_adapt, use_file_backend
 
     os.makedirs(args.out, exist_ok=True)
-    opts = dict(n_grid=24, max_iter=8) if args.quick else {}
+    opts = _quick_options(args)
     periods = sorted((float(x) for x in args.periods.split(",")), reverse=True)
     windows = tuple(float(x) for x in args.windows.split(","))
     tables = {}
