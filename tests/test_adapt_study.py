@@ -91,3 +91,36 @@ def test_adapt_command_writes_table_hdf5_and_plot(tmp_path, capsys):
         assert np.all(ds["n_switches"].values > 0)
         ds.close()
     assert (tmp_path / "adapt_bright1-best.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_cascade_study_reports_residual_and_contrast():
+    # Stage 2 of the bright1-best cascade (quick scene) with the adaptive modal gain, stage 1's
+    # integrator in the loop: certified switches, a finite residual and both contrasts (raw
+    # contrast of a perfect coronagraph: in (0, 1)).
+    from aocontrol.study.adapt import run_adapt_cascade
+
+    study = run_adapt_cascade(
+        "bright1-best",
+        periods=(0.3,),
+        window=0.3,
+        duration=0.9,
+        strategies=("modal-gain",),
+        latency=0.05,
+    )
+    (row,) = study.rows
+    assert row.n_switches >= 2 and row.n_rejected_modes == 0
+    assert 0 < row.residual < 1e6
+    assert 0 < row.contrast < 1 and 0 < row.contrast_inner < 1
+    assert "modal-gain" in study.table()
+
+
+def test_bad_cascade_study_arguments():
+    from aocontrol.study.adapt import run_adapt_cascade
+
+    with pytest.raises(ValueError, match="strategies must be among"):
+        run_adapt_cascade("bright1-best", strategies=("pid",))
+    with pytest.raises(ValueError, match="scheme must be"):
+        run_adapt_cascade("bright1-best", scheme="serial")
+    with pytest.raises(ValueError, match=r"latency=0.5 s and period=0.5 s"):
+        run_adapt_cascade("bright1-best", periods=(0.5,), latency=0.5)

@@ -266,3 +266,42 @@ def test_selection_redesigns_only_modes_whose_disturbance_changed():
     assert not ctrl.last_run.redesigns[1].switched
     assert ctrl.last_run.n_rejected_banks == 0
     assert ctrl.last_run.n_designed_modes == N_MODES + 1 + sum(s.sum() for s in sel[4:])
+
+
+def test_recoverable_gain_ignores_a_change_of_scale_and_ranks_a_mistuned_mode():
+    # Invariants: the Wiener bound and the residual both scale with the disturbance and noise
+    # (linear filters), so a change of scale alone (the seeing) leaves nothing to recover;
+    # a mode never designed has an infinite gain. Oracle: with every controller designed on
+    # 5 Hz and mode 1's bandwidth doubled, mode 1 is predicted to gain and the others not,
+    # and the prediction is below its residual (a gain is never more than the residual).
+    from aocontrol.adaptive import recoverable_gain
+    from aocontrol.synthesis import optimal_modal_gain
+
+    f = np.linspace(0.0, FS / 2, 257)
+    plant = loop_plant(FS, LATENCY)
+    noise = np.full(N_MODES, 2 * 100.0 / FS)
+
+    def tel(fc, scale=1.0):
+        p = scale * 1e4 / (1.0 + (f[None, :] / np.asarray(fc)[:, None]) ** 4)
+        return TelemetryPSD(f, p, scale * noise, np.zeros((8, N_MODES)), p, FS, (0.8, 1.0))
+
+    t0 = tel([5.0, 5.0, 5.0])
+    bank = optimal_modal_gain(plant, f, t0.psd, t0.noise_psd)
+    gain0, eta = recoverable_gain(bank, plant, t0, np.full(N_MODES, np.nan))
+    assert np.all(np.isinf(gain0)) and np.all(eta >= 1.0)
+    scaled, _ = recoverable_gain(bank, plant, tel([5.0, 5.0, 5.0], 2.25), eta)
+    np.testing.assert_allclose(scaled, 0.0, atol=1e-9 * np.trapezoid(t0.psd, f).max())
+    t1 = tel([5.0, 10.0, 5.0])
+    gain, _ = recoverable_gain(bank, plant, t1, eta)
+    j1 = np.trapezoid(t1.psd[1], f)
+    assert gain[1] > 0 and gain[1] < j1
+    np.testing.assert_allclose(gain[[0, 2]], 0.0, atol=1e-9 * j1)
+    with pytest.raises(ValueError, match="rank must be one of"):
+        _adaptive(_same, select=0.5, rank="luck")
+
+
+def test_warm_design_settings_are_checked():
+    with pytest.raises(ValueError, match="warm_n_grid"):
+        datadriven_designer(warm_n_grid=4)
+    with pytest.raises(ValueError, match="warm_max_iter"):
+        datadriven_designer(warm_max_iter=0)

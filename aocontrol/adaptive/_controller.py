@@ -12,7 +12,7 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_in_range, check_int, check_nonnegative, check_positive
-from aocontrol.adaptive._redesign import Designer, _merge, redesign
+from aocontrol.adaptive._redesign import RANKINGS, Designer, _merge, redesign
 from aocontrol.controllers import ControllerBank, IIRBank
 from aocontrol.plant import check_system, plant_fs, z_inverse_coefficients
 from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry, pseudo_open_loop
@@ -239,20 +239,24 @@ class AdaptiveController(ControllerBank):
         ``frame`` instead of the telemetry estimate (a yardstick that knows the truth, e.g. in
         a simulation; its ``pseudo_open_loop`` is not used).
     select : float, optional
-        Redesign only the modes whose disturbance changed enough to matter: the fewest modes,
-        largest first, whose residual shifts (:func:`residual_shift`: how far the current
-        controller's residual moved from what a change of the disturbance's scale explains,
-        since its design) cover this share, in (0, 1], of the total;
+        Redesign only the modes predicted to gain the most: the fewest modes, largest first,
+        whose predicted gains (see ``rank``) cover this share, in (0, 1], of the total;
         modes never designed always. ``None`` (default): every mode at every design. The
         others keep their controller (not counted as rejected). See :func:`select_modes`.
     max_modes : int, optional
-        At most this many modes per design (with ``select``; the largest shifts first).
-        Measured (``benchmarks/bench_adaptive.py`` (c): 540 synthetic turbulence modes at
-        3 kHz, the wind from 10 to 12 m/s, 2 cores loaded by other jobs): ``select=0.9``
-        picks 475 modes (the shift is spread over the noise-limited modes); ``max_modes=16``
-        redesigns in 21 s against 843 s for every mode, but keeps only 8 % of the full
-        redesign's gain (summed residual +4.7 % over the full redesign's). The shift ranks
-        where the residual moved, not where a redesign recovers it.
+        At most this many modes per design (with ``select``; the largest gains first).
+    rank : {"bound", "shift"}, default "shift"
+        The predicted gain of a mode (with ``select``): the residual a redesign is predicted
+        to recover (:func:`recoverable_gain`: the current residual minus the design's
+        efficiency times the Wiener bound on the new estimate) or how far the residual moved
+        since the design (:func:`residual_shift`). Measured (``benchmarks/bench_adaptive.py
+        --parts c --sweep``: 540 synthetic turbulence modes at 3 kHz, the wind from 10 to
+        12 m/s; CPU time, the machine loaded by other jobs): redesigning every mode with
+        ``warm_n_grid=64, warm_max_iter=8`` costs 128 s of CPU; the gain is spread over
+        hundreds of modes, so 120 modes (``select=1, max_modes=120``, 10 s of CPU) recover
+        22 % of its gain, while every mode at ``warm_n_grid=32, warm_max_iter=1`` (44 s)
+        recovers 76 %. On 54 modes each designed exactly on the old PSD the two rankings
+        give 1 to 15 % of the gain for 7 to 22 % of the modes: neither concentrates it.
 
     Attributes
     ----------
@@ -280,6 +284,7 @@ class AdaptiveController(ControllerBank):
         oracle: Callable[[int], TelemetryPSD] | None = None,
         select: float | None = None,
         max_modes: int | None = None,
+        rank: str = "shift",
     ) -> None:
         if not isinstance(initial, IIRBank):
             raise TypeError(f"initial must be an IIRBank, got {type(initial).__name__}")
@@ -325,6 +330,9 @@ class AdaptiveController(ControllerBank):
         self._max_modes = (
             None if max_modes is None else check_int("max_modes", max_modes, minimum=1)
         )
+        if rank not in RANKINGS:
+            raise ValueError(f"rank must be one of {list(RANKINGS)}, got {rank!r}")
+        self._rank = rank
         if estimator is not None and not callable(estimator):
             raise TypeError(f"estimator must be callable, got {estimator!r}")
         self._estimator = estimator
@@ -454,6 +462,7 @@ class AdaptiveController(ControllerBank):
             last_ratio=self._last_ratio if self._select is not None else None,
             select=self._select,
             max_modes=self._max_modes,
+            rank=self._rank,
         )
         if up.ratio is not None:
             self._last_ratio = up.ratio

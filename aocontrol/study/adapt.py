@@ -48,28 +48,32 @@ import numpy as np
 
 from aocontrol._atomic import atomic_path
 from aocontrol.adaptive import (
-    AdaptiveController,
     AdaptiveRun,
-    datadriven_designer,
-    lqg_designer,
-    modal_gain_designer,
 )
-from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.loop import ModalTimeSeries, Stage, TurbulenceSource, run_loop
-from aocontrol.study.compare import prewhitened_disturbance
+from aocontrol.study._adapt_cascade import (
+    CASCADE_STRATEGIES,
+    AdaptCascadeStudy,
+    CascadeRow,
+    run_adapt_cascade,
+)
+from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller, _settings
 from aocontrol.study.scene import Scene, build_scene
-from aocontrol.synthesis import TelemetryPSD
 
 __all__ = [
+    "CASCADE_STRATEGIES",
     "SCENARIOS",
     "STRATEGIES",
+    "AdaptCascadeStudy",
     "AdaptRow",
     "AdaptStudy",
+    "CascadeRow",
     "DIAGNOSTICS",
     "drifting_disturbance",
     "run_adapt",
+    "run_adapt_cascade",
     "scenario_drift",
 ]
 
@@ -82,8 +86,6 @@ STRATEGIES = ("fixed", "adaptive", "oracle", "modal-gain", "lqg")
 #: pseudo-open-loop estimate); the prophet oracle (this run's own coming disturbance, no
 #: latency: it sees the realisation it will face).
 DIAGNOSTICS = ("adaptive-nolatency", "adaptive-truth", "oracle-prophet")
-# Offset of the seed of the oracle's independent realisation of the drift.
-_INDEPENDENT_SEED = 7919
 # The last disturbances generated ((key, seed) -> array), at most two.
 _DISTURBANCES: dict = {}
 # Fractions of the run between which the scripted scenarios ramp.
@@ -168,39 +170,6 @@ def drifting_disturbance(
     return out
 
 
-def _prewhitened(pol: np.ndarray, plant: object) -> TelemetryPSD:
-    """The study's PSD estimate (pre-whitened Welch, :func:`prewhitened_disturbance`)."""
-    fs = 1.0 / float(plant.dt)
-    tel, psd = prewhitened_disturbance(pol, np.zeros_like(pol), plant, fs)
-    return dataclasses.replace(tel, psd=psd)
-
-
-def _truth(
-    d: np.ndarray,
-    scene: Scene,
-    frames: int,
-    seed: int,
-    *,
-    offset: int,
-    centre: float,
-):
-    """A design source that knows the true disturbance: ``frames`` frames of a realisation
-    ``d`` (an independent one for the fair oracle) plus white noise of the true level, through
-    the loops' estimator. The segment starts at ``frame + offset - centre * frames``
-    (clipped to the run): ``offset`` = the switch latency and ``centre`` = 0 is the period a
-    design will serve; ``offset`` = 0 and ``centre`` = 1 the window behind the request."""
-    st = scene.stage2
-    rng = np.random.default_rng([seed, 23])
-
-    def oracle(frame: int) -> TelemetryPSD:
-        start = int(max(0, min(frame + offset - round(centre * frames), d.shape[0] - frames)))
-        seg = np.asarray(d[start : start + frames], dtype=float)
-        seg = seg + rng.standard_normal(seg.shape) * st.noise_std
-        return _prewhitened(seg, st.plant)
-
-    return oracle
-
-
 @dataclass(frozen=True)
 class AdaptRow:
     """One strategy at one (period, window) on one scenario.
@@ -218,6 +187,9 @@ class AdaptRow:
         From the controller's :class:`~aocontrol.adaptive.AdaptiveRun`.
     design_seconds : float
         Median compute time of a design [s].
+    clipped : int
+        Actuator-frames clipped by the case's DM stroke (:attr:`LoopResult.actuator_saturation`
+        summed; 0 without an actuator stroke).
     """
 
     strategy: str
@@ -229,6 +201,7 @@ class AdaptRow:
     n_rejected_modes: int
     n_rejected_banks: int
     design_seconds: float
+    clipped: int = 0
 
 
 @dataclass(frozen=True)
@@ -313,67 +286,6 @@ class AdaptStudy:
                 f"{r.n_rejected_modes:>6d} {r.design_seconds:>8.3g}"
             )
         return "\n".join(lines)
-
-
-def _controller(
-    strategy: str,
-    scene: Scene,
-    truth: tuple[np.ndarray, np.ndarray],
-    period: float,
-    window: float,
-    latency: float | None,
-    order: int,
-    modulus_margin: float,
-    n_jobs: int | None,
-    seed: int,
-    design_options: dict,
-    adaptive_options: dict,
-) -> AdaptiveController:
-    """The controller of one strategy (``truth``: the run's disturbance and an independent
-    realisation of the same drift)."""
-    st = scene.stage2
-    initial = Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes)
-    window_frames = round(window * st.fs)
-    period_frames = round(period * st.fs)
-    dd = datadriven_designer(
-        order=order, modulus_margin=modulus_margin, n_jobs=n_jobs, **design_options
-    )
-    designer = {
-        "modal-gain": modal_gain_designer(modulus_margin=modulus_margin),
-        "lqg": lqg_designer(),
-    }.get(strategy, dd)
-    lat = 0.0 if strategy in ("adaptive-nolatency", "oracle-prophet") else latency
-    kwargs = dict(
-        period=window if strategy == "fixed" else period,
-        window=window,
-        latency=lat,
-        modulus_margin=modulus_margin if strategy != "lqg" else min(modulus_margin, 0.3),
-        estimator=_prewhitened,
-        **adaptive_options,
-    )
-    if strategy == "fixed":
-        kwargs["max_designs"] = 1
-    lat_frames = 0 if lat is None else round(lat * st.fs)
-    d, independent = truth
-    if strategy == "oracle":
-        # The period the design will serve (from its switch), at least a window long.
-        kwargs["oracle"] = _truth(
-            independent,
-            scene,
-            max(period_frames, window_frames),
-            seed,
-            offset=lat_frames + period_frames // 2,
-            centre=0.5,
-        )
-    elif strategy == "oracle-prophet":
-        # The old oracle: this run's own coming disturbance, no latency.
-        kwargs["oracle"] = _truth(
-            d, scene, max(period_frames, window_frames), seed, offset=0, centre=0.0
-        )
-    elif strategy == "adaptive-truth":
-        # The adaptive's window, on the true disturbance (no pseudo-open-loop estimate).
-        kwargs["oracle"] = _truth(independent, scene, window_frames, seed, offset=0, centre=1.0)
-    return AdaptiveController(initial, st.plant, designer, **kwargs)
 
 
 def run_adapt(
@@ -505,7 +417,8 @@ def run_adapt(
                 dict(design_options or {}),
                 dict(adaptive_options or {}),
             )
-            stage = Stage(ctrl, st.sensor, st.spec.latency_frames, name="stage 2")
+            # The case's DM (its actuator stroke clips the commands, as in the comparisons).
+            stage = Stage(ctrl, st.sensor, st.spec.latency_frames, dm=st.modal_dm(), name="stage 2")
             res = run_loop(
                 stage,
                 ModalTimeSeries(d, st.fs),
@@ -517,6 +430,7 @@ def run_adapt(
             e = res.telemetry["residuals"]
             first = round(window * st.fs)
             secs = [r.design_seconds for r in run.redesigns]
+            sat = res.actuator_saturation
             rows.append(
                 AdaptRow(
                     strategy=strategy,
@@ -528,18 +442,11 @@ def run_adapt(
                     n_rejected_modes=run.n_rejected_modes,
                     n_rejected_banks=run.n_rejected_banks,
                     design_seconds=float(np.median(secs)) if secs else 0.0,
+                    clipped=int(np.sum(sat)) if sat is not None else 0,
                 )
             )
             logger.info("%s", rows[-1])
-    settings = dict(
-        latency=latency,
-        order=order,
-        modulus_margin=modulus_margin,
-        quick=quick,
-        seed=seed,
-        n_modes=st.n_modes,
-        fs=st.fs,
-        design_options=dict(design_options or {}),
-        adaptive_options=dict(adaptive_options or {}),
+    settings = _settings(
+        st, latency, order, modulus_margin, quick, seed, design_options, adaptive_options
     )
     return AdaptStudy(c.name, scenario, float(duration), tuple(rows), settings)

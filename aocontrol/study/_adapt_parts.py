@@ -1,0 +1,143 @@
+"""Pieces shared by the adaptive study's single-stage and cascade runs (private).
+
+The design sources that know the truth (the oracle and the diagnostics) and the controller of
+each strategy; see :mod:`aocontrol.study.adapt` for the strategies.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from aocontrol.adaptive import (
+    AdaptiveController,
+    datadriven_designer,
+    lqg_designer,
+    modal_gain_designer,
+)
+from aocontrol.controllers import Integrator
+from aocontrol.study.compare import prewhitened_disturbance
+from aocontrol.study.scene import Scene
+from aocontrol.synthesis import TelemetryPSD
+
+# Offset of the seed of the oracle's independent realisation of the drift.
+_INDEPENDENT_SEED = 7919
+
+
+def _prewhitened(pol: np.ndarray, plant: object) -> TelemetryPSD:
+    """The study's PSD estimate (pre-whitened Welch, :func:`prewhitened_disturbance`)."""
+    fs = 1.0 / float(plant.dt)
+    tel, psd = prewhitened_disturbance(pol, np.zeros_like(pol), plant, fs)
+    return dataclasses.replace(tel, psd=psd)
+
+
+def _truth(
+    d: np.ndarray,
+    scene: Scene,
+    frames: int,
+    seed: int,
+    *,
+    offset: int,
+    centre: float,
+):
+    """A design source that knows the true disturbance: ``frames`` frames of a realisation
+    ``d`` (an independent one for the fair oracle) plus white noise of the true level, through
+    the loops' estimator. The segment starts at ``frame + offset - centre * frames``
+    (clipped to the run): ``offset`` = the switch latency and ``centre`` = 0 is the period a
+    design will serve; ``offset`` = 0 and ``centre`` = 1 the window behind the request."""
+    st = scene.stage2
+    rng = np.random.default_rng([seed, 23])
+
+    def oracle(frame: int) -> TelemetryPSD:
+        start = int(max(0, min(frame + offset - round(centre * frames), d.shape[0] - frames)))
+        seg = np.asarray(d[start : start + frames], dtype=float)
+        seg = seg + rng.standard_normal(seg.shape) * st.noise_std
+        return _prewhitened(seg, st.plant)
+
+    return oracle
+
+
+def _controller(
+    strategy: str,
+    scene: Scene,
+    truth: tuple[np.ndarray, np.ndarray],
+    period: float,
+    window: float,
+    latency: float | None,
+    order: int,
+    modulus_margin: float,
+    n_jobs: int | None,
+    seed: int,
+    design_options: dict,
+    adaptive_options: dict,
+) -> AdaptiveController:
+    """The controller of one strategy (``truth``: the run's disturbance and an independent
+    realisation of the same drift)."""
+    st = scene.stage2
+    initial = Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes)
+    window_frames = round(window * st.fs)
+    period_frames = round(period * st.fs)
+    dd = datadriven_designer(
+        order=order, modulus_margin=modulus_margin, n_jobs=n_jobs, **design_options
+    )
+    designer = {
+        "modal-gain": modal_gain_designer(modulus_margin=modulus_margin),
+        "lqg": lqg_designer(),
+    }.get(strategy, dd)
+    lat = 0.0 if strategy in ("adaptive-nolatency", "oracle-prophet") else latency
+    kwargs = dict(
+        period=window if strategy == "fixed" else period,
+        window=window,
+        latency=lat,
+        modulus_margin=modulus_margin if strategy != "lqg" else min(modulus_margin, 0.3),
+        estimator=_prewhitened,
+        **adaptive_options,
+    )
+    if strategy == "fixed":
+        kwargs["max_designs"] = 1
+    lat_frames = 0 if lat is None else round(lat * st.fs)
+    d, independent = truth
+    if strategy == "oracle":
+        # The period the design will serve (from its switch), at least a window long.
+        kwargs["oracle"] = _truth(
+            independent,
+            scene,
+            max(period_frames, window_frames),
+            seed,
+            offset=lat_frames + period_frames // 2,
+            centre=0.5,
+        )
+    elif strategy == "oracle-prophet":
+        # The old oracle: this run's own coming disturbance, no latency.
+        kwargs["oracle"] = _truth(
+            d, scene, max(period_frames, window_frames), seed, offset=0, centre=0.0
+        )
+    elif strategy == "adaptive-truth":
+        # The adaptive's window, on the true disturbance (no pseudo-open-loop estimate).
+        kwargs["oracle"] = _truth(independent, scene, window_frames, seed, offset=0, centre=1.0)
+    return AdaptiveController(initial, st.plant, designer, **kwargs)
+
+
+def _settings(
+    stage: object,
+    latency: float | None,
+    order: int,
+    modulus_margin: float,
+    quick: bool,
+    seed: int,
+    design_options: dict | None,
+    adaptive_options: dict | None,
+) -> dict:
+    """The settings a study records with its rows (``stage``: the scene's stage 2)."""
+    return dict(
+        latency=latency,
+        order=order,
+        modulus_margin=modulus_margin,
+        quick=quick,
+        seed=seed,
+        n_modes=stage.n_modes,
+        fs=stage.fs,
+        design_options=dict(design_options or {}),
+        adaptive_options=dict(adaptive_options or {}),
+    )
