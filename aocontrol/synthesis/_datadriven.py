@@ -196,7 +196,7 @@ def _design_mode(
         raise RuntimeError("no iterate passed the certificates (margin, stability, pole radius)")
     b, a = _from_v(ctx, v)
     poles = _free_poles(ctx, v)
-    cert_v = cert.margin(v)[0]
+    cert_v = cert.margin(v)
     return {
         "peaks_hz": cert_v.minima_hz,
         "b": b,
