@@ -1,4 +1,4 @@
-"""The certificate's Newton polish and the design grid's seeds (issue 14, speed).
+"""The certificate's Newton polish, the design grid's seeds and warm starts (issue 14, speed).
 
 Oracles: a brute-force minimum of ``|num| / |den|`` on the circle (a dense grid, then zooming
 100x per level around its minimum), independent of the stationary-point polynomial; and the
@@ -15,7 +15,7 @@ from aocontrol import loop_plant
 from aocontrol.analysis import polynomial_certificate
 from aocontrol.analysis._certificate import _newton_polish, rational_modulus_minima
 from aocontrol.synthesis import _datadriven as dd
-from aocontrol.synthesis._dd_certify import _from_v, _grid_data, _ModeCertifier
+from aocontrol.synthesis._dd_certify import _from_v, _grid_data, _ModeCertifier, _warm_v
 
 # Newton converges quadratically to the stationary point: the value agrees with the brute
 # force to round-off, far below this (the issue asks 1e-9 relative).
@@ -135,3 +135,41 @@ def test_seeds_are_the_start_s_peaks_inside_the_input_range():
     assert seeds.size >= 1  # a loop with a margin has |S| > 1 somewhere (waterbed)
     np.testing.assert_array_equal(seeds, expected)
     assert np.all(np.isin(seeds, cert.h2_extra))
+
+
+def test_warm_start_with_integral_action_becomes_leaky_in_the_free_structure():
+    # Oracle: the definition. A design with a pole at z = 1 is outside the radius of a mode
+    # whose poles are all free; its integrator becomes 1 - (1 - leak) z^-1, the rest kept.
+    fs = 3000.0
+    plant = loop_plant(fs, 0.83)
+    f = np.linspace(0.0, fs / 2, 200)
+    setup = dd._prepare(
+        plant,
+        f,
+        (1.0 / (1.0 + (f / 50.0) ** 2))[None, :],
+        order=5,
+        noise_psd=1e-3,
+        modulus_margin=0.5,
+        hinf_weight=1e-3,
+        fixed_denominator=[1.0],
+        initial=None,
+        max_iter=60,
+        tol=1e-3,
+        n_grid=64,
+        fs=None,
+    )
+    ctx = setup.ctx
+    rest = np.convolve([1.0, -0.5], [1.0, 0.2])  # the other poles: 0.5 and -0.2
+    a = np.convolve([1.0, -1.0], rest)
+    b = np.array([0.3, -0.1, 0.05])
+    assert dd._to_v(ctx, b, a) is not None  # in the set, but its pole at 1 is outside
+    leak = 1e-3
+    v = _warm_v(ctx, b, a, leak)
+    b2, a2 = _from_v(ctx, v)
+    np.testing.assert_allclose(b2[: b.size], b, rtol=1e-12)
+    expected = np.convolve([1.0, -(1.0 - leak)], rest)
+    np.testing.assert_allclose(a2[: expected.size], expected, rtol=1e-12, atol=1e-15)
+    assert np.all(np.abs(a2[expected.size :]) < 1e-15)
+    # A design already inside the radius is kept as it is.
+    inside = np.convolve([1.0, -0.9], rest)
+    np.testing.assert_array_equal(_warm_v(ctx, b, inside, leak), dd._to_v(ctx, b, inside))

@@ -53,6 +53,7 @@ from aocontrol.synthesis._dd_certify import (
     _ModeCertifier,
     _p_of,
     _to_v,
+    _warm_v,
 )
 from aocontrol.synthesis._dd_grids import (
     _dense_grid,
@@ -158,14 +159,15 @@ def _design_mode(
     v0 = _to_v(ctx, b0, a0)
     start = "initial"
     if warm is not None:
-        vw = _to_v(ctx, *warm)
+        leak = 1.0 - ctx.pole_radius * (1.0 - _START_LEAK_MARGIN) if ctx.pole_radius else 0.0
+        vw = _warm_v(ctx, *warm, leak)
         if vw is not None and cert.check(vw).ok:
             J0 = true_objective(grid, v0, r1, rn, h)[0] if v0 is not None else np.inf
             Jw, Pw_grid = true_objective(grid, vw, r1, rn, h)
             # (The design grid's margin holds to the solver's accuracy.)
             Yg = grid.AY @ vw + grid.F
             if Jw < J0 and np.all(mu_d * (1 - 1e-4) * np.abs(Yg) <= np.abs(Pw_grid)):
-                b0, a0, v0, P0, start = warm[0], warm[1], vw, Pw_grid, "previous mode"
+                (b0, a0), v0, P0, start = _from_v(ctx, vw), vw, Pw_grid, "previous mode"
                 cert.b0, cert.a0 = b0, a0
     J_start = float(
         np.sum(h * (r1**2 * np.abs(Y0) ** 2 + rn**2 * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2)

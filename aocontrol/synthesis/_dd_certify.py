@@ -88,6 +88,29 @@ def _to_v(ctx: _Context, b: np.ndarray, a: np.ndarray) -> np.ndarray | None:
     return np.concatenate([x, quot[1:]])
 
 
+def _warm_v(ctx: _Context, b: np.ndarray, a: np.ndarray, leak: float) -> np.ndarray | None:
+    """Parameter vector of a warm start ``K = b/a`` (the previous mode's design), or None.
+
+    A design with integral action (a pole at z = 1) lies outside the radius of a mode whose
+    poles are all free: its integrator becomes the leaky one ``1 - (1 - leak)
+    z^-1`` of that mode's default start, the other poles kept. (Measured on the 20 lowest
+    turbulence modes at 3 kHz: the first free-structure mode after integral-action ones
+    started cold from the leaky integrator and took 52 solves.)
+    """
+    v = _to_v(ctx, b, a)
+    if ctx.fixed.size != 1 or ctx.pole_radius is None:
+        return v
+    if v is not None:
+        poles = _free_poles(ctx, v)
+        if not poles.size or np.max(np.abs(poles)) <= ctx.pole_radius:
+            return v
+    a = np.trim_zeros(np.asarray(a, float), "b")
+    quot, rem = np.polynomial.polynomial.polydiv(a, [1.0, -1.0])
+    if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a))):
+        return None
+    return _to_v(ctx, b, np.polynomial.polynomial.polymul(quot, [1.0, -(1.0 - leak)]))
+
+
 def _from_v(ctx: _Context, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = v[: ctx.nq + 1] / ctx.g_scale
     a = np.polynomial.polynomial.polymul(ctx.fixed, np.concatenate([[1.0], v[ctx.nq + 1 :]]))
