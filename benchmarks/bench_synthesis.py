@@ -182,7 +182,9 @@ t0 = time.process_time()
 r = datadriven(plant, d["freqs"], d["psd"], order=int(d["order"]), noise_psd=float(d["noise"]),
                n_jobs=1, progress=False)
 cpu = time.process_time() - t0
+import aocontrol
 print(json.dumps({"cpu": cpu, "residual": np.asarray(r.residual_variance).tolist(),
+                  "package": aocontrol.__file__,
                   "solves": np.asarray(r.solves).tolist()}))
 """
 
@@ -206,10 +208,15 @@ def serial_cpu(freqs, psd, noise, checkout: str | None = None) -> dict:
         if checkout is not None:
             env["PYTHONPATH"] = os.path.abspath(checkout)
         else:
-            env["PYTHONPATH"] = os.path.dirname(os.path.dirname(os.path.abspath(dd.__file__)))
+            import aocontrol
+
+            env["PYTHONPATH"] = os.path.dirname(
+                os.path.dirname(os.path.abspath(aocontrol.__file__))
+            )
         out = subprocess.run(
             [sys.executable, "-c", _CPU_SCRIPT, path],
             env=env,
+            cwd=tmp,  # not the caller's folder: its aocontrol would come first on sys.path
             capture_output=True,
             text=True,
             check=True,
