@@ -1,6 +1,7 @@
 """Benchmark of the data-driven synthesis (speed, quality, convergence). A script, not a test.
 
     python benchmarks/bench_synthesis.py [--n-modes 540] [--quick] [--n-jobs N]
+        [--old-checkout PATH]
 
 Case: ``n_modes`` turbulence-like modal PSDs
 (:func:`aocontrol.disturbance.synthetic_turbulence_psd`,
@@ -10,7 +11,11 @@ fs = 3000 Hz, latency 0.83 frame (SAXO+ stage 2).
 (a) Speed: wall time for the whole bank (all cores), and the per-mode time of a straightforward
     implementation (cvxpy problem rebuilt from numpy constants at every iteration, same cones,
     no extrapolation, no dense-check refinement) against ours, both serial on a subset of modes
-    in the same run; the straightforward total is extrapolated from that subset.
+    in the same run; the straightforward total is extrapolated from that subset. Serial CPU
+    per mode (process time, one worker) on 32 neighbouring modes (the bank's warm-start
+    chain) and on 24 modes spread over the bank; with ``--old-checkout PATH`` (or
+    ``AOCONTROL_OLD_CHECKOUT``) the same designs by the aocontrol of that checkout (e.g. a
+    worktree of an older commit) in a subprocess, and the CPU ratio new / old.
 (b) Quality: residual variance / Wiener bound of the data-driven controllers, of the optimal
     modal-gain integrators and of one hand-tuned gain for all modes (minimising the total).
 (c) Convergence: final objective vs a tightly converged reference (many iterations, tight
@@ -44,6 +49,7 @@ Timings are wall-clock on a shared machine: compare the ratios measured in one r
 from __future__ import annotations
 
 import argparse
+import os
 import time
 import warnings
 
@@ -161,6 +167,63 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
     return J, solves, cert.check_final(vc) is not None
 
 
+# Serial CPU measurement (a): the bank's block of this many neighbouring modes, in this process
+# and, with --old-checkout PATH (or the AOCONTROL_OLD_CHECKOUT environment variable), with the
+# aocontrol of another checkout (e.g. a git worktree of an older commit) in a subprocess.
+CPU_BLOCK = 32
+_CPU_SCRIPT = """
+import json, sys, time
+import numpy as np
+from aocontrol import loop_plant
+from aocontrol.synthesis import datadriven
+d = np.load(sys.argv[1])
+plant = loop_plant(float(d["fs"]), float(d["latency"]))
+t0 = time.process_time()
+r = datadriven(plant, d["freqs"], d["psd"], order=int(d["order"]), noise_psd=float(d["noise"]),
+               n_jobs=1, progress=False)
+cpu = time.process_time() - t0
+import aocontrol
+print(json.dumps({"cpu": cpu, "residual": np.asarray(r.residual_variance).tolist(),
+                  "package": aocontrol.__file__,
+                  "solves": np.asarray(r.solves).tolist()}))
+"""
+
+
+def serial_cpu(freqs, psd, noise, checkout: str | None = None) -> dict:
+    """CPU time [s] of ``datadriven`` on ``psd`` (one process, ``n_jobs=1``), its residuals.
+
+    With ``checkout`` the aocontrol found there runs the same design in a subprocess (same
+    inputs through a temporary ``.npz``): a same-run comparison with another version.
+    """
+    import json
+    import os
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "inputs.npz")
+        np.savez(path, freqs=freqs, psd=psd, noise=noise, fs=FS, latency=LATENCY, order=ORDER)
+        env = dict(os.environ)
+        if checkout is not None:
+            env["PYTHONPATH"] = os.path.abspath(checkout)
+        else:
+            import aocontrol
+
+            env["PYTHONPATH"] = os.path.dirname(
+                os.path.dirname(os.path.abspath(aocontrol.__file__))
+            )
+        out = subprocess.run(
+            [sys.executable, "-c", _CPU_SCRIPT, path],
+            env=env,
+            cwd=tmp,  # not the caller's folder: its aocontrol would come first on sys.path
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def _setup(plant, freqs, psd, noise, hinf_weight: float) -> dd._Setup:
     """The synthesis set-up of ``datadriven``'s defaults (order ORDER), for per-mode timing."""
     return dd._prepare(
@@ -214,6 +277,11 @@ def main() -> None:
     parser.add_argument("--n-modes", type=int, default=540)
     parser.add_argument("--quick", action="store_true", help="60 modes, small subsets")
     parser.add_argument("--n-jobs", type=int, default=None, help="worker processes (all)")
+    parser.add_argument(
+        "--old-checkout",
+        default=os.environ.get("AOCONTROL_OLD_CHECKOUT"),
+        help="another checkout (its aocontrol) for a same-run CPU comparison in (a)",
+    )
     args = parser.parse_args()
     n_modes = 60 if args.quick and args.n_modes == 540 else args.n_modes
     n_subset = 2 if args.quick else 4
@@ -244,6 +312,17 @@ def main() -> None:
     t0 = time.perf_counter()
     naive = [naive_mode(setup, item) for item in setup.items]
     t_naive = (time.perf_counter() - t0) / len(subset)
+    # Serial CPU per mode on a block of neighbouring modes (the bank's warm-start chain) and
+    # on modes spread over the bank, here and (optionally) with an older checkout.
+    blocks = {
+        "contiguous": np.arange(n_modes // 3, min(n_modes // 3 + CPU_BLOCK, n_modes)),
+        "spread": np.unique(np.linspace(0, n_modes - 1, min(24, n_modes)).round().astype(int)),
+    }
+    cpu = {}
+    for name, idx in blocks.items():
+        cpu[name] = [serial_cpu(freqs, psd[idx], noise)]
+        if args.old_checkout:
+            cpu[name].append(serial_cpu(freqs, psd[idx], noise, args.old_checkout))
 
     # (b) Quality against the Wiener bound.
     bound = wiener_bound(plant, freqs, psd, noise, fs=FS)
@@ -307,6 +386,21 @@ def main() -> None:
     print("\n(a) speed                                   value")
     print(f"  bank wall time, {n_modes} modes [s]        {t_bank:8.1f}   (goal <= 30 s for 540)")
     print(f"  median convex solves per mode              {np.median(res.solves):8.0f}")
+    for name, idx in blocks.items():
+        b_idx = bound[idx]
+        runs = cpu[name]
+        ms = runs[0]["cpu"] / idx.size * 1e3
+        line = (
+            f"  serial CPU per mode, {name} ({idx.size} modes) [ms] {ms:6.0f}"
+            f"   median x Wiener {np.median(np.array(runs[0]['residual']) / b_idx):.4f}"
+        )
+        if len(runs) > 1:
+            line += (
+                f"; old checkout {runs[1]['cpu'] / idx.size * 1e3:.0f} ms, median x Wiener "
+                f"{np.median(np.array(runs[1]['residual']) / b_idx):.4f}; "
+                f"CPU new / old {runs[0]['cpu'] / runs[1]['cpu']:.2f}"
+            )
+        print(line)
     print(f"  serial per mode, ours [s]                  {t_ours:8.2f}   (modes {subset.tolist()})")
     print(f"  serial per mode, straightforward [s]       {t_naive:8.2f}")
     print(f"  straightforward / ours (per mode)          {t_naive / t_ours:8.1f}x")

@@ -10,6 +10,7 @@ from aocontrol.analysis._cascade import (
     slow_stage_sensitivity,
 )
 from aocontrol.analysis._certificate import ModulusCertificate, modulus_certificate
+from aocontrol.analysis._certificate import polynomial_certificate as polynomial_certificate
 from aocontrol.analysis._constrained import (
     ConstrainedBound,
     ConstrainedBoundError,

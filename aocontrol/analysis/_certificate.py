@@ -14,9 +14,10 @@ basis, ``N(x) = r_0 + 2 sum_k r_k T_k(x)``, and likewise ``M(x)`` for ``|D|^2``.
 ``R = N / M`` is stationary in ``theta`` where ``sin(theta) = 0`` (the ends 0 Hz and fs/2) or
 where ``N' M - N M' = 0``, a polynomial in ``x``. Its real roots in ``[-1, 1]`` and the two
 ends are every candidate for the minimum: the smallest value of ``|1 + G K|`` among them is the
-minimum over the circle. Each candidate is polished on the exact rational expression (a bounded
-scalar minimisation around it), so root-finding round-off cannot lose a narrow dip; roots with a
-small imaginary part (a double real root split by round-off) are kept as candidates too.
+minimum over the circle. Each candidate is polished on the exact rational expression (Newton
+steps on its theta-derivative around it), so root-finding round-off cannot lose a narrow dip;
+roots with a small imaginary part (a double real root split by round-off) are kept as
+candidates too.
 
 For a measured plant (``control.FRD``) the plant is known on its grid only: the minimum is
 taken over the FRD's points and, where the controller has lightly damped poles, over refined
@@ -36,14 +37,18 @@ import control
 import numpy as np
 from numpy.polynomial import chebyshev as cheb
 from numpy.polynomial import polynomial as poly
-from scipy import optimize
 
 from aocontrol.analysis._loop import _as_siso_controller
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import check_frd_coverage, plant_fs, z_inverse_coefficients
 from aocontrol.plant import frequency_response_unchecked as _response
 
-__all__ = ["ModulusCertificate", "modulus_certificate", "rational_modulus_minima"]
+__all__ = [
+    "ModulusCertificate",
+    "modulus_certificate",
+    "polynomial_certificate",
+    "rational_modulus_minima",
+]
 
 #: Method names of a certificate.
 EXACT = "exact (stationary points of |1 + G K|^2 as polynomial roots)"
@@ -57,6 +62,12 @@ _IMAG_KEEP = 1e-3
 # Half-width [rad] of the polish around each candidate (covers the root's round-off in theta:
 # near x = +-1, dx ~ 1e-12 maps to dtheta ~ 1e-6).
 _POLISH = 1e-4
+# Newton steps of the polish (quadratic convergence from a root accurate to ~1e-8 rad: three
+# or four reach round-off; the iterations stop earlier when the steps vanish).
+_NEWTON_STEPS = 8
+# ... or when every step is below this [rad]: a dip as narrow as a pole at radius 1 - 1e-6
+# (width 1e-6 rad) then has its minimum to ~1e-10 relative.
+_NEWTON_STOP = 1e-11
 # Candidates within this factor of the smallest one are polished.
 _POLISH_WITHIN = 2.0
 # Controller poles above this radius are "lightly damped" for the FRD refinement.
@@ -108,6 +119,57 @@ def _cheb_of_abs2(c: np.ndarray) -> np.ndarray:
     return out
 
 
+def _abs2_derivatives(p: np.ndarray, w: np.ndarray) -> tuple:
+    """``|p(w)|^2`` at ``w = exp(-j theta)`` and its first two theta-derivatives.
+
+    With ``c(theta) = p(w)``: ``c' = -j w p'(w)`` and ``c'' = -w p'(w) - w^2 p''(w)``, so
+    ``|c|^2' = 2 Re(conj(c) c')`` and ``|c|^2'' = 2 (|c'|^2 + Re(conj(c) c''))``.
+    """
+    k = np.arange(p.size)
+    W = w[:, None] ** k  # (n, deg + 1)
+    c = W @ p
+    wc1 = W @ (k * p)  # w p'(w)
+    w2c2 = W @ (k * (k - 1) * p)  # w^2 p''(w)
+    ct = -1j * wc1
+    ctt = -wc1 - w2c2
+    a = np.abs(c) ** 2
+    return a, 2.0 * (np.conj(c) * ct).real, 2.0 * (np.abs(ct) ** 2 + (np.conj(c) * ctt).real)
+
+
+def _newton_polish(
+    num: np.ndarray, den: np.ndarray, theta: np.ndarray, vals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Newton steps on ``dR/dtheta = 0`` (``R = |num|^2 / |den|^2``), all candidates at once.
+
+    A step is taken where the curvature is positive (a minimum), stays within ``_POLISH``
+    of the candidate and in ``[0, pi]``; a candidate keeps its smallest value seen
+    (``|num| / |den|``), so polishing never raises a value.
+    """
+    theta, vals = theta.astype(float).copy(), vals.astype(float).copy()
+    t, lo, hi = theta.copy(), np.maximum(theta - _POLISH, 0.0), np.minimum(theta + _POLISH, np.pi)
+    for _ in range(_NEWTON_STEPS):
+        w = np.exp(-1j * t)
+        (a, a1, a2), (b, b1, b2) = _abs2_derivatives(num, w), _abs2_derivatives(den, w)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            v = np.sqrt(a / b)
+            R1 = (a1 * b - a * b1) / b**2
+            R2 = (a2 * b - a * b2) / b**2 - 2.0 * b1 * (a1 * b - a * b1) / b**3
+        better = np.isfinite(v) & (v < vals)
+        theta[better], vals[better] = t[better], v[better]
+        ok = np.isfinite(R1) & np.isfinite(R2) & (R2 > 0)
+        step = np.where(ok, -R1 / np.where(ok, R2, 1.0), 0.0)
+        if np.all(np.abs(step) <= _NEWTON_STOP):
+            break
+        t = np.clip(t + step, lo, hi)
+    else:
+        w = np.exp(-1j * t)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = np.abs(poly.polyval(w, num)) / np.abs(poly.polyval(w, den))
+        better = np.isfinite(v) & (v < vals)
+        theta[better], vals[better] = t[better], v[better]
+    return theta, vals
+
+
 def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Local minima over ``theta in [0, pi]`` of ``|num(w)| / |den(w)|``, ``w = exp(-j theta)``.
 
@@ -139,11 +201,6 @@ def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarra
         keep = (np.abs(roots.imag) <= _IMAG_KEEP) & (np.abs(roots.real) <= 1.0 + _IMAG_KEEP)
         cands.extend(np.arccos(np.clip(roots.real[keep], -1.0, 1.0)).tolist())
 
-    def value(theta: float) -> float:
-        w = np.exp(-1j * theta)
-        d = abs(poly.polyval(w, den))
-        return abs(poly.polyval(w, num)) / d if d > 0 else np.inf
-
     theta = np.unique(np.asarray(cands))
     w = np.exp(-1j * theta)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -151,14 +208,8 @@ def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarra
     vals = np.where(np.isnan(vals), np.inf, vals)
     # Polish the candidates that may hold the minimum (round-off in a root moves the value by
     # far less than this factor); the others only report local minima.
-    for i in np.flatnonzero(vals <= _POLISH_WITHIN * np.min(vals)):
-        t = theta[i]
-        lo, hi = max(t - _POLISH, 0.0), min(t + _POLISH, np.pi)
-        res = optimize.minimize_scalar(
-            value, bounds=(lo, hi), method="bounded", options={"xatol": 1e-14}
-        )
-        if res.fun < vals[i]:
-            theta[i], vals[i] = float(res.x), float(res.fun)
+    sel = np.flatnonzero(vals <= _POLISH_WITHIN * np.min(vals))
+    theta[sel], vals[sel] = _newton_polish(num, den, theta[sel], vals[sel])
     return theta, vals
 
 
@@ -226,13 +277,25 @@ def modulus_certificate(
     if isinstance(plant, control.TransferFunction) and isinstance(K, control.TransferFunction):
         bg, ag = z_inverse_coefficients(plant, "plant")
         bk, ak = z_inverse_coefficients(K, "controller")
-        d = poly.polymul(ag, ak)
-        c = poly.polyadd(d, poly.polymul(bg, bk))
-        theta, vals = rational_modulus_minima(c, d)
-        i = int(np.argmin(vals))
-        hz = theta * fs_ / (2 * np.pi)
-        return ModulusCertificate(float(vals[i]), float(hz[i]), True, EXACT, hz, vals)
+        return polynomial_certificate(bg, ag, bk, ak, fs_)
     return _frd_certificate(plant, K, fs_, extra_freqs)
+
+
+def polynomial_certificate(
+    bg: np.ndarray, ag: np.ndarray, bk: np.ndarray, ak: np.ndarray, fs: float
+) -> ModulusCertificate:
+    """The exact certificate of ``G = bg / ag`` and ``K = bk / ak`` (powers of ``z^-1``).
+
+    What :func:`modulus_certificate` computes for transfer functions, from their coefficients
+    (lowest power first) without building the systems: the synthesis certifies every
+    candidate controller this way.
+    """
+    d = poly.polymul(ag, ak)
+    c = poly.polyadd(d, poly.polymul(bg, bk))
+    theta, vals = rational_modulus_minima(c, d)
+    i = int(np.argmin(vals))
+    hz = theta * fs / (2 * np.pi)
+    return ModulusCertificate(float(vals[i]), float(hz[i]), True, EXACT, hz, vals)
 
 
 def _frd_certificate(

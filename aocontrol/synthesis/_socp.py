@@ -60,10 +60,12 @@ logger = logging.getLogger(__name__)
 # is scaled by construction (Y monic, G normalised, g = s u), and it halves the IPM iterations.
 # Gap 1e-4: each convex step is only a surrogate of the true problem; measured on 6 modes it
 # saves ~35 % of the solver time and moves the final objectives by < 0.5 % either way.
+# Feasibility 1e-6 (1e-7 before): 8 % fewer IPM iterations (23.8 vs 25.8 on 8 recorded
+# problems), objectives within 3e-4; every iterate is certified on the exact constraints.
 _SOLVER_OPTS = {
     "tol_gap_abs": 1e-5,
     "tol_gap_rel": 1e-4,
-    "tol_feas": 1e-7,
+    "tol_feas": 1e-6,
     "max_iter": 100,
     "presolve_enable": False,
     "accept_unknown": True,
@@ -397,6 +399,10 @@ class Certifier:
     def winding(self, v: np.ndarray | None) -> list:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def seeds(self, v: np.ndarray) -> np.ndarray:
+        """Frequencies [Hz] to add to the grid before the first step (none by default)."""
+        return np.empty(0)
+
 
 # Extrapolation steps tried beyond each convex step (multiples of the step, doubling).
 _EXTRAPOLATION = 2.0 ** np.arange(1, 11) - 1.0
@@ -482,6 +488,44 @@ def ccp(
     def p_prev(f: np.ndarray, rows: GridData) -> np.ndarray:
         return rows.A @ v_best + rows.F if v_best is not None else p_start(f)
 
+    def join(new: np.ndarray) -> None:
+        """Add the points ``new`` [Hz] to the design grid (margin rows; H2 if the certifier
+        says so), the previous controller kept feasible, the objective re-evaluated."""
+        nonlocal grid_f, grid, Pc, added, w_grid, J_best
+        rows = cert.rows(new)
+        Pb = p_prev(new, rows)
+        if v_best is not None:
+            # The previous controller stays feasible: a cut point's margin is at most
+            # what it meets there (it passed the certificate, so at least mu).
+            Yb = rows.AY @ v_best + rows.F
+            with np.errstate(divide="ignore", invalid="ignore"):
+                met = np.where(np.abs(Yb) > 0, np.abs(Pb) / np.abs(Yb), np.inf)
+            rows = GridData(
+                rows.AY,
+                rows.AX,
+                rows.F,
+                np.minimum(rows.mu_rows(), met * (1 - 1e-9)),
+                rows.hinf_weight,
+            )
+        grid_f = np.concatenate([grid_f, new])
+        grid = grid.join(rows)
+        Pc = np.concatenate([Pc, Pb])
+        added += new.size
+        w_grid = cert.weights(grid_f)
+        problem.set_grid(grid, *w_grid)
+        if v_best is not None:
+            # The objective on the refined grid (the H2 weights may have moved).
+            J_best = true_objective(grid, v_best, *w_grid)[0]
+
+    if v0 is not None:
+        # Seed the grid with the start's |S| peaks (the local minima of |1 + G K| where
+        # |S| > 1): the steps tend to deepen them between design points, which the
+        # certificates would otherwise add one cut (one solve) at a time.
+        seeds = cert.seeds(v0)
+        seeds = seeds[~np.isin(seeds, grid_f)][: max(problem.slots - grid_f.size, 0) // 2]
+        if seeds.size:
+            join(seeds)
+            history[0] = J_best
     problem.set_grid(grid, *w_grid)
     problem.set_winding(cert.winding(v0))
     it = 0
@@ -528,30 +572,7 @@ def ccp(
             logger.debug(
                 "%s check failed at iteration %d: %s Hz join the grid", chk.reason, it, new
             )
-            rows = cert.rows(new)
-            Pb = p_prev(new, rows)
-            if v_best is not None:
-                # The previous controller stays feasible: a cut point's margin is at most
-                # what it meets there (it passed the certificate, so at least mu).
-                Yb = rows.AY @ v_best + rows.F
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    met = np.where(np.abs(Yb) > 0, np.abs(Pb) / np.abs(Yb), np.inf)
-                rows = GridData(
-                    rows.AY,
-                    rows.AX,
-                    rows.F,
-                    np.minimum(rows.mu_rows(), met * (1 - 1e-9)),
-                    rows.hinf_weight,
-                )
-            grid_f = np.concatenate([grid_f, new])
-            grid = grid.join(rows)
-            Pc = np.concatenate([Pc, Pb])
-            added += new.size
-            w_grid = cert.weights(grid_f)
-            problem.set_grid(grid, *w_grid)
-            if v_best is not None:
-                # The objective on the refined grid (the H2 weights may have moved).
-                J_best = true_objective(grid, v_best, *w_grid)[0]
+            join(new)
             continue
         J, P = true_objective(grid, v, *w_grid)
         if not np.isfinite(J):
