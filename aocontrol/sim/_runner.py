@@ -145,6 +145,7 @@ class _StageRun:
         self.n = n
         self.ctrl = stage.controller
         self.k0, self.frac = stage.delay
+        self.w0 = 1.0 - self.frac  # weight of the newer command in the delay line
         self.depth = self.k0 + 2
         self.hist = np.zeros((self.depth, n))  # ring buffer of commands, hist[k % depth]
         self.dm = stage.dm
@@ -175,6 +176,7 @@ class _StageRun:
         self.limit = self.limit_unstable = self.limit_check = np.inf
         self.out: dict[str, np.ndarray] = {}
         self.out_m = self.out_u = self.out_y = self.out_e = None
+        self.chunk_dm: np.ndarray | None = None
         self.energy: list[np.ndarray] = []
         radius = closed_loop_pole_radius(stage, optical_gain)
         self.radius = radius
@@ -207,8 +209,13 @@ class _StageRun:
         }
         self.out_m = self.out.get("measurements")
         self.out_u = self.out.get("commands")
+        # The DM shapes and residuals are always kept for the chunk: the frames write their
+        # rows in place (no per-frame copies), the statistics are computed per chunk and
+        # ``chunk_dm`` holds the chunk's DM shapes for the caller (science).
         self.out_y = self.out.get("dm")
-        # The residuals are always kept for the chunk (statistics computed per chunk).
+        if self.out_y is None:
+            self.out_y = np.empty((m_chunk, self.n))
+        self.chunk_dm = self.out_y
         self.out_e = self.out.get("residuals")
         if self.out_e is None:
             self.out_e = np.empty((m_chunk, self.n))
@@ -227,10 +234,8 @@ class _StageRun:
         e = self.out_e[:m]
         start = max(self.settle - first, 0)
         if self.accumulate and start < m:
-            # Sequential sums over frames (cumsum adds row after row, as a per-frame +=).
-            self.sum_e2 = np.cumsum(np.concatenate([self.sum_e2[None], e[start:] ** 2]), axis=0)[-1]
-            d = d_rec[start:]
-            self.sum_d2 = np.cumsum(np.concatenate([self.sum_d2[None], d**2]), axis=0)[-1]
+            self.sum_e2 = _sequential_sum(self.sum_e2, e[start:] ** 2)
+            self.sum_d2 = _sequential_sum(self.sum_d2, d_rec[start:] ** 2)
         # Sustained growth of the residual relative to its input (see _GROWTH_FACTOR).
         e_energy = np.einsum("ij,ij->j", e, e)
         d_energy = np.einsum("ij,ij->j", d_rec, d_rec) + m * self.noise_energy + 1e-300
@@ -287,16 +292,21 @@ class _StageRun:
         k = self.k
         hist, depth = self.hist, self.depth
         hist[k % depth] = u
-        y = (1.0 - self.frac) * hist[(k - self.k0) % depth]
+        # The DM shape and the residual are written in place in the chunk's rows: same
+        # operations, in the same order, as ``y = w0 h[k - k0] + frac h[k - k0 - 1]``.
+        y = self.out_y[j]
         if self.frac:
-            y = y + self.frac * hist[(k - self.k0 - 1) % depth]
+            np.multiply(hist[(k - self.k0) % depth], self.w0, out=y)
+            y += self.frac * hist[(k - self.k0 - 1) % depth]
+        else:
+            y[...] = hist[(k - self.k0) % depth]
         if self.tracker is not None:  # the dither: an offset of the mirror (_gain_tracking)
-            y = y + self.tracker.dither(j)
+            y += self.tracker.dither(j)
         if offset is not None:
-            y = y + offset
+            y += offset
             if self.clip:
-                y = self.dm.clip(y, self.dm_state)
-        e = (d_j if r_j is None else r_j) - y
+                y[...] = self.dm.clip(y, self.dm_state)
+        e = np.subtract(d_j if r_j is None else r_j, y, out=self.out_e[j])
         # One reduction per frame (NaN fails the comparison and is caught here too).
         if not e @ e < self.limit_check:
             self._diverged(k, np.abs(e))
@@ -304,9 +314,6 @@ class _StageRun:
             self.out_m[j] = m
         if self.out_u is not None:
             self.out_u[j] = u
-        if self.out_y is not None:
-            self.out_y[j] = y
-        self.out_e[j] = e
         self.k = k + 1
         return e, y
 
@@ -384,6 +391,17 @@ def controller_counters(ctrl: Any) -> dict[str, int]:
         if value is not None:
             out[name] = int(np.sum(value))
     return out
+
+
+def _sequential_sum(total: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``total + rows[0] + rows[1] + ...`` added row after row (as a per-frame ``+=``).
+
+    A reduction along the first (outer) axis of a C-ordered array adds the rows in order,
+    element by element (numpy's pairwise summation applies along the contiguous axis only):
+    bit-identical to the per-frame sum (tested), ~6x cheaper than ``cumsum``.
+    """
+    stacked = np.concatenate([total[None], rows])
+    return np.add.reduce(stacked, axis=0)
 
 
 def _check_common(
