@@ -10,11 +10,25 @@ steps, the DM moves. :func:`drive` is the one chunked driver (chunks, progress, 
 checks, the controllers' reset) shared by :func:`run_loop` (one stage) and
 :func:`~aocontrol.sim._cascade.run_cascade` (two stages on the fast clock), which differ only
 in how a chunk's disturbance reaches the stages.
+
+BLAS threads (engine setting): :func:`drive` runs a whole run with at most
+:func:`engine_blas_threads` BLAS threads, 1 by default. The engine's products are small
+(a frame's vectors) or medium (a chunk's projection, ~100 ms): a multithreaded OpenBLAS
+spends more CPU on them than it saves in wall time, and much more on a machine shared with
+other jobs (measured, 5.1-s two-stage exposure on 2 cores: 1 thread 449 us CPU per fast
+frame, 2 threads 687 us; the wall time was shorter with 1 thread as well). On a machine with
+idle cores where wall time matters more than CPU, set the environment variable
+``AOCONTROL_ENGINE_BLAS_THREADS`` to a number of threads, or to ``0`` to leave the BLAS's
+own setting. The thread count changes the rounding of float32 products (the projection):
+runs are reproducible for one setting, and agree across settings to the projection's
+rounding (see :mod:`aocontrol.sim._projection`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -26,8 +40,10 @@ from aocontrol.plant import z_inverse_coefficients
 from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
+from aocontrol.sim.science import LongExposure
+from aocontrol.sim.wfs._common import blas_threads
 
-__all__ = ["run_loop", "drive"]
+__all__ = ["run_loop", "drive", "engine_blas_threads", "ENV_BLAS_THREADS"]
 
 logger = logging.getLogger(__name__)
 
@@ -50,6 +66,40 @@ _POLE_RADIUS_TOL = 1e-9
 _GROWTH_FACTOR = 2.0
 _GROWTH_CHUNKS = 3
 _GROWTH_RATIO = 30.0
+
+
+#: Environment variable: BLAS threads of a run (module docstring); ``0`` leaves the BLAS's own.
+ENV_BLAS_THREADS = "AOCONTROL_ENGINE_BLAS_THREADS"
+_DEFAULT_BLAS_THREADS = 1
+
+
+def engine_blas_threads() -> int | None:
+    """BLAS threads of a run (``$AOCONTROL_ENGINE_BLAS_THREADS``, default 1), or ``None``.
+
+    Returns
+    -------
+    int or None
+        The limit :func:`drive` sets while a run goes; ``None`` (the variable set to ``0``)
+        leaves the BLAS's own number of threads.
+
+    Raises
+    ------
+    ValueError
+        If the variable is not a whole number >= 0.
+    """
+    raw = os.environ.get(ENV_BLAS_THREADS)
+    if raw is None:
+        return _DEFAULT_BLAS_THREADS
+    try:
+        value = int(raw.strip())
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise ValueError(
+            f"${ENV_BLAS_THREADS} must be a whole number of threads >= 0 (0: the BLAS's own "
+            f"setting), got {raw!r}"
+        )
+    return value or None
 
 
 def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarray | None:
@@ -474,7 +524,8 @@ def drive(
 ) -> None:
     """The one chunked driver: ``advance(first, m)`` for chunks of ``m <= chunk`` frames.
 
-    Shows a progress bar when asked, runs the end-of-run checks of every stage
+    Shows a progress bar when asked, runs the chunks with at most
+    :func:`engine_blas_threads` BLAS threads, runs the end-of-run checks of every stage
     (:meth:`_StageRun.finish`) and resets every stage's controller, also on an error.
 
     Parameters
@@ -492,19 +543,22 @@ def drive(
     desc : str
         Label of the progress bar.
     """
+    threads = engine_blas_threads()
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n_frames, desc=desc, unit="frame")
     k = 0
+    limit = contextlib.nullcontext() if threads is None else blas_threads(threads)
     try:
-        while k < n_frames:
-            m = min(chunk, n_frames - k)
-            advance(k, m)
-            k += m
-            if bar is not None:
-                bar.update(m)
+        with limit:  # the engine's BLAS threads (module docstring)
+            while k < n_frames:
+                m = min(chunk, n_frames - k)
+                advance(k, m)
+                k += m
+                if bar is not None:
+                    bar.update(m)
         for run in runs:
             run.finish()
     finally:
@@ -629,19 +683,21 @@ def run_loop(
                 "and a sensor that reads phase maps)"
             )
         run.begin_chunk(d, m_chunk)
-        ys = np.empty((m_chunk, n)) if science is not None else None
-        have_maps = maps is not None and resid is not None
-        for j in range(m_chunk):
-            y = run.step(j, d[j], resid)
-            if have_maps:  # references only: the map is formed if the sensor asks
-                resid.set(form, maps[j], y)
-            if ys is not None:
-                ys[j] = y
+        if maps is not None and resid is not None and run.needs_phase:
+            for j in range(m_chunk):
+                y = run.step(j, d[j], resid)
+                resid.set(form, maps[j], y)  # references only: the map formed if asked
+        else:
+            for j in range(m_chunk):
+                run.step(j, d[j], resid)
+        ys = run.chunk_dm  # the chunk's DM shapes (m_chunk, n)
         run.end_chunk(d, first)
         if science is not None:
             idx = science_frames(first, m_chunk, settle, science_every)
             if idx.size:
-                science.add(basis.pupil.to_map(maps[idx] - basis.synthesize(ys[idx])))
+                res = maps[idx] - basis.synthesize(ys[idx])
+                # The camera reads valid-pixel vectors as they are (no map round trip).
+                science.add(res if isinstance(science, LongExposure) else basis.pupil.to_map(res))
 
     drive(n_frames, chunk, advance, (run,), progress=progress, desc=f"{stage.name} loop")
     result_science = science.result() if science is not None else None
