@@ -203,7 +203,8 @@ class ModalProjector:
         for row in range(npx):
             edges = np.flatnonzero(np.diff(np.r_[True, mask[row], True].astype(np.int8)))
             # edges pair up as (start of a gap, end of a gap) in the padded row
-            self._gaps += [(row, int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
+            pairs = zip(edges[::2], edges[1::2], strict=True)
+            self._gaps += [(row, int(a), int(b)) for a, b in pairs]
         self._mirrors = []  # (gxT, gy, [(basis columns, rows, cols, m2c / n, mean m2c / n)])
         self._gxt_all: np.ndarray | None = None  # every mirror's gxT side by side
         groups: dict[int, list] = {}
@@ -252,7 +253,7 @@ class ModalProjector:
         # halves[y, frame, a_x] of each mirror side by side.
         halves = maps @ self._gxt_all
         first = 0
-        for gxt, gy, entries in self._mirrors:
+        for _, gy, entries in self._mirrors:
             na = gy.shape[0]
             half = np.ascontiguousarray(halves[:, first : first + na])
             first += na
