@@ -15,8 +15,9 @@ BLAS threads (engine setting): :func:`drive` runs a whole run with at most
 :func:`engine_blas_threads` BLAS threads, 1 by default. The engine's products are small
 (a frame's vectors) or medium (a chunk's projection, ~100 ms): a multithreaded OpenBLAS
 spends more CPU on them than it saves in wall time, and much more on a machine shared with
-other jobs (measured, 5.1-s two-stage exposure on 2 cores: 1 thread 449 us CPU per fast
-frame, 2 threads 687 us; the wall time was shorter with 1 thread as well). On a machine with
+other jobs (measured on 2 cores loaded by other jobs, the 5.1-s two-stage exposure of
+``benchmarks/bench_cascade.py``, back to back: 1 thread 0.75-0.82x the CPU time of 2 threads,
+and no longer in wall time; 3000 frames: 449 against 687 us CPU per fast frame). On a machine with
 idle cores where wall time matters more than CPU, set the environment variable
 ``AOCONTROL_ENGINE_BLAS_THREADS`` to a number of threads, or to ``0`` to leave the BLAS's
 own setting. The thread count changes the rounding of float32 products (the projection):
