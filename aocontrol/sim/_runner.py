@@ -38,11 +38,11 @@ import numpy as np
 from aocontrol._validation import check_int
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import z_inverse_coefficients
+from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
 from aocontrol.sim.science import LongExposure
-from aocontrol.sim.wfs._common import blas_threads
 
 __all__ = ["run_loop", "drive", "engine_blas_threads", "ENV_BLAS_THREADS"]
 
