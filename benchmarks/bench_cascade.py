@@ -9,23 +9,38 @@ Prints, all measured in one run: the calibration (DM influence functions + KL ba
 the median of ``--repeat`` cascade runs; the per-part split of a run (atmosphere,
 projection on both bases, stage steps, science), each part timed separately on the same
 sizes and scaled to the run; the ratio to the goal and to the single-stage loop (stage 2
-alone, same atmosphere and science) run in the same process.
+alone, same atmosphere and science) run in the same process. The engine runs with
+``aocontrol.sim._runner.engine_blas_threads()`` BLAS threads (1 unless
+``$AOCONTROL_ENGINE_BLAS_THREADS`` says otherwise); the parts are timed with the same
+setting. ``--compare-threads`` also times the cascade with the BLAS's own threads (the
+variable set to 0), back to back with the engine's setting.
 
 Usage: python benchmarks/bench_cascade.py [--frames 15300] [--n-pix 96] [--layers 10]
-       [--repeat 3] [--quick]
+       [--repeat 3] [--quick] [--compare-threads]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import statistics
 import time
 
 import numpy as np
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from aocontrol.controllers import Integrator
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
-from aocontrol.sim.loop import LinearModalSensor, Stage, TurbulenceSource, run_cascade, run_loop
+from aocontrol.sim.loop import (
+    ENV_BLAS_THREADS,
+    LinearModalSensor,
+    Stage,
+    TurbulenceSource,
+    engine_blas_threads,
+    run_cascade,
+    run_loop,
+)
 from aocontrol.sim.modes import ModalProjector, kl_basis
 from aocontrol.sim.profiles import eso_atmosphere
 from aocontrol.sim.pupil import vlt_pupil
@@ -58,6 +73,11 @@ def main() -> None:
     p.add_argument("--science-every", type=int, default=10)
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--quick", action="store_true", help="3000 frames, 64 px, 400 + 200 modes")
+    p.add_argument(
+        "--compare-threads",
+        action="store_true",
+        help=f"also time the cascade with the BLAS's own threads (${ENV_BLAS_THREADS}=0)",
+    )
     args = p.parse_args()
     if args.quick:
         args.frames, args.n_pix, args.modes1, args.modes2, args.repeat = 3000, 84, 400, 200, 1
@@ -95,13 +115,9 @@ def main() -> None:
             pupil, SEEING, TAU0, FS2, n_layers=args.layers, rng=1, dtype=np.float32
         )
 
-    runs, cpus, res = [], [], None
-    for _ in range(args.repeat):
+    def cascade(atm):
         s1, s2 = stages()
-        atm = atmosphere()
-        c0 = time.process_time()
-        t0 = time.perf_counter()
-        res = run_cascade(
+        return run_cascade(
             s1,
             s2,
             atm,
@@ -114,10 +130,36 @@ def main() -> None:
             science_every=args.science_every,
             record=("measurements", "commands"),
         )
+
+    runs, cpus, res = [], [], None
+    other = []  # (wall, CPU) with the BLAS's own threads (--compare-threads)
+    for _ in range(args.repeat):
+        atm = atmosphere()  # its first screens are not timed
+        c0 = time.process_time()
+        t0 = time.perf_counter()
+        res = cascade(atm)
         runs.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
+        if args.compare_threads:
+            saved = os.environ.get(ENV_BLAS_THREADS)
+            os.environ[ENV_BLAS_THREADS] = "0"
+            try:
+                atm = atmosphere()
+                c0 = time.process_time()
+                t0 = time.perf_counter()
+                cascade(atm)
+                other.append((time.perf_counter() - t0, time.process_time() - c0))
+            finally:
+                if saved is None:
+                    os.environ.pop(ENV_BLAS_THREADS)
+                else:
+                    os.environ[ENV_BLAS_THREADS] = saved
     t_run = statistics.median(runs)
     c_run = statistics.median(cpus)
+    threads = engine_blas_threads()
+    # The parts below run with the engine's BLAS threads.
+    limit = contextlib.nullcontext() if threads is None else threadpool_limits(threads, "blas")
+    limit.__enter__()
 
     # Parts, timed separately (CPU time of the process: robust on a shared machine) on the
     # same sizes and scaled to the run.
@@ -184,6 +226,7 @@ def main() -> None:
     )
     t_single = time.perf_counter() - t0
     c_single = time.process_time() - c0
+    limit.__exit__(None, None, None)
 
     sci = res.science
     print(
@@ -216,6 +259,16 @@ def main() -> None:
         f"    projection path {proj.path!r}: {t_proj:.2f} s CPU vs the dense float32 product "
         f"{t_dense:.2f} s (ratio {t_proj / t_dense:.2f})"
     )
+    own = max(int(i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas")
+    print(f"  engine BLAS threads: {threads or f'the BLAS own ({own})'} (${ENV_BLAS_THREADS})")
+    if other:
+        w_o = statistics.median(w for w, _ in other)
+        c_o = statistics.median(c for _, c in other)
+        print(
+            f"    with the BLAS's own {own} threads, back to back: wall {w_o:.2f} s, CPU "
+            f"{c_o:.2f} s ({', '.join(f'{c:.2f}' for _, c in other)}); engine setting / own: "
+            f"wall {t_run / w_o:.2f}, CPU {c_run / c_o:.2f}"
+        )
     print(
         f"  run time / goal ({GOAL_SECONDS:g} s): wall {t_run / GOAL_SECONDS:.2f}, "
         f"CPU {c_run / GOAL_SECONDS:.2f}"

@@ -4,8 +4,9 @@ The arrays in ``tests/data/golden_loop.npz`` were recorded from the loop engine 
 before the one-driver refactoring (issue 15; the code that the removed
 ``tests/_legacy_loop.py`` had been checked against bit for bit). ``tests/test_loop.py`` and
 ``tests/test_cascade.py`` run the same configurations with today's engine and compare:
-single-stage runs bit for bit, cascades and the diffractive run bit for bit as well (the
-same floating-point operations in the same order).
+the linear single-stage runs (a modal disturbance, no product whose rounding can change)
+bit for bit; the runs that project phase screens on modes (science, diffractive, cascades)
+to :data:`GOLDEN_RTOL` (see there why), with their integer counts exact.
 
 Regenerate (only when a change of the loop's numbers is intended, and say so in the commit)::
 
@@ -48,6 +49,32 @@ LINEAR = {
     "lin_d": dict(latency=2.0, noise=0.3, og=0.7, chunk=333),
 }
 _STAT = ("residual_variance", "disturbance_variance", "saturation", "actuator_saturation")
+
+
+#: Tolerance of the runs that project phase screens on modes: each array's largest
+#: difference to its golden, relative to the golden's largest magnitude. Two things round
+#: differently from the recording: (1) the projection is float32 (issue 19;
+#: aocontrol.sim._projection: relative rounding ~6e-7 RMS, ~2e-4 of a mode's largest
+#: coefficient at worst), the golden single-stage runs were recorded with the float64
+#: product; (2) the BLAS thread count changes the rounding of the float32 and float64
+#: products (the engine runs with aocontrol.sim._runner.engine_blas_threads(), 1 by default;
+#: the goldens were recorded with 2). Measured: at most 4e-6 (the science run's residual
+#: variance; telemetry <= 1.5e-6), against 1 for any change of the noise or the dynamics.
+GOLDEN_RTOL = 2e-5
+
+
+def assert_close_to_golden(got: dict, gold: dict, rtol: float = GOLDEN_RTOL) -> None:
+    """Every array of ``gold`` matched in ``got`` (same keys): integer arrays exactly, float
+    arrays to ``rtol`` of their largest magnitude (:data:`GOLDEN_RTOL`)."""
+    assert gold, "no golden arrays for this configuration"
+    for name, want in gold.items():
+        have = np.asarray(got[name])
+        assert have.shape == want.shape, name
+        if np.issubdtype(want.dtype, np.integer):
+            np.testing.assert_array_equal(have, want, err_msg=name)
+            continue
+        scale = float(np.max(np.abs(want))) if want.size else 0.0
+        np.testing.assert_allclose(have, want, rtol=0, atol=rtol * scale, err_msg=name)
 
 
 def _loop_arrays(res, prefix="", telemetry=("measurements", "commands", "dm", "residuals")):

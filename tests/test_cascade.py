@@ -248,23 +248,24 @@ def test_bad_input(bases):
 
 
 @pytest.mark.parametrize("scheme", ["standalone", "dcao"])
-def test_cascade_is_bit_identical_to_the_golden_run(scheme):
+def test_cascade_matches_the_golden_run(scheme):
     # Oracle: arrays recorded from the engine before the one-driver refactoring
-    # (tests/_golden_loop.py), both stages noisy, stage 2 with a stroke and optical gains.
+    # (tests/_golden_loop.py), both stages noisy, stage 2 with a stroke and optical gains;
+    # to the stated tolerance of runs on projected phase screens (_golden_loop.GOLDEN_RTOL:
+    # the float32 projection's rounding depends on the BLAS thread count), counts exact.
     import _golden_loop
 
     res = _golden_loop.cascade_run(scheme)
     with np.load(_golden_loop.PATH) as z:
         for i, st in enumerate(res.stages):
             prefix = f"{scheme}{i + 1}/"
-            keys = [k for k in z.files if k.startswith(prefix)]
-            assert len(keys) >= 4
-            for key in keys:
-                name = key[len(prefix) :]
-                got = st.telemetry[name] if name in st.telemetry else getattr(st, name)
-                np.testing.assert_array_equal(np.asarray(got), z[key], err_msg=key)
-        assert res.science.strehl == z[f"{scheme}/strehl"]
-        np.testing.assert_array_equal(res.science.contrast_profile, z[f"{scheme}/contrast_profile"])
+            gold = {k[len(prefix) :]: z[k] for k in z.files if k.startswith(prefix)}
+            assert len(gold) >= 4
+            got = {n: st.telemetry[n] if n in st.telemetry else getattr(st, n) for n in gold}
+            _golden_loop.assert_close_to_golden(got, gold)
+        gold = {n: z[f"{scheme}/{n}"] for n in ("strehl", "contrast_profile")}
+        got = {n: getattr(res.science, n) for n in gold}
+        _golden_loop.assert_close_to_golden(got, gold)
 
 
 def test_result_round_trip(bases, tmp_path):

@@ -305,10 +305,14 @@ def run_cascade(
         # Stage 1 at its own rate on the frame means of its disturbance.
         d1_avg = d1.reshape(ns, ratio, n1).mean(axis=1)
         run1.begin_chunk(d1_avg, ns)
-        y1s = np.empty((ns, n1))
-        for j in range(ns):
-            y1s[j] = run1.step(j, d1_avg[j], resid1)
-            resid1.set(form1, phase[j * ratio : (j + 1) * ratio], y1s[j])
+        if run1.needs_phase:
+            for j in range(ns):
+                y1 = run1.step(j, d1_avg[j], resid1)
+                resid1.set(form1, phase[j * ratio : (j + 1) * ratio], y1)
+        else:
+            for j in range(ns):
+                run1.step(j, d1_avg[j], resid1)
+        y1s = run1.chunk_dm  # the chunk's DM shapes, (ns, n1)
         run1.end_chunk(d1_avg, k // ratio)
         first_stat = max(settle - k, 0)
         if first_stat < m:
@@ -322,25 +326,23 @@ def run_cascade(
         r2 = (d2.reshape(ns, ratio, n2) - py1s[:, None, :]).reshape(m, n2)
         d2_rec = d2 if dcao else r2
         run2.begin_chunk(d2_rec, m)
-        want_sci = science is not None
-        y2s = np.empty((m, n2)) if want_sci else None
         j1_0 = k // ratio
+        step2 = run2.step
         if dcao:
-            neg = -py1s
+            neg = np.repeat(-py1s, ratio, axis=0)  # dCAO offset of each fast frame
             for j in range(m):
-                y2 = run2.step(j, d2[j], resid2, r_j=r2[j], offset=neg[j // ratio])
-                resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
-                if want_sci:
-                    y2s[j] = y2
+                y2 = step2(j, d2[j], resid2, r2[j], neg[j])
+                if run2.needs_phase:
+                    resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
         else:
             for j in range(m):
-                y2 = run2.step(j, r2[j], resid2)
-                resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
-                if want_sci:
-                    y2s[j] = y2
+                y2 = step2(j, r2[j], resid2)
+                if run2.needs_phase:
+                    resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
+        y2s = run2.chunk_dm  # the chunk's DM shapes, (m, n2)
         run2.end_chunk(d2_rec, k)
 
-        if want_sci:
+        if science is not None:
             idx = science_frames(k, m, settle, science_every)
             if idx.size:
                 shape = np.concatenate([y1s[idx // ratio], y2s[idx]], axis=1)

@@ -10,11 +10,26 @@ steps, the DM moves. :func:`drive` is the one chunked driver (chunks, progress, 
 checks, the controllers' reset) shared by :func:`run_loop` (one stage) and
 :func:`~aocontrol.sim._cascade.run_cascade` (two stages on the fast clock), which differ only
 in how a chunk's disturbance reaches the stages.
+
+BLAS threads (engine setting): :func:`drive` runs a whole run with at most
+:func:`engine_blas_threads` BLAS threads, 1 by default. The engine's products are small
+(a frame's vectors) or medium (a chunk's projection, ~100 ms): a multithreaded OpenBLAS
+spends more CPU on them than it saves in wall time, and much more on a machine shared with
+other jobs (measured on 2 cores loaded by other jobs, the 5.1-s two-stage exposure of
+``benchmarks/bench_cascade.py``, back to back: 1 thread 0.75-0.82x the CPU time of 2 threads,
+and no longer in wall time; 3000 frames: 449 against 687 us CPU per fast frame). On a machine with
+idle cores where wall time matters more than CPU, set the environment variable
+``AOCONTROL_ENGINE_BLAS_THREADS`` to a number of threads, or to ``0`` to leave the BLAS's
+own setting. The thread count changes the rounding of float32 products (the projection):
+runs are reproducible for one setting, and agree across settings to the projection's
+rounding (see :mod:`aocontrol.sim._projection`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -23,11 +38,13 @@ import numpy as np
 from aocontrol._validation import check_int
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import z_inverse_coefficients
+from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
+from aocontrol.sim.science import LongExposure
 
-__all__ = ["run_loop", "drive"]
+__all__ = ["run_loop", "drive", "engine_blas_threads", "ENV_BLAS_THREADS"]
 
 logger = logging.getLogger(__name__)
 
@@ -50,6 +67,40 @@ _POLE_RADIUS_TOL = 1e-9
 _GROWTH_FACTOR = 2.0
 _GROWTH_CHUNKS = 3
 _GROWTH_RATIO = 30.0
+
+
+#: Environment variable: BLAS threads of a run (module docstring); ``0`` leaves the BLAS's own.
+ENV_BLAS_THREADS = "AOCONTROL_ENGINE_BLAS_THREADS"
+_DEFAULT_BLAS_THREADS = 1
+
+
+def engine_blas_threads() -> int | None:
+    """BLAS threads of a run (``$AOCONTROL_ENGINE_BLAS_THREADS``, default 1), or ``None``.
+
+    Returns
+    -------
+    int or None
+        The limit :func:`drive` sets while a run goes; ``None`` (the variable set to ``0``)
+        leaves the BLAS's own number of threads.
+
+    Raises
+    ------
+    ValueError
+        If the variable is not a whole number >= 0.
+    """
+    raw = os.environ.get(ENV_BLAS_THREADS)
+    if raw is None:
+        return _DEFAULT_BLAS_THREADS
+    try:
+        value = int(raw.strip())
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise ValueError(
+            f"${ENV_BLAS_THREADS} must be a whole number of threads >= 0 (0: the BLAS's own "
+            f"setting), got {raw!r}"
+        )
+    return value or None
 
 
 def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarray | None:
@@ -145,6 +196,7 @@ class _StageRun:
         self.n = n
         self.ctrl = stage.controller
         self.k0, self.frac = stage.delay
+        self.w0 = 1.0 - self.frac  # weight of the newer command in the delay line
         self.depth = self.k0 + 2
         self.hist = np.zeros((self.depth, n))  # ring buffer of commands, hist[k % depth]
         self.dm = stage.dm
@@ -175,6 +227,7 @@ class _StageRun:
         self.limit = self.limit_unstable = self.limit_check = np.inf
         self.out: dict[str, np.ndarray] = {}
         self.out_m = self.out_u = self.out_y = self.out_e = None
+        self.chunk_dm: np.ndarray | None = None
         self.energy: list[np.ndarray] = []
         radius = closed_loop_pole_radius(stage, optical_gain)
         self.radius = radius
@@ -207,8 +260,13 @@ class _StageRun:
         }
         self.out_m = self.out.get("measurements")
         self.out_u = self.out.get("commands")
+        # The DM shapes and residuals are always kept for the chunk: the frames write their
+        # rows in place (no per-frame copies), the statistics are computed per chunk and
+        # ``chunk_dm`` holds the chunk's DM shapes for the caller (science).
         self.out_y = self.out.get("dm")
-        # The residuals are always kept for the chunk (statistics computed per chunk).
+        if self.out_y is None:
+            self.out_y = np.empty((m_chunk, self.n))
+        self.chunk_dm = self.out_y
         self.out_e = self.out.get("residuals")
         if self.out_e is None:
             self.out_e = np.empty((m_chunk, self.n))
@@ -227,10 +285,8 @@ class _StageRun:
         e = self.out_e[:m]
         start = max(self.settle - first, 0)
         if self.accumulate and start < m:
-            # Sequential sums over frames (cumsum adds row after row, as a per-frame +=).
-            self.sum_e2 = np.cumsum(np.concatenate([self.sum_e2[None], e[start:] ** 2]), axis=0)[-1]
-            d = d_rec[start:]
-            self.sum_d2 = np.cumsum(np.concatenate([self.sum_d2[None], d**2]), axis=0)[-1]
+            self.sum_e2 = _sequential_sum(self.sum_e2, e[start:] ** 2)
+            self.sum_d2 = _sequential_sum(self.sum_d2, d_rec[start:] ** 2)
         # Sustained growth of the residual relative to its input (see _GROWTH_FACTOR).
         e_energy = np.einsum("ij,ij->j", e, e)
         d_energy = np.einsum("ij,ij->j", d_rec, d_rec) + m * self.noise_energy + 1e-300
@@ -287,16 +343,21 @@ class _StageRun:
         k = self.k
         hist, depth = self.hist, self.depth
         hist[k % depth] = u
-        y = (1.0 - self.frac) * hist[(k - self.k0) % depth]
+        # The DM shape and the residual are written in place in the chunk's rows: same
+        # operations, in the same order, as ``y = w0 h[k - k0] + frac h[k - k0 - 1]``.
+        y = self.out_y[j]
         if self.frac:
-            y = y + self.frac * hist[(k - self.k0 - 1) % depth]
+            np.multiply(hist[(k - self.k0) % depth], self.w0, out=y)
+            y += self.frac * hist[(k - self.k0 - 1) % depth]
+        else:
+            y[...] = hist[(k - self.k0) % depth]
         if self.tracker is not None:  # the dither: an offset of the mirror (_gain_tracking)
-            y = y + self.tracker.dither(j)
+            y += self.tracker.dither(j)
         if offset is not None:
-            y = y + offset
+            y += offset
             if self.clip:
-                y = self.dm.clip(y, self.dm_state)
-        e = (d_j if r_j is None else r_j) - y
+                y[...] = self.dm.clip(y, self.dm_state)
+        e = np.subtract(d_j if r_j is None else r_j, y, out=self.out_e[j])
         # One reduction per frame (NaN fails the comparison and is caught here too).
         if not e @ e < self.limit_check:
             self._diverged(k, np.abs(e))
@@ -304,9 +365,6 @@ class _StageRun:
             self.out_m[j] = m
         if self.out_u is not None:
             self.out_u[j] = u
-        if self.out_y is not None:
-            self.out_y[j] = y
-        self.out_e[j] = e
         self.k = k + 1
         return e, y
 
@@ -386,6 +444,17 @@ def controller_counters(ctrl: Any) -> dict[str, int]:
     return out
 
 
+def _sequential_sum(total: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``total + rows[0] + rows[1] + ...`` added row after row (as a per-frame ``+=``).
+
+    A reduction along the first (outer) axis of a C-ordered array adds the rows in order,
+    element by element (numpy's pairwise summation applies along the contiguous axis only):
+    bit-identical to the per-frame sum (tested), ~6x cheaper than ``cumsum``.
+    """
+    stacked = np.concatenate([total[None], rows])
+    return np.add.reduce(stacked, axis=0)
+
+
 def _check_common(
     n_frames: int, chunk: int, science_every: int, record: tuple[str, ...]
 ) -> tuple[int, int, int]:
@@ -456,7 +525,8 @@ def drive(
 ) -> None:
     """The one chunked driver: ``advance(first, m)`` for chunks of ``m <= chunk`` frames.
 
-    Shows a progress bar when asked, runs the end-of-run checks of every stage
+    Shows a progress bar when asked, runs the chunks with at most
+    :func:`engine_blas_threads` BLAS threads, runs the end-of-run checks of every stage
     (:meth:`_StageRun.finish`) and resets every stage's controller, also on an error.
 
     Parameters
@@ -474,19 +544,22 @@ def drive(
     desc : str
         Label of the progress bar.
     """
+    threads = engine_blas_threads()
     bar = None
     if progress:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n_frames, desc=desc, unit="frame")
     k = 0
+    limit = contextlib.nullcontext() if threads is None else blas_threads(threads)
     try:
-        while k < n_frames:
-            m = min(chunk, n_frames - k)
-            advance(k, m)
-            k += m
-            if bar is not None:
-                bar.update(m)
+        with limit:  # the engine's BLAS threads (module docstring)
+            while k < n_frames:
+                m = min(chunk, n_frames - k)
+                advance(k, m)
+                k += m
+                if bar is not None:
+                    bar.update(m)
         for run in runs:
             run.finish()
     finally:
@@ -611,19 +684,21 @@ def run_loop(
                 "and a sensor that reads phase maps)"
             )
         run.begin_chunk(d, m_chunk)
-        ys = np.empty((m_chunk, n)) if science is not None else None
-        have_maps = maps is not None and resid is not None
-        for j in range(m_chunk):
-            y = run.step(j, d[j], resid)
-            if have_maps:  # references only: the map is formed if the sensor asks
-                resid.set(form, maps[j], y)
-            if ys is not None:
-                ys[j] = y
+        if maps is not None and resid is not None and run.needs_phase:
+            for j in range(m_chunk):
+                y = run.step(j, d[j], resid)
+                resid.set(form, maps[j], y)  # references only: the map formed if asked
+        else:
+            for j in range(m_chunk):
+                run.step(j, d[j], resid)
+        ys = run.chunk_dm  # the chunk's DM shapes (m_chunk, n)
         run.end_chunk(d, first)
         if science is not None:
             idx = science_frames(first, m_chunk, settle, science_every)
             if idx.size:
-                science.add(basis.pupil.to_map(maps[idx] - basis.synthesize(ys[idx])))
+                res = maps[idx] - basis.synthesize(ys[idx])
+                # The camera reads valid-pixel vectors as they are (no map round trip).
+                science.add(res if isinstance(science, LongExposure) else basis.pupil.to_map(res))
 
     drive(n_frames, chunk, advance, (run,), progress=progress, desc=f"{stage.name} loop")
     result_science = science.result() if science is not None else None

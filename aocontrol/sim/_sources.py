@@ -22,6 +22,8 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from aocontrol._validation import check_positive
+from aocontrol.sim._projection import projector_for
+from aocontrol.sim.modes import ModalBasis
 
 __all__ = [
     "DisturbanceSource",
@@ -220,6 +222,16 @@ class TurbulenceSource:
     additive : DisturbanceSource, optional
         A modal disturbance added on top (e.g. a vibration), same modes (and rate, when it
         has one).
+
+    Notes
+    -----
+    A :class:`~aocontrol.sim.modes.ModalBasis` is projected by its cached
+    :class:`~aocontrol.sim._projection.ModalProjector` (as the cascade does): in float32,
+    through the DM's separable influence functions when cheaper, i.e. ``basis.project`` to
+    a relative rounding of ~6e-7 RMS (at most ~2e-4 of a mode's largest coefficient), far
+    below any AO residual, at a fraction of the cost of the float64 product (10x fewer
+    operations at 540 modes on 96 pixels). Any other basis-like object is projected by its
+    own ``project``.
     """
 
     def __init__(
@@ -268,7 +280,10 @@ class TurbulenceSource:
         phase : ndarray (n_frames, n_valid)
         """
         phase = self.atmosphere.phase_vectors(n_frames)
-        modal = self.basis.project(phase)
+        if isinstance(self.basis, ModalBasis):
+            modal = projector_for(self.basis)(np.asarray(phase))
+        else:
+            modal = self.basis.project(phase)
         if self.additive is not None:
             extra, _ = self.additive.next(n_frames)
             modal = modal + extra

@@ -22,13 +22,19 @@ with its stroke, optional optical-gain tracker :class:`DitherGainTracker`); the 
 the per-run state (the sensor's run state, controller state, delay line, DM counters,
 telemetry) and advances it one frame of the stage's rate. One chunked driver serves :func:`run_loop`
 (one stage) and :func:`run_cascade` (two stages on the fast clock, stage 2's rate an integer
-multiple of stage 1's, in the ``standalone`` or ``dcao`` scheme).
+multiple of stage 1's, in the ``standalone`` or ``dcao`` scheme). A run uses at most
+:func:`engine_blas_threads` BLAS threads (1 by default; ``$AOCONTROL_ENGINE_BLAS_THREADS``).
 """
 
 from aocontrol.sim._cascade import projection_matrix, run_cascade
 from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim._result import TELEMETRY, CascadeResult, LoopDivergedError, LoopResult
-from aocontrol.sim._runner import closed_loop_pole_radius, run_loop
+from aocontrol.sim._runner import (
+    ENV_BLAS_THREADS,
+    closed_loop_pole_radius,
+    engine_blas_threads,
+    run_loop,
+)
 from aocontrol.sim._sources import (
     DisturbanceSource,
     ModalTimeSeries,
@@ -55,6 +61,8 @@ __all__ = [
     "LoopDivergedError",
     "TELEMETRY",
     "closed_loop_pole_radius",
+    "engine_blas_threads",
+    "ENV_BLAS_THREADS",
     "projection_matrix",
     "run_loop",
     "run_cascade",

@@ -359,6 +359,9 @@ class _LinearRun:
         self.noise_std = ns
         self.rng = rng
         self.noisy = bool(np.any(ns > 0))
+        # Unit optical gains: ``1.0 * residual`` is ``residual`` exactly (one product less
+        # per frame on the real-time path).
+        self.unit_gain = bool(np.all(og == 1.0))
         self.noise = np.zeros((0, og.size))
 
     def begin_chunk(self, m_chunk: int) -> None:
@@ -369,6 +372,8 @@ class _LinearRun:
             self.noise = np.zeros((m_chunk, n))
 
     def read(self, j: int, residual: np.ndarray, opd: Callable[[], np.ndarray]) -> np.ndarray:
+        if self.unit_gain:
+            return residual + self.noise[j]
         return self.optical_gain * residual + self.noise[j]
 
 
