@@ -25,7 +25,7 @@ telemetry) and advances it one frame of the stage's rate. One chunked driver ser
 multiple of stage 1's, in the ``standalone`` or ``dcao`` scheme).
 """
 
-from aocontrol.sim._cascade import projection_matrix, run_cascade
+from aocontrol.sim._cascade import UpstreamRecord, projection_matrix, run_cascade
 from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim._result import TELEMETRY, CascadeResult, LoopDivergedError, LoopResult
 from aocontrol.sim._runner import closed_loop_pole_radius, run_loop
@@ -58,4 +58,5 @@ __all__ = [
     "projection_matrix",
     "run_loop",
     "run_cascade",
+    "UpstreamRecord",
 ]
