@@ -8,24 +8,15 @@ stage 2 or seed changes them (so the equality is not vacuous).
 
 import numpy as np
 import pytest
+import test_cascade
 
 from aocontrol.controllers import Integrator
 from aocontrol.sim import LinearModalSensor, Stage, run_cascade
-from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.loop import UpstreamRecord
-from aocontrol.sim.modes import kl_basis
-from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.sim.science import ScienceCamera
 
 FS2, RATIO, N_FRAMES = 3000.0, 3, 900
-
-
-@pytest.fixture(scope="module")
-def bases():
-    pupil = vlt_pupil(24)
-    b1 = kl_basis(DeformableMirror(pupil, n_actuators=11), 24, r0=0.15)
-    b2 = kl_basis(DeformableMirror(pupil, n_actuators=8), 10, r0=0.15)
-    return b1, b2
+bases = test_cascade.bases  # the cascade tests' fixture: two small KL bases
 
 
 class _Phase:
