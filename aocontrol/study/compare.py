@@ -25,6 +25,15 @@ whose ``design`` maps :class:`DesignInputs` to a :class:`~aocontrol.controllers.
 
 Each exposure discards the case's start-up (0.1 s) and integrates the science image over the
 exposure (5 s) at 1.65 um.
+
+Reuse: in both cascades stage 1 never sees stage 2, so the gain-scan runs, the two calibration
+runs and the exposures of :func:`compare_case` each compute their stream's atmosphere, its
+projection on both bases and stage 1 once, and replay them for the other stage-2 controllers
+and the other scheme (:class:`aocontrol.sim.loop.UpstreamRecord`): every run's result is the
+same bit for bit as a run alone (tested). Measured at full scale (``bright1-best``, one run,
+loaded machine): the 14 scan runs 2.65x and three 2-s exposures 1.9x fewer CPU seconds. Not
+with a stage-2 sensor that reads phase maps (the diffractive one), nor with "two-pass"
+optical gains.
 """
 
 from __future__ import annotations
