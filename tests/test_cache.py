@@ -190,3 +190,42 @@ def test_scene_geometry_goes_through_the_disk_cache(cache_dir, monkeypatch):
         assert build.calls == 3
     finally:
         scene.clear_scene_cache()
+
+
+def test_is_cached_sees_only_entries_of_this_code_and_key(cache_dir, monkeypatch):
+    assert not _cache.is_cached("key")  # nothing yet
+    cached("key", Counter())
+    assert _cache.is_cached("key") and not _cache.is_cached("other key")
+    monkeypatch.setattr(_cache, "_fingerprint", "another version of the code")
+    assert not _cache.is_cached("key")  # written by other code: not usable
+    monkeypatch.setattr(_cache, "_fingerprint", None)
+    monkeypatch.setenv("AOCONTROL_CACHE", "off")
+    assert not _cache.is_cached("key")
+
+
+def test_sweep_pins_only_cases_whose_calibrations_are_not_on_disk(cache_dir, monkeypatch):
+    # Affinity keeps the runs of a case to build its calibrations once; a case already on
+    # disk is free (any worker loads it), so the runs balance over the workers.
+    from aocontrol.study.sweep import SweepSpec, _calibrated_cases, _case_affinity
+
+    class _Client:
+        def scheduler_info(self):
+            return {"workers": {"tcp://a": {}, "tcp://b": {}}}
+
+    spec = SweepSpec(
+        cases=("bright1-best", "red1-fast", "red3-medium"),
+        controllers=("reference",),
+        schemes=("standalone",),
+        seeds=(0, 1),
+        seconds=0.1,
+        quick=True,
+    )
+    runs = spec.runs()
+    assert _calibrated_cases(runs) == set()
+    assert set(_case_affinity(_Client(), runs)) == {"bright1-best", "red1-fast", "red3-medium"}
+    case = scene.load_case("red1-fast")
+    cached(scene.geometry_cache_key(case, True), Counter())  # its calibrations on disk
+    assert _calibrated_cases(runs) == {"red1-fast"}
+    pinned = _case_affinity(_Client(), runs)
+    assert set(pinned) == {"bright1-best", "red3-medium"}
+    assert set(pinned.values()) == {"tcp://a", "tcp://b"}  # one each: balanced

@@ -55,7 +55,7 @@ import numpy as np
 
 from aocontrol._validation import check_int
 from aocontrol.sim._projection import ModalProjector
-from aocontrol.sim._result import TELEMETRY, CascadeResult
+from aocontrol.sim._result import TELEMETRY, CascadeResult, LoopResult
 from aocontrol.sim._runner import (
     _check_common,
     _check_finite_disturbance,
@@ -69,7 +69,7 @@ from aocontrol.sim._sources import PhaseDisturbance, check_rate
 from aocontrol.sim._stage import Stage
 from aocontrol.sim.science import LongExposure
 
-__all__ = ["run_cascade", "projection_matrix", "SCHEMES"]
+__all__ = ["run_cascade", "projection_matrix", "SCHEMES", "UpstreamRecord"]
 
 #: Cascade schemes.
 SCHEMES = ("standalone", "dcao")
@@ -161,6 +161,7 @@ def run_cascade(
     chunk: int = 1200,
     progress: bool = False,
     metadata: dict | None = None,
+    upstream: UpstreamRecord | None = None,
 ) -> CascadeResult:
     """Run two cascaded AO stages in closed loop (see the module docstring for the model).
 
@@ -202,6 +203,11 @@ def run_cascade(
         Show a tqdm progress bar.
     metadata : dict, optional
         Case/controller settings stored with the result.
+    upstream : UpstreamRecord, optional
+        An empty record is filled by this run (what stage 2 does not change: see
+        :class:`UpstreamRecord`); a filled one is replayed instead of the disturbance, the
+        projection and stage 1, with the same result bit for bit as a full run of the same
+        disturbance, stage 1 and ``rng`` (the caller's contract; the record checks the rest).
 
     Returns
     -------
@@ -257,20 +263,33 @@ def run_cascade(
     check_int("chunk", chunk, minimum=1)
     dcao = scheme == "dcao"
     rng1, rng2 = np.random.default_rng(rng).spawn(2)
-    run1 = _StageRun(
-        stage1,
-        n_frames=n_frames // ratio,
-        record=record,
-        settle=settle // ratio,
-        rng=rng1,
-        pupil=basis1.pupil,
-        accumulate=False,
-    )
+    replay = upstream is not None and upstream.filled
+    if upstream is not None:
+        setup = _UpstreamSetup(
+            basis1, basis2, n_frames, chunk, settle, ratio, science_every, science is not None
+        )
+        upstream.check_or_start(setup, stage2.name)
+    run1 = None
+    if not replay:
+        run1 = _StageRun(
+            stage1,
+            n_frames=n_frames // ratio,
+            record=record,
+            settle=settle // ratio,
+            rng=rng1,
+            pupil=basis1.pupil,
+            accumulate=False,
+        )
     run2 = _StageRun(
         stage2, n_frames=n_frames, record=record, settle=settle, rng=rng2, pupil=basis2.pupil
     )
+    if replay and run2.needs_phase:
+        raise ValueError(
+            f"upstream: stage {stage2.name!r} reads phase maps, which a record does not keep; "
+            "run it without a filled record"
+        )
     for run in (run1, run2):
-        if rng is None and (run.noisy or run.tracker is not None):
+        if run is not None and rng is None and (run.noisy or run.tracker is not None):
             raise ValueError(
                 "rng is required with a noisy sensor or an optical-gain tracker "
                 f"(reproducibility; stage {run.name!r})"
@@ -290,7 +309,9 @@ def run_cascade(
     def form2(phase_j: np.ndarray, j1: int, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
         return phase_j - shape1(j1, y1) - basis2.synthesize(y2)
 
-    def advance(k: int, m: int) -> None:
+    def stage1_chunk(k: int, m: int) -> tuple:
+        """Disturbance, projection and stage 1 of fast frames ``k ... k + m - 1``: what
+        stage 2 does not change. Returns ``(d2, P y1, science inputs, phase, y1s)``."""
         ns = m // ratio
         phase = np.asarray(disturbance.phase_vectors(m))
         if phase.shape != (m, n_valid):
@@ -320,9 +341,23 @@ def run_cascade(
             e1 = (d1.reshape(ns, ratio, n1) - y1s[:, None, :]).reshape(m, n1)[first_stat:]
             stats1[0] += np.einsum("ij,ij->j", e1, e1)
             stats1[1] += np.einsum("ij,ij->j", d1[first_stat:], d1[first_stat:])
+        sci = None
+        if science is not None:
+            idx = science_frames(k, m, settle, science_every)
+            sci = (phase[idx], y1s[idx // ratio])
+        return d2, y1s @ p_mat.T, sci, phase, y1s
+
+    def advance(k: int, m: int) -> None:
+        if replay:
+            d2, py1s, sci = upstream.chunk(k)
+            phase = y1s = None
+        else:
+            d2, py1s, sci, phase, y1s = stage1_chunk(k, m)
+            if upstream is not None:
+                d2, py1s, sci = upstream.add(k, d2, py1s, sci)
+        ns = m // ratio
 
         # Stage 2 at the fast rate on the residual of stage 1 in its modes.
-        py1s = y1s @ p_mat.T
         r2 = (d2.reshape(ns, ratio, n2) - py1s[:, None, :]).reshape(m, n2)
         d2_rec = d2 if dcao else r2
         run2.begin_chunk(d2_rec, m)
@@ -345,21 +380,27 @@ def run_cascade(
         if science is not None:
             idx = science_frames(k, m, settle, science_every)
             if idx.size:
-                shape = np.concatenate([y1s[idx // ratio], y2s[idx]], axis=1)
-                resid = phase[idx] - project.synthesize(shape)
+                sci_phase, sci_y1 = sci
+                shape = np.concatenate([sci_y1, y2s[idx]], axis=1)
+                resid = sci_phase - project.synthesize(shape)
                 # The camera reads valid-pixel vectors as they are (no map round trip).
                 science.add(
                     resid if isinstance(science, LongExposure) else basis2.pupil.to_map(resid)
                 )
 
-    drive(n_frames, chunk, advance, (run1, run2), progress=progress, desc=f"{scheme} cascade")
-    sum_e1, sum_d1 = stats1
-
+    runs = (run2,) if replay else (run1, run2)
+    drive(n_frames, chunk, advance, runs, progress=progress, desc=f"{scheme} cascade")
     n_stat = n_frames - settle
-    res1 = run1.result(stage1.fs, n_frames // ratio, n_stat, None, metadata)
-    res1 = dataclasses.replace(
-        res1, residual_variance=sum_e1 / n_stat, disturbance_variance=sum_d1 / n_stat
-    )
+    if replay:
+        res1 = upstream.stage1_result(metadata)
+    else:
+        sum_e1, sum_d1 = stats1
+        res1 = run1.result(stage1.fs, n_frames // ratio, n_stat, None, metadata)
+        res1 = dataclasses.replace(
+            res1, residual_variance=sum_e1 / n_stat, disturbance_variance=sum_d1 / n_stat
+        )
+        if upstream is not None:
+            upstream.finish(res1, metadata)
     res2 = run2.result(stage2.fs, n_frames, n_stat, None, metadata)
     result_science = science.result() if science is not None else None
     meta = dict(
@@ -376,6 +417,100 @@ def run_cascade(
     return CascadeResult(
         scheme=scheme, stages=(res1, res2), science=result_science, metadata=meta, fs=stage2.fs
     )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _UpstreamSetup:
+    """What a record's chunks depend on besides the caller's contract (bases by identity)."""
+
+    basis1: Any
+    basis2: Any
+    n_frames: int
+    chunk: int
+    settle: int
+    ratio: int
+    science_every: int
+    science: bool
+
+    def mismatch(self, other: _UpstreamSetup) -> str:
+        """The first setting that differs from ``other`` (empty if none)."""
+        for f in dataclasses.fields(self):
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if (a is not b) if f.name.startswith("basis") else (a != b):
+                return f"{f.name} ({b!r} recorded, {a!r} now)"
+        return ""
+
+
+class UpstreamRecord:
+    """What a cascade run computes upstream of stage 2, kept to run other stage-2 controllers.
+
+    In both schemes stage 1 does not see stage 2: its sensor reads ``d1 - y1`` (or its frame's
+    mean phase minus its own DM) and its noise draws from its own child of ``rng``
+    (``rng.spawn(2)[0]``). So for one disturbance stream, one stage 1 (controller, sensor,
+    latency, DM) and one ``rng``, the following are the same whatever stage 2's controller or
+    the scheme: per chunk the disturbance on stage 2's modes ``d2``, stage 1's DM projected on
+    them ``P y1``, and at the science frames the phase and stage 1's DM coefficients; and
+    stage 1's result. A first :func:`run_cascade` with an empty record fills it; later runs
+    given the filled record replay it instead of generating the atmosphere, projecting it and
+    running stage 1, and return the same result bit for bit as a full run (tested).
+
+    The caller keeps the contract that the disturbance, stage 1 and ``rng`` are those of the
+    recording run (e.g. by keying records on the seed and the stage-1 settings); the record
+    checks the rest (the same basis objects, frames, chunk, settling, science cadence) and
+    refuses a stage 2 whose sensor reads phase maps (they are not kept). Memory: per fast
+    frame ``n2`` float32, per stage-1 frame ``n2`` floats, per science frame the phase
+    vector and ``n1`` floats, and stage 1's telemetry.
+    """
+
+    def __init__(self) -> None:
+        self._setup: _UpstreamSetup | None = None
+        self._chunks: dict[int, tuple] = {}
+        self._stage1: LoopResult | None = None
+        self._stage1_meta: dict = {}
+
+    @property
+    def filled(self) -> bool:
+        """True once a run has recorded every chunk and stage 1's result."""
+        return self._stage1 is not None
+
+    @property
+    def stage1(self) -> LoopResult:
+        """Stage 1's result of the recording run."""
+        if self._stage1 is None:
+            raise ValueError("upstream record is empty: no run has filled it")
+        return self._stage1
+
+    def check_or_start(self, setup: _UpstreamSetup, stage2_name: str) -> None:
+        """Start recording (empty record) or check that a replay matches the recording."""
+        if self._setup is None or not self.filled:
+            self._setup, self._chunks, self._stage1 = setup, {}, None
+            return
+        why = setup.mismatch(self._setup)
+        if why:
+            raise ValueError(f"upstream record does not match this run ({stage2_name!r}): {why}")
+
+    def add(self, k: int, d2: np.ndarray, py1s: np.ndarray, sci: tuple | None) -> tuple:
+        """Keep the chunk starting at fast frame ``k`` (copies, returned: the recording run
+        uses the very arrays a replay will)."""
+        sci = None if sci is None else tuple(np.array(a) for a in sci)
+        self._chunks[k] = (np.array(d2), np.array(py1s), sci)
+        return self._chunks[k]
+
+    def chunk(self, k: int) -> tuple:
+        """The chunk starting at fast frame ``k``: ``(d2, P y1, science inputs)``."""
+        return self._chunks[k]
+
+    def finish(self, stage1: LoopResult, metadata: dict | None) -> None:
+        """Keep stage 1's result (the record is then filled)."""
+        base = metadata or {}
+        self._stage1_meta = {
+            k: v for k, v in stage1.metadata.items() if k not in base or base[k] is not v
+        }
+        self._stage1 = stage1
+
+    def stage1_result(self, metadata: dict | None) -> LoopResult:
+        """Stage 1's result with this run's ``metadata``, as a full run would give it."""
+        return dataclasses.replace(self.stage1, metadata=dict(metadata or {}, **self._stage1_meta))
 
 
 class _HeldShape:

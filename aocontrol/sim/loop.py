@@ -26,7 +26,7 @@ multiple of stage 1's, in the ``standalone`` or ``dcao`` scheme). A run uses at 
 :func:`engine_blas_threads` BLAS threads (1 by default; ``$AOCONTROL_ENGINE_BLAS_THREADS``).
 """
 
-from aocontrol.sim._cascade import projection_matrix, run_cascade
+from aocontrol.sim._cascade import UpstreamRecord, projection_matrix, run_cascade
 from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim._result import TELEMETRY, CascadeResult, LoopDivergedError, LoopResult
 from aocontrol.sim._runner import (
@@ -66,4 +66,5 @@ __all__ = [
     "projection_matrix",
     "run_loop",
     "run_cascade",
+    "UpstreamRecord",
 ]

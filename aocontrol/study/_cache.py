@@ -53,7 +53,14 @@ import warnings
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
-__all__ = ["CacheWarning", "cache_dir", "cache_settings", "cached", "code_fingerprint"]
+__all__ = [
+    "CacheWarning",
+    "cache_dir",
+    "cache_settings",
+    "cached",
+    "code_fingerprint",
+    "is_cached",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -194,6 +201,43 @@ def _locked(path: pathlib.Path) -> Iterator[None]:
             fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
 
 
+def _entry_path(directory: pathlib.Path, key: str) -> pathlib.Path:
+    return directory / f"{hashlib.sha256(key.encode()).hexdigest()[:32]}{_SUFFIX}"
+
+
+def is_cached(key: str) -> bool:
+    """Whether an entry for ``key`` written by this code is on disk (its header only).
+
+    A cheap look-ahead (e.g. for scheduling a sweep): the payload is not read, so a corrupt
+    payload still says True here and is rebuilt by :func:`cached` when used.
+
+    Parameters
+    ----------
+    key : str
+        As given to :func:`cached`.
+
+    Returns
+    -------
+    bool
+        False when the disk cache is off, the entry is missing, or its header names another
+        key, format or code fingerprint.
+    """
+    directory = cache_dir()
+    if directory is None:
+        return False
+    try:
+        with open(_entry_path(directory, key), "rb") as fh:
+            header = json.loads(fh.readline(_MAX_HEADER))
+    except (OSError, ValueError):
+        return False
+    return (
+        isinstance(header, dict)
+        and header.get("format") == _FORMAT
+        and header.get("key") == key
+        and header.get("fingerprint") == code_fingerprint()
+    )
+
+
 def _read(path: pathlib.Path, key: str) -> tuple[bool, Any]:
     """``(True, value)`` from a valid entry, else ``(False, reason)``."""
     try:
@@ -305,9 +349,8 @@ def cached(key: str, build: Callable[[], T]) -> T:
     directory = settings["directory"]
     if directory is None or not _usable(directory):
         return build()
-    name = hashlib.sha256(key.encode()).hexdigest()[:32]
-    path = directory / f"{name}{_SUFFIX}"
-    lock = _locked(directory / f"{name}.lock")
+    path = _entry_path(directory, key)
+    lock = _locked(path.with_suffix(".lock"))
     try:
         lock.__enter__()
     except OSError as exc:

@@ -71,7 +71,8 @@ class CaseComparison:
         frequencies, ``|S|^2`` per controller and the tilt disturbance PSD (pseudo-open loop
         of the calibration telemetry) at the stage-2 input.
     seconds : dict
-        Wall time per part [s].
+        Wall time per part [s]: ``scan``, ``calibration``, ``runs`` (the configurations'
+        designs and exposures) and ``design`` (the designs' share of ``runs``).
     designs : dict
         ``{scheme: DesignInputs}``: the stage-2 plant and the calibration telemetry's PSDs
         each scheme's controllers were designed from (margins and rejection of the report).

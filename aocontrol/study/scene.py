@@ -440,13 +440,30 @@ def _geometry_key(c: Case, quick: bool, rng: int) -> str:
     return json.dumps([dataclasses.asdict(c.simulation), atm, stages, quick, rng], default=str)
 
 
+def geometry_cache_key(c: Case, quick: bool, rng: int = 0) -> str:
+    """The disk-cache key of a case's calibrations (:mod:`aocontrol.study._cache`).
+
+    Parameters
+    ----------
+    c : Case
+    quick : bool
+    rng : int
+        As in :func:`build_scene`.
+
+    Returns
+    -------
+    str
+    """
+    return "scene geometry " + _geometry_key(c, quick, rng)
+
+
 def _geometry(c: Case, quick: bool, rng: int, cache: bool) -> dict:
     """Pupil, DMs, KL bases, projection and WFS calibrations (cached; see the module notes)."""
     key = _geometry_key(c, quick, rng)
     if cache and key in _GEOMETRY_CACHE:
         return _GEOMETRY_CACHE[key]
     if cache:  # the disk cache, shared by processes and later runs (aocontrol.study._cache)
-        out = disk_cached("scene geometry " + key, lambda: _build_geometry(c, quick, rng))
+        out = disk_cached(geometry_cache_key(c, quick, rng), lambda: _build_geometry(c, quick, rng))
         _GEOMETRY_CACHE[key] = out
         return out
     return _build_geometry(c, quick, rng)

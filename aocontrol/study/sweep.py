@@ -477,7 +477,10 @@ def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
     Workers cache the scenes and calibrations they build: runs of one case sent to one worker
     build its scene once. The restriction is loose (``allow_other_workers``: a lost worker never
     blocks a sweep); the local cluster runs without work stealing so that runs stay put, a
-    remote scheduler may move them (then a worker builds a scene again).
+    remote scheduler may move them (then a worker builds a scene again). A case whose
+    calibrations are already in the disk cache (:func:`_calibrated_cases`) gets no worker: any
+    worker loads them in a moment, so its runs fill whichever worker is free (with whole cases
+    per worker, five cases on two workers could not beat 5/3 of one process).
     """
     try:
         workers = sorted(client.scheduler_info()["workers"])
@@ -486,8 +489,10 @@ def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
     if len(workers) < 2:
         return {}
     counts: dict[str, int] = {}
+    free = _calibrated_cases(todo)
     for r in todo:
-        counts[r.settings["case"]] = counts.get(r.settings["case"], 0) + 1
+        if r.settings["case"] not in free:
+            counts[r.settings["case"]] = counts.get(r.settings["case"], 0) + 1
     load = dict.fromkeys(workers, 0)
     out = {}
     for case in sorted(counts, key=lambda c: (-counts[c], c)):
@@ -495,6 +500,29 @@ def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
         out[case] = w
         load[w] += counts[case]
     return out
+
+
+def _calibrated_cases(todo: Sequence[SweepRun]) -> set[str]:
+    """Cases every run of which finds its scene's calibrations in the disk cache.
+
+    A run whose settings are not a case of the package (another runner's) counts as not
+    calibrated (its case keeps its worker).
+    """
+    from aocontrol.study._cache import is_cached
+    from aocontrol.study.cases import apply_overrides, load_case
+    from aocontrol.study.scene import geometry_cache_key
+
+    out: dict[str, bool] = {}
+    for r in todo:
+        s = r.settings
+        if out.get(s["case"], True):
+            try:
+                c = apply_overrides(load_case(s["case"]), dict(s.get("overrides") or {}) or None)
+                ok = is_cached(geometry_cache_key(c, bool(s.get("quick", False))))
+            except (ValueError, OSError, KeyError, TypeError):  # not a case: keep the affinity
+                ok = False
+            out[s["case"]] = ok
+    return {case for case, ok in out.items() if ok}
 
 
 def _clear_partial(out: pathlib.Path) -> None:
