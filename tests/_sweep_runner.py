@@ -76,10 +76,14 @@ BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def environment_run(settings: dict, path: pathlib.Path) -> None:
-    """A run that records the worker's BLAS thread variables (and its process id)."""
+    """A run that records the worker's BLAS thread variables, the cores joblib gives its
+    process pools (and its process id)."""
     import os
 
+    import joblib
+
     env = {k: os.environ.get(k) for k in BLAS_VARS}
+    env["joblib.cpu_count"] = joblib.cpu_count()
     with h5py.File(path, "w") as f:
         f.attrs["settings"] = json.dumps(settings)
         f.attrs["env"] = json.dumps(env)

@@ -310,8 +310,9 @@ def test_real_spec_typos_name_the_valid_cases_and_keys(tmp_path):
         load_sweep_spec(_write(tmp_path, text, "typo.toml"))
 
 
+@pytest.mark.parametrize("n_workers", [1, 2])
 def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(
-    tmp_path, caplog, capfd, monkeypatch
+    n_workers, tmp_path, caplog, capfd, monkeypatch
 ):
     # run_sweep's own local cluster: each worker has cores // workers BLAS threads, set before
     # the worker starts (one worker: every core, where Dask's default would give it one; as
@@ -319,16 +320,21 @@ def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(
     # not verbose, and the shutdown leaves no traceback.
     text = 'cases = ["alpha"]\ncontrollers = ["c"]\nschemes = ["s"]\nseeds = [0, 1, 2, 3]\n'
     runner = SweepRunner(run=environment_run, read=environment_row)
-    for var in BLAS_VARS:  # a value set by the user (or left by another cluster) would win
+    for var in (*BLAS_VARS, "LOKY_MAX_CPU_COUNT"):  # a value set by the user would win
         monkeypatch.delenv(var, raising=False)
     with caplog.at_level(logging.WARNING, logger="aocontrol"):
-        report = run_sweep(_write(tmp_path, text), out=tmp_path / "out", runner=runner, n_workers=1)
+        report = run_sweep(
+            _write(tmp_path, text), out=tmp_path / "out", runner=runner, n_workers=n_workers
+        )
     assert report.failed == () and len(report.ran) == 4
-    want = str(os.cpu_count() or 1)
+    want = str(max(1, (os.cpu_count() or 1) // n_workers))
     for row in report.table:
         assert {k: row[f"env.{k}"] for k in BLAS_VARS} == dict.fromkeys(BLAS_VARS, want)
+        # the syntheses' process pools inside a run take the worker's cores, not every core
+        assert row["env.joblib.cpu_count"] == int(want)
     assert blas_threads_per_worker(os.cpu_count() or 1) == 1
-    assert not set(BLAS_VARS) & set(os.environ)  # this process's environment left as it was
+    # this process's environment left as it was
+    assert not {*BLAS_VARS, "LOKY_MAX_CPU_COUNT"} & set(os.environ)
     assert blas_threads_per_worker(1) == (os.cpu_count() or 1)
     noisy = [r for r in caplog.records if r.name.startswith("distributed") and r.levelno < 30]
     assert noisy == []

@@ -106,6 +106,9 @@ PARTIAL_DIR = ".partial"
 CONNECT_TIMEOUT_S = 5.0
 # Thread-count variables of the BLAS and OpenMP libraries numpy and scipy may use.
 _BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# ... and the cores joblib may use in a worker (``joblib.cpu_count`` reads it): the process
+# pools of the syntheses and fits inside a run take the worker's share, not every core.
+_WORKER_VARS = (*_BLAS_VARS, "LOKY_MAX_CPU_COUNT")
 
 
 # ------------------------------------------------------------------------------------ runners
@@ -381,7 +384,10 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
     holding their case's scene), each with :func:`blas_threads_per_worker` BLAS threads (set
     in its environment before it starts, so that numpy's BLAS reads it; ``OMP_NUM_THREADS``,
     ``OPENBLAS_NUM_THREADS`` or ``MKL_NUM_THREADS`` set in this process's environment take
-    precedence). Unless aocontrol logs
+    precedence). ``LOKY_MAX_CPU_COUNT`` is set to the same share, so that a data-driven
+    synthesis or a disturbance fit inside a run (``n_jobs=None``: ``joblib.cpu_count()``
+    processes) uses the worker's cores instead of starting one process per core in every
+    worker. Unless aocontrol logs
     at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies, connections) are
     not shown and the shutdown, after every result is in, is silent (a worker slow to exit is
     killed by its nanny: harmless then).
@@ -400,13 +406,13 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
 
     verbose = _verbose()
     threads = str(blas_threads_per_worker(n_workers))
-    config = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _BLAS_VARS}
+    config = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _WORKER_VARS}
     config["distributed.scheduler.work-stealing"] = False
     old = None if verbose else _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.WARNING))
     # Dask's nannies copy these variables into this process's environment before spawning;
     # restored once the workers run, so that this process's environment stays the user's
     # (and a variable the user set explicitly keeps precedence, as Dask documents).
-    saved_env = {v: os.environ.get(v) for v in _BLAS_VARS}
+    saved_env = {v: os.environ.get(v) for v in _WORKER_VARS}
     try:
         with (
             dask.config.set(config),

@@ -9,7 +9,6 @@ of the turbulence model and fitted jointly (frequency, damping, variance). PSDs 
 from __future__ import annotations
 
 import logging
-import os
 import warnings
 from dataclasses import dataclass
 
@@ -358,7 +357,9 @@ def _run_fits(freqs: np.ndarray, items: list, settings: _FitSettings, n_jobs: in
         n_jobs = check_int("n_jobs", n_jobs)
         if n_jobs == 0:
             raise ValueError("n_jobs must be a nonzero integer (negative: joblib convention)")
-    cores = os.cpu_count() or 1
+    from joblib import cpu_count
+
+    cores = cpu_count()  # affinity, cgroups and LOKY_MAX_CPU_COUNT (a sweep worker's share)
     workers = cores if n_jobs is None else (n_jobs if n_jobs > 0 else max(1, cores + 1 + n_jobs))
     chunks = [items[i : i + _FIT_CHUNK] for i in range(0, len(items), _FIT_CHUNK)]
     workers = min(workers, len(chunks))

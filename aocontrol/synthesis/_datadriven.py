@@ -15,7 +15,6 @@ PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the varianc
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass, replace
 
 import control
@@ -471,7 +470,9 @@ def datadriven(
         (median 1.020 vs 1.024 of the Wiener bound) in 26 % less time; the dense
         verification certifies either.
     n_jobs : int, optional
-        Worker processes (joblib); ``None`` uses every core, 1 runs in this process.
+        Worker processes (joblib); ``None`` uses every core this process may use
+        (``joblib.cpu_count()``: CPU affinity, cgroup limits and ``LOKY_MAX_CPU_COUNT``, which
+        a sweep's workers set to their share), 1 runs in this process.
     progress : bool, default True
         Show a tqdm progress bar over modes.
     fs : float, optional
@@ -746,11 +747,13 @@ def _prepare(
 
 def _run(ctx: _Context, items: list, n_jobs: int | None, progress: bool) -> list:
     """Design every mode, in parallel over processes when it pays."""
+    from joblib import cpu_count
     from tqdm.auto import tqdm
 
-    n_workers = (os.cpu_count() or 1) if n_jobs is None else n_jobs
+    cores = cpu_count()  # affinity, cgroups and LOKY_MAX_CPU_COUNT (a sweep worker's share)
+    n_workers = cores if n_jobs is None else n_jobs
     if n_workers < 0:
-        n_workers = max(1, (os.cpu_count() or 1) + 1 + n_workers)
+        n_workers = max(1, cores + 1 + n_workers)
     n_workers = min(n_workers, len(items))
     bar = tqdm(total=len(items), desc="data-driven synthesis", unit="mode", disable=not progress)
     results = []
