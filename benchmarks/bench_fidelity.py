@@ -10,10 +10,16 @@
     and dCAO): Strehl and raw contrast beside the paper's values, the contrast orderings, the
     dCAO - standalone Strehl, and the stage-2 residual predicted from the calibration
     telemetry vs measured; printed as markdown.
+(c) ``--explain``: why red 5 best's dCAO beats standalone (the paper has them equal) and why
+    its dCAO beats the paper. The reference integrator at one stage-2 gain in the three
+    schemes (standalone, dCAO, and stage 2 alone on the whole atmosphere, "single"), for the
+    case as it is and one candidate changed at a time (:data:`CANDIDATES`: stage-1 noise,
+    stage-1 gain, stage-1 settling, stage-2 photons, the loop latencies, the diffractive
+    sensor); each row is one targeted run, same seed, printed as markdown.
 
     .venv/bin/python benchmarks/bench_fidelity.py [--quick] [--cost-only] [--seconds S]
         [--cases red5-best,bright1-best] [--settings linear/calibrated,diffractive/none]
-        [--seed N] [--gain-grid 0.2,0.4]
+        [--seed N] [--gain-grid 0.2,0.4] [--explain [--reference-gain G] [--candidates a,b]]
 
 ``--quick``: quick scenes (24 stage-2 modes), 0.1-s exposures, one case.
 """
@@ -31,7 +37,8 @@ from bench_paper_tables import PAPER  # noqa: E402
 
 from aocontrol.controllers import Integrator
 from aocontrol.sim.loop import Stage, run_cascade
-from aocontrol.study.compare import compare_case
+from aocontrol.study.cases import apply_overrides, load_case
+from aocontrol.study.compare import compare_case, run_configuration
 from aocontrol.study.scene import build_scene
 
 CASES = ("red5-best", "red3-medium", "bright1-best")
@@ -43,6 +50,82 @@ SETTINGS = (
     ("diffractive", "calibrated"),
     ("diffractive", "tracked"),
 )
+
+# Part (c): one candidate changed at a time (name, case overrides, what it tests).
+CANDIDATES = (
+    ("case", {}, "the case as it is"),
+    ("stage-1 noise-free", {"star.G": 5.0}, "stage-1 photon noise (G 16.8 -> 5)"),
+    ("stage-1 gain 0.05", {"stage1.gain": 0.05}, "stage-1 gain (paper: 'a low gain')"),
+    ("stage-1 gain 0.1", {"stage1.gain": 0.1}, "stage-1 gain"),
+    ("stage-1 gain 0.5", {"stage1.gain": 0.5}, "stage-1 gain"),
+    (
+        "stage-1 noise-free, gain 0.05",
+        {"star.G": 5.0, "stage1.gain": 0.05},
+        "noise and gain together",
+    ),
+    ("start-up 1 s", {"science.startup": 1.0}, "time stage 1 has to settle (10 frames)"),
+    ("stage-2 J + 1", {"star.J": 13.5}, "stage-2 photon budget / 2.5"),
+    (
+        "stage-2 latency 1 frame",
+        {"stage2.latency_frames": 1.0},
+        "paper: tau ~ T in the faint cases",
+    ),
+    (
+        "both latencies 1 frame",
+        {"stage1.latency_frames": 1.0, "stage2.latency_frames": 1.0},
+        "paper: tau ~ T in the faint cases",
+    ),
+    ("diffractive stage 2", {"stage2.sensor": "diffractive"}, "the pyramid in the loop"),
+)
+
+
+def explain(
+    case: str,
+    quick: bool,
+    seconds: float,
+    gain: float,
+    seed: int,
+    names: tuple[str, ...] | None = None,
+) -> None:
+    """Part (c): the reference integrator (stage-2 gain ``gain``) in the three schemes, for
+    the case and each candidate of :data:`CANDIDATES` (markdown rows, one run each)."""
+    print(
+        f"\n#### {case}: dCAO vs standalone, one candidate at a time (reference integrator, "
+        f"stage-2 gain {gain:g}, {seconds:g}-s exposures, seed {seed}"
+        f"{', quick scene' if quick else ''})\n"
+    )
+    print(
+        "| candidate | tests | standalone SR % | dCAO SR % | stage 2 alone SR % | dCAO - st. "
+        "| st. / dCAO stage-2 residual nm | s |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    known = {c[0] for c in CANDIDATES}
+    unknown = set(names or ()) - known
+    if unknown:
+        raise SystemExit(f"--candidates: unknown {sorted(unknown)}; known {sorted(known)}")
+    for name, overrides, what in CANDIDATES:
+        if names and name not in names:
+            continue
+        t0 = time.perf_counter()
+        out = {}
+        for scheme in ("standalone", "dcao", "single"):
+            o = run_configuration(
+                case,
+                controller="reference",
+                scheme=scheme,
+                seconds=seconds,
+                seed=seed,
+                overrides={**overrides, "stage2.gain": gain},
+                quick=quick,
+            )
+            out[scheme] = o.summary
+        st, dc, si = (100 * out[k]["strehl"] for k in ("standalone", "dcao", "single"))
+        print(
+            f"| {name} | {what} | {st:.2f} | {dc:.2f} | {si:.2f} | {dc - st:+.2f} | "
+            f"{out['standalone']['residual_rms_nm']:.1f} / {out['dcao']['residual_rms_nm']:.1f} "
+            f"| {time.perf_counter() - t0:.0f} |",
+            flush=True,
+        )
 
 
 def _cascade_cost(scene, sensor: str, optical_gain: str, n_frames: int) -> tuple[float, float]:
@@ -157,14 +240,18 @@ def fidelity(
     settings: tuple[tuple[str, str], ...],
     seed: int,
     gain_grid: tuple[float, ...] | None,
+    overrides: dict | None = None,
 ) -> None:
     """Part (b): the paper's protocol (:func:`compare_case`: gain scan, calibration, the three
-    controllers, both schemes) per case and stage-2 setting, as markdown beside the paper."""
+    controllers, both schemes) per case and stage-2 setting, as markdown beside the paper;
+    ``overrides`` (case values replaced, e.g. ``{"stage1.gain": 0.05}``) are printed with
+    the table."""
     for case in cases:
+        spec = apply_overrides(load_case(case), overrides) if overrides else case
         for sensor, og in settings:
             t0 = time.perf_counter()
             comp = compare_case(
-                case,
+                spec,
                 controllers=CONTROLLERS,
                 schemes=SCHEMES,
                 seconds=seconds,
@@ -175,7 +262,8 @@ def fidelity(
                 optical_gain=og,
             )
             wall = time.perf_counter() - t0
-            print("\n".join(_markdown(case, f"{sensor}/{og}", comp, seconds, wall)), flush=True)
+            label = f"{sensor}/{og}" + (f", overrides {overrides}" if overrides else "")
+            print("\n".join(_markdown(case, label, comp, seconds, wall)), flush=True)
 
 
 def main() -> None:
@@ -194,8 +282,23 @@ def main() -> None:
     parser.add_argument(
         "--gain-grid", default=None, help="comma-separated reference gains scanned (part b)"
     )
+    parser.add_argument(
+        "--overrides",
+        default=None,
+        help="comma-separated case values replaced in part (b), e.g. stage1.gain=0.05",
+    )
+    parser.add_argument("--explain", action="store_true", help="only part (c)")
+    parser.add_argument(
+        "--reference-gain", type=float, default=0.3, help="stage-2 gain of part (c)"
+    )
+    parser.add_argument("--candidates", default=None, help="comma-separated names of part (c)")
     args = parser.parse_args()
     quick = args.quick
+    if args.explain:
+        names = tuple(args.candidates.split(",")) if args.candidates else None
+        for case in tuple(args.cases.split(",")) if args.cases else ("red5-best",):
+            explain(case, quick, args.seconds or 2.0, args.reference_gain, args.seed, names)
+        return
     if not args.cases:
         cost("red5-best", quick, 300 if quick else 600)
     if args.cost_only:
@@ -206,7 +309,23 @@ def main() -> None:
         tuple(tuple(x.split("/")) for x in args.settings.split(",")) if args.settings else SETTINGS
     )
     grid = tuple(float(g) for g in args.gain_grid.split(",")) if args.gain_grid else None
-    fidelity(quick, seconds, cases, settings, args.seed, grid)
+    fidelity(quick, seconds, cases, settings, args.seed, grid, _parse_overrides(args.overrides))
+
+
+def _parse_overrides(text: str | None) -> dict | None:
+    """``"a.b=1,c=x"`` -> ``{"a.b": 1.0, "c": "x"}`` (numbers as float)."""
+    if not text:
+        return None
+    out: dict = {}
+    for item in text.split(","):
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise SystemExit(f"--overrides: expected key=value, got {item!r}")
+        try:
+            out[key.strip()] = float(value)
+        except ValueError:
+            out[key.strip()] = value.strip()
+    return out
 
 
 if __name__ == "__main__":
