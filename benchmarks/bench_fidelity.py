@@ -96,9 +96,9 @@ def explain(
     )
     print(
         "| candidate | tests | standalone SR % | dCAO SR % | stage 2 alone SR % | dCAO - st. "
-        "| st. / dCAO stage-2 residual nm | s |"
+        "| st. / dCAO stage-2 residual nm | st. / dCAO contrast 4-6 | s |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     known = {c[0] for c in CANDIDATES}
     unknown = set(names or ()) - known
     if unknown:
@@ -123,7 +123,8 @@ def explain(
         print(
             f"| {name} | {what} | {st:.2f} | {dc:.2f} | {si:.2f} | {dc - st:+.2f} | "
             f"{out['standalone']['residual_rms_nm']:.1f} / {out['dcao']['residual_rms_nm']:.1f} "
-            f"| {time.perf_counter() - t0:.0f} |",
+            f"| {out['standalone']['mean_contrast_4_6']:.3e} / "
+            f"{out['dcao']['mean_contrast_4_6']:.3e} | {time.perf_counter() - t0:.0f} |",
             flush=True,
         )
 
