@@ -269,6 +269,7 @@ def fidelity(
     seed: int,
     gain_grid: tuple[float, ...] | None,
     overrides: dict | None = None,
+    schemes: tuple[str, ...] = SCHEMES,
 ) -> None:
     """Part (b): the paper's protocol (:func:`compare_case`: gain scan, calibration, the three
     controllers, both schemes) per case and stage-2 setting, as markdown beside the paper;
@@ -281,7 +282,7 @@ def fidelity(
             comp = compare_case(
                 spec,
                 controllers=CONTROLLERS,
-                schemes=SCHEMES,
+                schemes=schemes,
                 seconds=seconds,
                 seed=seed,
                 quick=quick,
@@ -316,6 +317,9 @@ def main() -> None:
         help="comma-separated case values replaced in part (b), e.g. stage1.gain=0.05; "
         "'paper-text' for PAPER_TEXT_RED5",
     )
+    parser.add_argument(
+        "--schemes", default=None, help="comma-separated schemes of part (b) (default both)"
+    )
     parser.add_argument("--explain", action="store_true", help="only part (c)")
     parser.add_argument(
         "--reference-gain", type=float, default=0.3, help="stage-2 gain of part (c)"
@@ -347,7 +351,9 @@ def main() -> None:
         tuple(tuple(x.split("/")) for x in args.settings.split(",")) if args.settings else SETTINGS
     )
     grid = tuple(float(g) for g in args.gain_grid.split(",")) if args.gain_grid else None
-    fidelity(quick, seconds, cases, settings, args.seed, grid, _parse_overrides(args.overrides))
+    schemes = tuple(args.schemes.split(",")) if args.schemes else SCHEMES
+    overrides = _parse_overrides(args.overrides)
+    fidelity(quick, seconds, cases, settings, args.seed, grid, overrides, schemes)
 
 
 def _parse_overrides(text: str | None) -> dict | None:
