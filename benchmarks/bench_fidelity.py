@@ -127,14 +127,15 @@ def explain(
     seed: int,
     names: tuple[str, ...] | None = None,
     single: bool = True,
+    base: dict | None = None,
 ) -> None:
     """Part (c): the reference integrator (stage-2 gain ``gain``) in the three schemes
     (``single``: also stage 2 alone), for the case and each candidate of :data:`CANDIDATES`
-    (markdown rows, one run each)."""
+    (markdown rows, one run each); ``base``: case values replaced under every candidate."""
     print(
         f"\n#### {case}: dCAO vs standalone, one candidate at a time (reference integrator, "
         f"stage-2 gain {gain:g}, {seconds:g}-s exposures, seed {seed}"
-        f"{', quick scene' if quick else ''})\n"
+        f"{', quick scene' if quick else ''}{f', on {base}' if base else ''})\n"
     )
     print(
         "| candidate | tests | standalone SR % | dCAO SR % | stage 2 alone SR % | dCAO - st. "
@@ -157,7 +158,7 @@ def explain(
                 scheme=scheme,
                 seconds=seconds,
                 seed=seed,
-                overrides={**overrides, "stage2.gain": gain},
+                overrides={**(base or {}), **overrides, "stage2.gain": gain},
                 quick=quick,
             )
             out[scheme] = o.summary
@@ -368,6 +369,7 @@ def main() -> None:
                 args.seed,
                 names,
                 single=not args.no_single,
+                base=_parse_overrides(args.overrides),
             )
         return
     if not args.cases:
