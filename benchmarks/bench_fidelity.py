@@ -116,6 +116,16 @@ CANDIDATES = (
         "paper: tau ~ T in the faint cases",
     ),
     ("diffractive stage 2", {"stage2.sensor": "diffractive"}, "the pyramid in the loop"),
+    (
+        "diffractive tracked",
+        {"stage2.sensor": "diffractive", "stage2.optical_gain": "tracked"},
+        "the pyramid, optical gains tracked (modal dither)",
+    ),
+    (
+        "linear two-pass",
+        {"stage2.optical_gain": "two-pass"},
+        "optical gains around the closed-loop residual",
+    ),
 )
 
 
