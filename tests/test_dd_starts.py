@@ -76,11 +76,14 @@ def test_has_lines_finds_a_vibration_not_turbulence():
 def test_bound_start_is_certified_and_better():
     # The reduced bound is the start only if it passes the certificates: the design's margin
     # (brute force), closed-loop stability and pole radius hold, and it ends closer to the
-    # margin-constrained bound than the design from the integrator.
+    # margin-constrained bound than the design from the integrator. Measured (order 5):
+    # 1.164x the 256-tap bound, 1.250x from the integrator; order="auto" 1.163x (1.160x
+    # from the integrator; both pick order 5 or 8 here).
     G, f, psd = _resonant_mode()
-    kw = dict(noise_psd=1e-3, modulus_margin=0.5, order=5, n_jobs=1, progress=False)
-    with_bound = datadriven(G, f, psd, **kw)  # default: the line is detected
-    without = datadriven(G, f, psd, bound_start=False, **kw)
+    kw = dict(noise_psd=1e-3, modulus_margin=0.5, n_jobs=1, progress=False)
+    with_bound = datadriven(G, f, psd, order=5, **kw)  # default: the line is detected
+    without = datadriven(G, f, psd, order=5, bound_start=False, **kw)
+    auto = datadriven(G, f, psd, order="auto", **kw)
     assert with_bound.reports[0].start == "bound reduction"
     assert without.reports[0].start == "initial"
     K = with_bound.controller.transfer_function(0)
@@ -88,10 +91,11 @@ def test_bound_start_is_certified_and_better():
     assert _brute_min(G, K) >= 0.5 * (1 - 1e-9)
     assert with_bound.pole_radius[0] <= 0.9999
     bound = constrained_bound(G, f, psd, 1e-3, 0.5, n_taps=256).variance[0]
-    assert with_bound.residual_variance[0] < without.residual_variance[0]
-    # Measured: 1.01x the 256-tap bound (the integrator start: 1.08x); the bound is over a
-    # class with unstable controllers, and 5 % covers the fit's order reduction.
-    assert with_bound.residual_variance[0] <= 1.05 * bound
+    assert with_bound.residual_variance[0] < 0.95 * without.residual_variance[0]
+    # 1.2: the measured 1.16 and a few % for solver and platform differences.
+    assert with_bound.residual_variance[0] <= 1.2 * bound
+    assert auto.residual_variance[0] <= 1.2 * bound
+    assert _brute_min(G, auto.controller.transfer_function(0)) >= 0.5 * (1 - 1e-9)
 
 
 def test_a_destabilising_target_is_refused(monkeypatch):
@@ -128,21 +132,21 @@ def test_a_destabilising_target_is_refused(monkeypatch):
         n_jobs=1,
         progress=False,
     )
-    assert verdicts == [False]
+    assert len(verdicts) == len(dd._BOUND_GAINS) and not any(verdicts)
     assert res.reports[0].start == "initial"
     assert is_stable(G, res.controller.transfer_function(0))
 
 
 def _objective_lower_for_the_candidate(dd_module):
-    """``true_objective`` that makes the first start candidate look best (-inf), so that only
-    the certificates can refuse it."""
+    """``true_objective`` that makes every start candidate look best (-inf), so that only the
+    certificates can refuse them."""
     real = dd_module.true_objective
     calls = {"n": 0}
 
     def objective(grid, v, r1, rn, h):
         J, P = real(grid, v, r1, rn, h)
         calls["n"] += 1
-        return (-np.inf if calls["n"] == 2 else J), P  # call 1: the initial, 2: the candidate
+        return (-np.inf if calls["n"] >= 2 else J), P  # call 1: the initial, then candidates
 
     return objective
 
