@@ -81,7 +81,7 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
     no Parameters, no extrapolation, no dense-grid refinement. Returns (objective, solves,
     verified: stable and modulus margin met on the dense grid).
     """
-    _, psd_row, noise_row, b0, a0, fixed = item
+    _, psd_row, noise_row, b0, a0, fixed, _ = item
     ctx = dd.replace(setup.ctx, fixed=fixed, nq=setup.ctx.nq + setup.ctx.fixed.size - fixed.size)
     H = dd._interp_matrix(ctx.f_h2, ctx.freqs)
     pos = np.searchsorted(ctx.f_design, ctx.f_h2)
