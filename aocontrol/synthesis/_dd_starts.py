@@ -1,0 +1,285 @@
+"""Start candidates of the data-driven synthesis: the margin-constrained bound, reduced (private).
+
+Private module of :mod:`aocontrol.synthesis._datadriven`. On resonant spectra the
+convex-concave iterations stop in a local optimum far from the margin-constrained bound
+(:func:`aocontrol.analysis.constrained_bound`) when started from an integrator: measured on the
+resonant modes of ``benchmarks/bench_synthesis.py`` part (f), 1.24 times the bound at order 5
+(worst 1.56). The bound's own controller, ``K_b = Q / (1 - G Q)`` with an FIR Youla parameter
+``Q`` of a few hundred taps, has a stable closed loop but unstable poles of its own (8 to 14
+outside the unit circle there), so it is not a start. Its sensitivity ``S_b = 1 - G Q`` is a
+target instead: a controller ``K = X / Y`` of the design's order (``Y = F Y'``, ``F`` the
+fixed factor, ``Y'`` monic) whose sensitivity ``Y / (Y + G X)`` matches ``S_b`` is fitted by
+Sanathanan-Koerner iterations (each a linear least-squares problem),
+
+    min_{X, Y'}  sum_j  w_j |Y_j (1 - S_b,j) - S_b,j G_j X_j|^2 / |P_j^(k-1)|^2,
+
+``w_j = tw_j (psd_j + noise_j)`` (the trapezoid weights of the input grid times what the
+residual weighs: near the bound, the excess residual is about ``sum w |S - S_b|^2``) and
+``P^(k-1)`` the previous iterate's ``Y + G X``. The free poles of the fit (roots of ``Y'``)
+outside the radius are then reflected inside the unit circle (``p -> 1 / conj(p)``) and
+pulled inside the radius, and ``X`` is fitted again with ``Y`` fixed (the same iterations,
+``X`` only): the pole flip of vector fitting.
+
+Nothing here certifies: the synthesis takes such a start only if it passes every
+certificate of the design (exact modulus margin over the whole circle, closed-loop stability,
+pole radius) and has a lower objective than the other starts (see
+:func:`aocontrol.synthesis._datadriven._design_mode`).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import control
+import numpy as np
+from scipy.signal import find_peaks
+
+from aocontrol.plant import z_inverse_coefficients
+from aocontrol.synthesis._dd_grids import _PEAK_PROMINENCE_DECADES
+
+logger = logging.getLogger(__name__)
+
+#: FIR length of the Youla parameter of the bound used as the fit's target. Measured on the
+#: 6 resonant modes of bench_synthesis part (f) (one thread, loaded machine): the reduced
+#: starts at order 5 are 1.03-1.10 times the 256-tap bound from a 128-tap target (0.4 s CPU
+#: per mode: the unconstrained FIR already meets the margin) and 1.03-1.06 from a 256-tap
+#: target (about 5 s per mode: cutting-plane solves); 64 taps give 1.11-1.25.
+BOUND_TAPS = 256
+# Sanathanan-Koerner iterations of the fit (each one least-squares problem); measured: the
+# residual of the fit stops changing after 5 to 10.
+_SK_ITERATIONS = 12
+# The reflected poles are pulled this fraction inside the radius (strictly inside, as the
+# default start: the convexified radius constraint needs the scaled denominator nonzero on
+# the circle).
+_RADIUS_MARGIN = 1e-3
+
+
+def has_lines(psd: np.ndarray) -> np.ndarray:
+    """Modes whose PSD has lines: a peak of prominence at least ``_PEAK_PROMINENCE_DECADES``.
+
+    Parameters
+    ----------
+    psd : ndarray, shape (n_modes, n_freqs)
+        What the objective weighs (disturbance plus noise), one-sided [units^2/Hz].
+
+    Returns
+    -------
+    ndarray of bool, shape (n_modes,)
+        The same peak test as the design grid's (log10 of the PSD, scipy.signal.find_peaks):
+        a smooth turbulence spectrum has none.
+    """
+    out = np.zeros(psd.shape[0], dtype=bool)
+    # The design grid's floor (_design_indices): 30 decades below each row's maximum.
+    logs = np.log10(np.maximum(psd, 1e-300 + psd.max(axis=-1, keepdims=True) * 1e-30))
+    for i, row in enumerate(logs):
+        out[i] = find_peaks(row, prominence=_PEAK_PROMINENCE_DECADES)[0].size > 0
+    return out
+
+
+def bound_sensitivities(
+    plant: object,
+    freqs: np.ndarray,
+    psd: np.ndarray,
+    noise: np.ndarray,
+    mu: float,
+    n_taps: int | None = None,
+) -> list:
+    """``S_b = 1 - G Q`` of the margin-constrained bound on ``freqs``, per mode (None: failed).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+        Stable discrete plant.
+    freqs : ndarray, shape (n_freqs,)
+        Input grid [Hz].
+    psd, noise : ndarray, shape (n_modes, n_freqs)
+        Disturbance and noise PSDs, one-sided [units^2/Hz].
+    mu : float
+        Modulus margin of the bound.
+    n_taps : int, optional
+        FIR length of ``Q`` (default ``BOUND_TAPS``).
+
+    Returns
+    -------
+    list of (ndarray of complex, shape (n_freqs,)) or None
+    """
+    from aocontrol.analysis import constrained_bound
+    from aocontrol.plant import frequency_response
+
+    n_taps = BOUND_TAPS if n_taps is None else n_taps
+    res = constrained_bound(plant, freqs, psd, noise, mu, n_taps=n_taps, raise_on_failure=False)
+    fs = res.fs
+    g = frequency_response(plant, freqs, fs)
+    w = np.exp(-2j * np.pi * freqs / fs)
+    out = []
+    for i in range(psd.shape[0]):
+        if not res.ok[i]:
+            logger.debug("bound start: the bound failed for a mode (%s)", res.messages[i])
+            out.append(None)
+            continue
+        out.append(1.0 - g * np.polyval(res.q[i][::-1], w))
+    return out
+
+
+def _lstsq(A: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Real least squares of the complex system ``A x ~ rhs``."""
+    return np.linalg.lstsq(
+        np.vstack([A.real, A.imag]), np.concatenate([rhs.real, rhs.imag]), rcond=None
+    )[0]
+
+
+def reduced_start(
+    s_target: np.ndarray,
+    w: np.ndarray,
+    g: np.ndarray,
+    weight: np.ndarray,
+    nq: int,
+    fixed: np.ndarray,
+    radius: float | None,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """A controller of the design's structure whose sensitivity fits ``s_target``.
+
+    Parameters
+    ----------
+    s_target : ndarray of complex, shape (n,)
+        Target sensitivity on the grid.
+    w : ndarray of complex, shape (n,)
+        ``z^-1`` on the grid (``exp(-2j pi f / fs)``).
+    g : ndarray of complex, shape (n,)
+        Plant response on the grid.
+    weight : ndarray, shape (n,)
+        Nonnegative fit weights (trapezoid weight times disturbance plus noise PSD).
+    nq : int
+        Free coefficients: ``X`` has ``nq + 1``, ``Y'`` has ``nq`` (monic).
+    fixed : ndarray, shape (m,)
+        Fixed factor ``F`` of the denominator (powers of ``z^-1``, ``F[0] = 1``).
+    radius : float or None
+        The free poles end inside ``radius * (1 - _RADIUS_MARGIN)`` (None: inside the unit
+        circle's reflection only).
+
+    Returns
+    -------
+    (b, a) or None
+        Numerator and denominator in powers of ``z^-1`` (``a = F Y'``), or None if the fit
+        is not finite.
+    """
+    pp = np.polynomial.polynomial
+    sw = np.sqrt(np.maximum(weight, 0.0))
+    powers = w[:, None] ** np.arange(nq + 1)
+    F = pp.polyval(w, fixed)
+    Ax_base = -(s_target * g)[:, None] * powers
+    p_prev = np.ones_like(w)
+    with np.errstate(all="ignore"):
+        # (1) X and Y' together.
+        for _ in range(_SK_ITERATIONS):
+            scale = sw / np.maximum(np.abs(p_prev), 1e-300)
+            Ay = (F * (1.0 - s_target))[:, None] * powers[:, 1:]
+            A = np.hstack([Ax_base, Ay]) * scale[:, None]
+            sol = _lstsq(A, -(F * (1.0 - s_target)) * scale)
+            x, y = sol[: nq + 1], sol[nq + 1 :]
+            Y = F * pp.polyval(w, np.concatenate([[1.0], y]))
+            p_prev = Y + g * pp.polyval(w, x)
+        if not np.all(np.isfinite(sol)):
+            return None
+        # (2) The free poles inside the unit circle (reflected) and inside the radius.
+        if nq:
+            poles = np.roots(np.concatenate([[1.0], y]))
+            poles = np.where(np.abs(poles) > 1.0, 1.0 / np.conj(poles), poles)
+            limit = (1.0 if radius is None else radius) * (1.0 - _RADIUS_MARGIN)
+            mag = np.abs(poles)
+            poles = np.where(mag > limit, poles / np.maximum(mag, 1e-300) * limit, poles)
+            y = np.real(np.poly(poles))[1:]
+        a = pp.polymul(fixed, np.concatenate([[1.0], y]))
+        Y = pp.polyval(w, a)
+        # (3) X again with Y fixed.
+        p_prev = np.ones_like(w)
+        for _ in range(_SK_ITERATIONS):
+            scale = sw / np.maximum(np.abs(p_prev), 1e-300)
+            x = _lstsq(Ax_base * scale[:, None], -(Y * (1.0 - s_target)) * scale)
+            p_prev = Y + g * pp.polyval(w, x)
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(a))):
+        return None
+    return x, a
+
+
+def bound_candidate(ctx, g: np.ndarray, psd, noise, target) -> tuple | None:
+    """The reduced bound start at the order and fixed factor of ``ctx`` (None: no target).
+
+    ``ctx`` is the synthesis context (input grid ``ctx.freqs``, trapezoid weights ``ctx.tw``,
+    ``ctx.nq``, ``ctx.fixed``, ``ctx.pole_radius``), ``g`` the plant on the input grid and
+    ``target`` the bound's sensitivity there (:func:`bound_sensitivities`).
+    """
+    if target is None:
+        return None
+    w = np.exp(-2j * np.pi * ctx.freqs / ctx.fs)
+    weight = ctx.tw * (psd + noise)
+    return reduced_start(target, w, g, weight, ctx.nq, ctx.fixed, ctx.pole_radius)
+
+
+def bound_start_modes(bound_start: object, plant: object, weighed: np.ndarray) -> np.ndarray:
+    """Modes that get the reduced-bound start candidate (``datadriven``'s ``bound_start``).
+
+    ``weighed`` is the disturbance-plus-noise PSD, shape ``(n_modes, n_freqs)``.
+    """
+    if bound_start is not None and not isinstance(bound_start, (bool, np.bool_)):
+        raise TypeError(f"bound_start must be True, False or None, got {bound_start!r}")
+    n_modes = weighed.shape[0]
+    if bound_start is False:
+        return np.zeros(n_modes, dtype=bool)
+    is_tf = isinstance(plant, control.TransferFunction)
+    usable = is_tf
+    if is_tf:
+        _, ag = z_inverse_coefficients(plant, "plant")
+        ag = np.trim_zeros(ag, "b")
+        usable = ag.size == 1 or bool(np.max(np.abs(np.roots(ag))) < 1.0)
+    if bound_start:
+        if not usable:
+            what = "a plant with a pole on or outside the unit circle" if is_tf else "a control.FRD"
+            raise ValueError(
+                "bound_start=True needs a stable transfer-function plant (the bound's Youla "
+                f"parametrisation K = Q / (1 - G Q)), got {what}"
+            )
+        return np.ones(n_modes, dtype=bool)
+    return has_lines(weighed) if usable else np.zeros(n_modes, dtype=bool)
+
+
+def bound_targets(ctx, items: list, mu_d: float) -> list:
+    """The bound's sensitivity on the input grid for the items asking for it (else None).
+
+    One :func:`aocontrol.analysis.constrained_bound` call for the chunk's modes (its problem
+    compiled once), with the design grid's margin ``mu_d`` (a little above the margin), so the
+    reduced start keeps some room for the design grid's margin. A failure of the bound leaves
+    the modes with their other starts.
+    """
+    asked = [k for k, item in enumerate(items) if item[6]]
+    out: list = [None] * len(items)
+    if not asked:
+        return out
+    psd = np.array([items[k][1] for k in asked])
+    noise = np.array([items[k][2] for k in asked])
+    try:
+        found = bound_sensitivities(ctx.plant, ctx.freqs, psd, noise, mu_d)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+        logger.warning("bound start: constrained_bound failed (%s); not used", exc)
+        return out
+    for k, s_b in zip(asked, found, strict=True):
+        out[k] = s_b
+    return out
+
+
+def start_certified(ctx, cert, dense, v: np.ndarray) -> bool:
+    """A start candidate ``v`` passes every certificate (margin, stability, pole radius, peaks).
+
+    ``cert`` is the mode's certifier (``_ModeCertifier``), ``dense`` its dense grid's data.
+
+    Besides the certificates of the iterations (``cert.check``), the margin is also checked on
+    the dense grid: a second, independent test for a start that did not come from the
+    iterations (measured: the stationary-point certificate can miss a dip when controller
+    poles crowd near ``z = 1``; this test refuses such a start where the dip is below the
+    margin on the grid).
+    """
+    if not cert.check(v).ok:
+        return False
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ok = np.abs(dense.A @ v + dense.F) >= ctx.mu * np.abs(dense.AY @ v + dense.F)
+    return bool(np.all(ok))
