@@ -110,6 +110,27 @@ def test_certificate_equals_brute_force(latency, f0, radius, gain):
     assert cert.value == pytest.approx(truth, rel=CERT_RTOL)
 
 
+def test_certificate_finds_a_dip_the_polynomial_loses_to_round_off():
+    # Five controller poles at radius 0.996-0.998 crowd near z = 1 (0, +-1.1 and +-62.6 Hz at
+    # 3 kHz, a bound-reduction start of the synthesis): |D|^2 is tiny near 0 Hz and the
+    # stationarity polynomial in cos(theta) falls to round-off there. Its roots alone reported
+    # 1.045 (at fs/2) for a true minimum of 0.899 at 92.7 Hz.
+    fs = 3000.0
+    G = loop_plant(fs, 0.83)
+    b = [0.11502539943498107, -0.4764192835838583, 0.7646009546893162]
+    b += [-0.5837784073706445, 0.20438687736562391, -0.02381398524549097]
+    a = [1.0, -4.968156961860968, 9.889992126414814, -9.860894726687786]
+    a += [4.92444136137212, -0.9853817985681801]
+    K = tf_from_z_inverse(b, a, 1.0 / fs)
+    cert = modulus_certificate(G, K)
+    truth = _brute_min(G, K)
+    assert truth < 0.95
+    assert cert.value <= truth * (1 + 1e-9)
+    assert cert.value == pytest.approx(truth, rel=CERT_RTOL)
+    assert cert.frequency_hz == pytest.approx(92.74, abs=0.05)
+    assert margins(G, K).modulus_margin == pytest.approx(truth, rel=CERT_RTOL)
+
+
 def _issue_case():
     """The reviewer's reproducible example (issue 14): 0.611 reported, 0.483 true before."""
     fs = 3000.0

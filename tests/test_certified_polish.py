@@ -118,7 +118,7 @@ def test_seeds_are_the_start_s_peaks_inside_the_input_range():
     )
     res = dd.datadriven(plant, f, psd, order=5, noise_psd=1e-6, n_jobs=1, progress=False)
     ctx = setup.ctx
-    _, psd_row, noise_row, b0, a0, fixed = setup.items[0]
+    _, psd_row, noise_row, b0, a0, fixed, _ = setup.items[0]
     ctx = dd.replace(ctx, fixed=fixed, nq=5 - (fixed.size - 1))
     dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
     cert = _ModeCertifier(ctx, psd_row, noise_row, 1.0, b0, a0, dense, 0.525)

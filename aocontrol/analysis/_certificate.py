@@ -19,6 +19,17 @@ steps on its theta-derivative around it), so root-finding round-off cannot lose 
 roots with a small imaginary part (a double real root split by round-off) are kept as
 candidates too.
 
+In floating point that polynomial can lose a dip: where the controller's poles crowd near
+``z = 1`` (or ``-1``), ``|D|^2`` is tiny there and ``N' M - N M'`` falls to round-off, so its
+roots mean nothing (measured: a controller with five poles at radius 0.996-0.998 between 0
+and 63 Hz at 3 kHz, whose dip at 92.7 Hz, 0.899, the roots missed: they reported 1.045).
+The candidates therefore also include the local minima of ``|1 + G K|``, evaluated directly
+(Horner on the circle, accurate where the polynomial in ``x`` is not), on a grid of uniform
+steps refined around every closed-loop and open-loop pole within radius 0.9 to 1.1 of the
+circle, geometrically from a hundredth of the pole's distance to the circle out to two
+uniform steps: a dip narrower than the uniform step comes from a pole that close to the
+circle, and is sampled across. Each is polished by Newton steps between its grid neighbours.
+
 For a measured plant (``control.FRD``) the plant is known on its grid only: the minimum is
 taken over the FRD's points and, where the controller has lightly damped poles, over refined
 points around them (the controller exact, the plant interpolated between its measured points,
@@ -51,7 +62,10 @@ __all__ = [
 ]
 
 #: Method names of a certificate.
-EXACT = "exact (stationary points of |1 + G K|^2 as polynomial roots)"
+EXACT = (
+    "exact (stationary points of |1 + G K|^2 as polynomial roots, and local minima on a grid "
+    "refined around every pole near the circle; each polished)"
+)
 FRD = (
     "measured plant: its grid points, refined around the controller's lightly damped poles "
     "with the plant interpolated between measured points"
@@ -68,6 +82,14 @@ _NEWTON_STEPS = 8
 # ... or when every step is below this [rad]: a dip as narrow as a pole at radius 1 - 1e-6
 # (width 1e-6 rad) then has its minimum to ~1e-10 relative.
 _NEWTON_STOP = 1e-11
+# The direct-evaluation grid: uniform steps on [0, pi], and around each pole within
+# _GRID_POLE_BAND of the circle offsets from _GRID_FINEST of its distance to two uniform steps.
+_GRID_UNIFORM = 2048
+_GRID_POLE_BAND = 0.1
+_GRID_FINEST = 1e-2
+_GRID_OFFSETS = 48
+_UNIFORM_THETA = np.linspace(0.0, np.pi, _GRID_UNIFORM + 1)
+_GEOM_T = np.linspace(0.0, 1.0, _GRID_OFFSETS)
 # Candidates within this factor of the smallest one are polished.
 _POLISH_WITHIN = 2.0
 # Controller poles above this radius are "lightly damped" for the FRD refinement.
@@ -137,16 +159,22 @@ def _abs2_derivatives(p: np.ndarray, w: np.ndarray) -> tuple:
 
 
 def _newton_polish(
-    num: np.ndarray, den: np.ndarray, theta: np.ndarray, vals: np.ndarray
+    num: np.ndarray,
+    den: np.ndarray,
+    theta: np.ndarray,
+    vals: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Newton steps on ``dR/dtheta = 0`` (``R = |num|^2 / |den|^2``), all candidates at once.
 
     A step is taken where the curvature is positive (a minimum), stays within ``_POLISH``
-    of the candidate and in ``[0, pi]``; a candidate keeps its smallest value seen
-    (``|num| / |den|``), so polishing never raises a value.
+    of the candidate (or within ``bounds``, per candidate) and in ``[0, pi]``; a candidate
+    keeps its smallest value seen (``|num| / |den|``), so polishing never raises a value.
     """
     theta, vals = theta.astype(float).copy(), vals.astype(float).copy()
-    t, lo, hi = theta.copy(), np.maximum(theta - _POLISH, 0.0), np.minimum(theta + _POLISH, np.pi)
+    if bounds is None:
+        bounds = (theta - _POLISH, theta + _POLISH)
+    t, lo, hi = theta.copy(), np.maximum(bounds[0], 0.0), np.minimum(bounds[1], np.pi)
     for _ in range(_NEWTON_STEPS):
         w = np.exp(-1j * t)
         (a, a1, a2), (b, b1, b2) = _abs2_derivatives(num, w), _abs2_derivatives(den, w)
@@ -158,9 +186,13 @@ def _newton_polish(
         theta[better], vals[better] = t[better], v[better]
         ok = np.isfinite(R1) & np.isfinite(R2) & (R2 > 0)
         step = np.where(ok, -R1 / np.where(ok, R2, 1.0), 0.0)
-        if np.all(np.abs(step) <= _NEWTON_STOP):
+        t_next = np.clip(t + step, lo, hi)
+        moves = np.abs(t_next - t)
+        # Converged (or held at a bound); or at round-off: steps of ~1e-10 rad that no longer
+        # lower any value (the derivatives' round-off, measured near clustered poles).
+        if np.all(moves <= _NEWTON_STOP) or (not np.any(better) and np.all(moves <= 1e-8)):
             break
-        t = np.clip(t + step, lo, hi)
+        t = t_next
     else:
         w = np.exp(-1j * t)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -202,15 +234,61 @@ def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarra
         cands.extend(np.arccos(np.clip(roots.real[keep], -1.0, 1.0)).tolist())
 
     theta = np.unique(np.asarray(cands))
-    w = np.exp(-1j * theta)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        vals = np.abs(poly.polyval(w, num)) / np.abs(poly.polyval(w, den))
-    vals = np.where(np.isnan(vals), np.inf, vals)
+    vals = _ratio(num, den, theta)
+    # With the direct-evaluation candidates (where the polynomial in x is ill-conditioned),
+    # each polished between its grid neighbours; a root within _POLISH of its value.
+    g_theta, g_vals, g_lo, g_hi = _grid_minima(num, den)
+    theta = np.concatenate([theta, g_theta])
+    vals = np.concatenate([vals, g_vals])
+    lo = np.concatenate([theta[: theta.size - g_theta.size] - _POLISH, g_lo])
+    hi = np.concatenate([theta[: theta.size - g_theta.size] + _POLISH, g_hi])
     # Polish the candidates that may hold the minimum (round-off in a root moves the value by
     # far less than this factor); the others only report local minima.
     sel = np.flatnonzero(vals <= _POLISH_WITHIN * np.min(vals))
-    theta[sel], vals[sel] = _newton_polish(num, den, theta[sel], vals[sel])
-    return theta, vals
+    theta[sel], vals[sel] = _newton_polish(
+        num, den, theta[sel], vals[sel], bounds=(lo[sel], hi[sel])
+    )
+    order = np.argsort(theta, kind="stable")
+    return theta[order], vals[order]
+
+
+def _ratio(num: np.ndarray, den: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """``|num(w)| / |den(w)|`` at ``w = exp(-j theta)`` (``inf`` where ``den`` vanishes)."""
+    w = np.exp(-1j * theta)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vals = np.abs(poly.polyval(w, num)) / np.abs(poly.polyval(w, den))
+    return np.where(np.isnan(vals), np.inf, vals)
+
+
+def _grid_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Local minima of ``|num| / |den|`` on the pole-refined grid (module docstring):
+    ``(theta, values, lower, upper)``, the bounds their grid neighbours."""
+    step = np.pi / _GRID_UNIFORM
+    parts = [_UNIFORM_THETA]
+    for p in (num, den):
+        if p.size < 2 or not np.any(p[1:]):
+            continue
+        w_roots = np.roots(p[::-1])  # roots in w = z^-1
+        z = 1.0 / w_roots[w_roots != 0]
+        near = z[np.abs(np.abs(z) - 1.0) <= _GRID_POLE_BAND]
+        if near.size:
+            dist = np.maximum(np.abs(1.0 - np.abs(near)), 1e-12)
+            lo = np.log(_GRID_FINEST * dist)
+            hi = np.maximum(np.log(2.0 * step), lo)
+            offsets = np.exp(lo[:, None] + (hi - lo)[:, None] * _GEOM_T)  # (poles, offsets)
+            ang = np.abs(np.angle(near))[:, None]
+            parts.append((ang + offsets).ravel())
+            parts.append((ang - offsets).ravel())
+            parts.append(ang.ravel())
+    theta = np.sort(np.clip(np.concatenate(parts), 0.0, np.pi))
+    vals = _ratio(num, den, theta)
+    # Local minima (ends included).
+    left = np.concatenate([[np.inf], vals[:-1]])
+    right = np.concatenate([vals[1:], [np.inf]])
+    idx = np.flatnonzero((vals <= left) & (vals <= right) & np.isfinite(vals))
+    lo = theta[np.maximum(idx - 1, 0)]
+    hi = theta[np.minimum(idx + 1, theta.size - 1)]
+    return theta[idx], vals[idx], lo, hi
 
 
 def _controller_tf(controller: object, fs: float, mode: int) -> object:
@@ -232,11 +310,13 @@ def modulus_certificate(
     """Certified ``min |1 + G K|`` over [0, fs/2] (the modulus margin).
 
     Exact for a transfer-function plant and controller (every stationary point of
-    ``|1 + G K|`` on the unit circle, from polynomial roots, each polished on the exact
-    expression); for a measured (FRD) plant, the minimum over its grid points and over refined
-    points around the controller's lightly damped poles (radius above 0.9), the plant
-    interpolated between its measured points. The closed loop's stability is not part of the
-    certificate (see :func:`aocontrol.analysis.is_stable`).
+    ``|1 + G K|`` on the unit circle, from polynomial roots, and the local minima on a grid
+    refined around every closed-loop and open-loop pole near the circle, where the
+    polynomial's round-off can hide a dip; each polished on the exact expression); for a
+    measured (FRD) plant, the minimum over its grid points and over refined points around
+    the controller's lightly damped poles (radius above 0.9), the plant interpolated between
+    its measured points. The closed loop's stability is not part of the certificate (see
+    :func:`aocontrol.analysis.is_stable`).
 
     Parameters
     ----------

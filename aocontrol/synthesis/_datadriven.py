@@ -424,8 +424,9 @@ def datadriven(
 
     * the modulus margin over the whole unit circle (:func:`aocontrol.analysis.
       modulus_certificate`: exact for a transfer-function plant, from the stationary points
-      of ``|1 + G K|`` as polynomial roots; a lightly damped controller pole makes a dip
-      narrower than any grid). Where it fails, the certified minima join the design grid as
+      of ``|1 + G K|`` as polynomial roots and the minima on a grid refined around every pole
+      near the circle; a lightly damped controller pole makes a dip narrower than any
+      uniform grid). Where it fails, the certified minima join the design grid as
       constraint points (cutting planes) and the step is solved again;
     * closed-loop stability (closed-loop poles; the winding number on a dense grid for a
       measured plant) and the controller's free poles inside ``max_pole_radius`` (roots),

@@ -127,7 +127,8 @@ def _verification_text(ctx: _Context) -> str:
     exact = ctx.plant_poly is not None
     margin = (
         "modulus margin certified exactly over the whole unit circle (stationary points of "
-        "|1 + G K| as polynomial roots)"
+        "|1 + G K| as polynomial roots, and minima on a grid refined around every pole near "
+        "the circle)"
         if exact
         else "modulus margin on the measured plant's grid and a dense grid, refined around "
         "the controller's lightly damped poles (plant interpolated between measured points)"
