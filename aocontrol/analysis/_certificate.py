@@ -84,10 +84,12 @@ _NEWTON_STEPS = 8
 _NEWTON_STOP = 1e-11
 # The direct-evaluation grid: uniform steps on [0, pi], and around each pole within
 # _GRID_POLE_BAND of the circle offsets from _GRID_FINEST of its distance to two uniform steps.
-_GRID_UNIFORM = 2048
+_GRID_UNIFORM = 1024
 _GRID_POLE_BAND = 0.1
 _GRID_FINEST = 1e-2
 _GRID_OFFSETS = 48
+# A grid minimum below every polished root by more than this (relative) is a lost dip.
+_GRID_LOST = 1e-9
 _UNIFORM_THETA = np.linspace(0.0, np.pi, _GRID_UNIFORM + 1)
 _GEOM_T = np.linspace(0.0, 1.0, _GRID_OFFSETS)
 # Candidates within this factor of the smallest one are polished.
@@ -235,19 +237,20 @@ def rational_modulus_minima(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarra
 
     theta = np.unique(np.asarray(cands))
     vals = _ratio(num, den, theta)
-    # With the direct-evaluation candidates (where the polynomial in x is ill-conditioned),
-    # each polished between its grid neighbours; a root within _POLISH of its value.
-    g_theta, g_vals, g_lo, g_hi = _grid_minima(num, den)
-    theta = np.concatenate([theta, g_theta])
-    vals = np.concatenate([vals, g_vals])
-    lo = np.concatenate([theta[: theta.size - g_theta.size] - _POLISH, g_lo])
-    hi = np.concatenate([theta[: theta.size - g_theta.size] + _POLISH, g_hi])
     # Polish the candidates that may hold the minimum (round-off in a root moves the value by
     # far less than this factor); the others only report local minima.
     sel = np.flatnonzero(vals <= _POLISH_WITHIN * np.min(vals))
-    theta[sel], vals[sel] = _newton_polish(
-        num, den, theta[sel], vals[sel], bounds=(lo[sel], hi[sel])
-    )
+    theta[sel], vals[sel] = _newton_polish(num, den, theta[sel], vals[sel])
+    # The direct-evaluation candidates (where the polynomial in x is ill-conditioned): the
+    # grid's local minima below every polished root, i.e. the dips the roots lost, polished
+    # between their grid neighbours. Where the roots are right there are none.
+    g_theta, g_vals, g_lo, g_hi = _grid_minima(num, den)
+    lost = g_vals < np.min(vals) * (1.0 - _GRID_LOST)
+    if np.any(lost):
+        g_theta, g_vals = _newton_polish(
+            num, den, g_theta[lost], g_vals[lost], bounds=(g_lo[lost], g_hi[lost])
+        )
+        theta, vals = np.concatenate([theta, g_theta]), np.concatenate([vals, g_vals])
     order = np.argsort(theta, kind="stable")
     return theta[order], vals[order]
 
