@@ -157,9 +157,13 @@ def measured_residual(bg, ag, bk, ak, fs, mode: Mode) -> float:
     for f0, zeta, _ in mode.lines:
         parts.append(np.clip(f0 + 2 * zeta * f0 * np.linspace(-20, 20, N_LINE), 0.0, fs / 2))
     f = np.unique(np.concatenate(parts))
-    L = response(bg, ag, f, fs) * response(bk, ak, f, fs)
-    s2 = 1.0 / np.abs(1 + L) ** 2
-    t2 = np.abs(L) ** 2 * s2
+    # S = Ag Ak / (Ag Ak + Bg Bk) and T = Bg Bk / (...) from the polynomials: finite where
+    # the controller has its integrator's pole (z = 1 at 0 Hz, where G K is infinite).
+    d, n = np.convolve(ag, ak), np.convolve(bg, bk)
+    size = max(d.size, n.size)
+    c = np.pad(d, (0, size - d.size)) + np.pad(n, (0, size - n.size))
+    s2 = np.abs(response(d, c, f, fs)) ** 2
+    t2 = np.abs(response(n, c, f, fs)) ** 2
     return float(np.trapezoid(s2 * mode.psd(f) + t2 * mode.noise, f))
 
 

@@ -177,7 +177,7 @@ def _newton_polish(
     if bounds is None:
         bounds = (theta - _POLISH, theta + _POLISH)
     t, lo, hi = theta.copy(), np.maximum(bounds[0], 0.0), np.minimum(bounds[1], np.pi)
-    for _ in range(_NEWTON_STEPS):
+    for it in range(_NEWTON_STEPS):
         w = np.exp(-1j * t)
         (a, a1, a2), (b, b1, b2) = _abs2_derivatives(num, w), _abs2_derivatives(den, w)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -190,9 +190,11 @@ def _newton_polish(
         step = np.where(ok, -R1 / np.where(ok, R2, 1.0), 0.0)
         t_next = np.clip(t + step, lo, hi)
         moves = np.abs(t_next - t)
-        # Converged (or held at a bound); or at round-off: steps of ~1e-10 rad that no longer
-        # lower any value (the derivatives' round-off, measured near clustered poles).
-        if np.all(moves <= _NEWTON_STOP) or (not np.any(better) and np.all(moves <= 1e-8)):
+        # Converged (or held at a bound); or at round-off: after two steps, steps of ~1e-10
+        # rad that no longer lower any value (the derivatives' round-off, measured near
+        # clustered poles; the first pass only evaluates the start).
+        stalled = it >= 2 and not np.any(better) and np.all(moves <= 1e-8)
+        if np.all(moves <= _NEWTON_STOP) or stalled:
             break
         t = t_next
     else:
