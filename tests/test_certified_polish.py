@@ -7,6 +7,8 @@ definition of a seed (a local minimum of ``|1 + G K|`` with ``|S| > 1``).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from numpy.polynomial import polynomial as poly
@@ -15,7 +17,7 @@ from aocontrol import loop_plant
 from aocontrol.analysis import polynomial_certificate
 from aocontrol.analysis._certificate import _newton_polish, rational_modulus_minima
 from aocontrol.synthesis import _datadriven as dd
-from aocontrol.synthesis._dd_certify import _from_v, _grid_data, _ModeCertifier, _warm_v
+from aocontrol.synthesis._dd_certify import _from_v, _grid_data, _ModeCertifier, _to_v, _warm_v
 
 # Newton converges quadratically to the stationary point: the value agrees with the brute
 # force to round-off, far below this (the issue asks 1e-9 relative).
@@ -119,10 +121,10 @@ def test_seeds_are_the_start_s_peaks_inside_the_input_range():
     res = dd.datadriven(plant, f, psd, order=5, noise_psd=1e-6, n_jobs=1, progress=False)
     ctx = setup.ctx
     _, psd_row, noise_row, b0, a0, fixed, _ = setup.items[0]
-    ctx = dd.replace(ctx, fixed=fixed, nq=5 - (fixed.size - 1))
+    ctx = replace(ctx, fixed=fixed, nq=5 - (fixed.size - 1))
     dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
     cert = _ModeCertifier(ctx, psd_row, noise_row, 1.0, b0, a0, dense, 0.525)
-    v = dd._to_v(ctx, res.controller.b[0], res.controller.a[0])
+    v = _to_v(ctx, res.controller.b[0], res.controller.a[0])
     assert v is not None
     seeds = cert.seeds(v)
     full = polynomial_certificate(*ctx.plant_poly, *_from_v(ctx, v), fs)
@@ -162,7 +164,7 @@ def test_warm_start_with_integral_action_becomes_leaky_in_the_free_structure():
     rest = np.convolve([1.0, -0.5], [1.0, 0.2])  # the other poles: 0.5 and -0.2
     a = np.convolve([1.0, -1.0], rest)
     b = np.array([0.3, -0.1, 0.05])
-    assert dd._to_v(ctx, b, a) is not None  # in the set, but its pole at 1 is outside
+    assert _to_v(ctx, b, a) is not None  # in the set, but its pole at 1 is outside
     leak = 1e-3
     v = _warm_v(ctx, b, a, leak)
     b2, a2 = _from_v(ctx, v)
@@ -172,4 +174,4 @@ def test_warm_start_with_integral_action_becomes_leaky_in_the_free_structure():
     assert np.all(np.abs(a2[expected.size :]) < 1e-15)
     # A design already inside the radius is kept as it is.
     inside = np.convolve([1.0, -0.9], rest)
-    np.testing.assert_array_equal(_warm_v(ctx, b, inside, leak), dd._to_v(ctx, b, inside))
+    np.testing.assert_array_equal(_warm_v(ctx, b, inside, leak), _to_v(ctx, b, inside))

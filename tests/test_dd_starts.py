@@ -17,7 +17,7 @@ from test_certified import _brute_min  # the independent brute-force margin
 from aocontrol import loop_plant
 from aocontrol.analysis import constrained_bound, is_stable
 from aocontrol.plant import frequency_response
-from aocontrol.synthesis import _datadriven as dd
+from aocontrol.synthesis import _dd_mode as dd
 from aocontrol.synthesis import _dd_starts, datadriven
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*encountered in divide:RuntimeWarning:scipy")

@@ -211,7 +211,7 @@ def test_nonfinite_frd_point_is_named():
     ids=lambda e: type(e).__name__,
 )
 def test_datadriven_reports_one_failed_mode_and_keeps_the_others(monkeypatch, exc):
-    import aocontrol.synthesis._datadriven as dd
+    import aocontrol.synthesis._dd_mode as dd
 
     if exc == "cvxpy":
         import cvxpy
@@ -247,7 +247,7 @@ def test_datadriven_reports_one_failed_mode_and_keeps_the_others(monkeypatch, ex
 
 @pytest.mark.parametrize("exc", [TypeError("bug"), AttributeError("bug"), NameError("bug")])
 def test_datadriven_programming_errors_propagate(monkeypatch, exc):
-    import aocontrol.synthesis._datadriven as dd
+    import aocontrol.synthesis._dd_mode as dd
 
     def broken(*args, **kwargs):
         raise exc

@@ -23,7 +23,7 @@ pulled inside the radius, and ``X`` is fitted again with ``Y`` fixed (the same i
 Nothing here certifies: the synthesis takes such a start only if it passes every
 certificate of the design (exact modulus margin over the whole circle, closed-loop stability,
 pole radius) and has a lower objective than the other starts (see
-:func:`aocontrol.synthesis._datadriven._design_mode`).
+:func:`aocontrol.synthesis._dd_mode._design_mode`).
 """
 
 from __future__ import annotations
