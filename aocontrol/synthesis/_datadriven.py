@@ -255,9 +255,11 @@ def datadriven(
         power spans decades below the loop bandwidth), ``F = 1 - z^-1`` with the integrator's
         pole at z = 1 fixed (integral action). The default 0.9999 (a 3.3 s time constant at
         3 kHz: an open loop's command decays, where an integrator's holds) was chosen on
-        turbulence modes at 3 kHz, 0.83 frame (``benchmarks/bench_synthesis.py``): median
-        residual / Wiener bound on the 60 lowest modes 1.055 at 0.9999, 1.064 at 0.9995,
-        1.066 at 0.999, 1.057 unconstrained; 0.995 cost up to 1.6x on tip/tilt.
+        the 60 lowest of 540 synthetic turbulence modes at 3 kHz, 0.83 frame, order 5
+        (``benchmarks/bench_synthesis.py`` settings, one serial run): median residual /
+        Wiener bound 1.044 at 0.9999 (90th percentile 1.094), 1.045 at 0.9995, 1.047 at
+        0.999, 1.103 at 0.995 (tip/tilt 1.59), 1.060 unconstrained (``None``: tip/tilt 1.16
+        against 1.21, the other modes worse, 5.7x the CPU).
     bound_start : bool or None, default None
         Also start from the margin-constrained bound, reduced to the design's order: the
         sensitivity of :func:`aocontrol.analysis.constrained_bound` (FIR Youla parameter of
