@@ -186,14 +186,7 @@ class ModalProjector:
         self._npx = npx
         # Contiguous runs of valid pixels per map row: (row, first and last vector index, first
         # column), so the columns are contracted on the vectors themselves (no map is formed).
-        flat = np.asarray(pupil.index)
-        breaks = np.flatnonzero((np.diff(flat) != 1) | (flat[1:] % npx == 0)) + 1
-        starts = np.r_[0, breaks]
-        stops = np.r_[breaks, flat.size]
-        self._runs = [
-            (int(flat[a]) // npx, int(a), int(b), int(flat[a]) % npx)
-            for a, b in zip(starts, stops, strict=True)
-        ]
+        self._runs = list(pupil.runs)
         # The runs of each map row: (row, [(first, stop vector index, first column), ...]).
         by_row: dict[int, list] = {row: [] for row in range(npx)}
         for row, a, b, c0 in self._runs:
