@@ -9,9 +9,11 @@ are piston-free), so the least-squares coefficients of a phase vector ``phi`` ar
 The DM's influence functions are Gaussians on a square grid, ``exp(k (x - x_a)^2) exp(k (y -
 y_b)^2)``: separable, so ``phi @ F^T`` over the whole actuator grid is two small matrix
 products on the phase *map*, ``G_y Phi G_x^T`` (``G_x``, ``G_y`` of shape ``(n_actuators,
-n_pix)``), followed by the selection of the valid actuators. For SAXO's 41x41 DM (1360 valid
-actuators, 1200 modes) on a 96-pixel pupil (7084 valid pixels) and SAXO+'s 28x28 (540 modes)
-that is ~2.9 M multiply-adds per frame instead of the dense ``n_valid (1200 + 540)`` = 12.3 M.
+n_pix)``), followed by the selection of the valid actuators; the first product runs on the
+phase vectors themselves, one product per run of valid pixels of a map row (no map is formed,
+the pixels outside the pupil cost nothing). For SAXO's 41x41 DM (1360 valid actuators, 1200
+modes) on a 96-pixel pupil (7084 valid pixels) and SAXO+'s 28x28 (540 modes) that is ~2.7 M
+multiply-adds per frame instead of the dense ``n_valid (1200 + 540)`` = 12.3 M.
 
 :class:`ModalProjector` takes that path when every basis carries its mirror's factors
 (:class:`SeparableMirror`, set by :func:`~aocontrol.sim.modes.kl_basis`), when it is
@@ -42,9 +44,9 @@ logger = logging.getLogger(__name__)
 PROJECTION_DTYPE = np.float32
 # The separable path is used when its cost -- its multiply-adds plus _MAP_COST per map pixel
 # (the per-row products and their outputs: calls and memory traffic) -- is at most this
-# fraction of the dense multiply-adds. Measured (float32, one and two BLAS threads): 1200 + 540 modes, 96 px
-# (fraction 0.26): 2.1x faster than the dense product; 400 + 200 modes, 84 px (0.47):
-# 1.4x slower.
+# fraction of the dense multiply-adds. Measured (float32, one and two BLAS threads): 1200 +
+# 540 modes, 96 px (fraction 0.26): 2.1x faster than the dense product; 400 + 200 modes,
+# 84 px (0.47): 1.4x slower.
 _SEPARABLE_COST_FRACTION = 0.3
 _MAP_COST = 40
 # Probe of the separable path against the dense product (float64 both): relative agreement
