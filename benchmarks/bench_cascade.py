@@ -10,8 +10,7 @@ the median of ``--repeat`` cascade runs (CPU, system time and page faults); the 
 split of a run (atmosphere, projection on both bases, stage steps, science), each part timed
 separately on the same sizes and scaled to the run; the ratio to the goal and to the
 single-stage loop (stage 2 alone, same atmosphere and science) run in the same process. The
-engine runs with
-``aocontrol.sim._runner.engine_blas_threads()`` BLAS threads (1 unless
+engine runs with ``aocontrol.sim._runner.engine_blas_threads()`` BLAS threads (1 unless
 ``$AOCONTROL_ENGINE_BLAS_THREADS`` says otherwise); the parts are timed with the same
 setting. ``--compare-threads`` also times the cascade with the BLAS's own threads (the
 variable set to 0), back to back with the engine's setting.
