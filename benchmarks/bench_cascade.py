@@ -6,11 +6,11 @@ modes of the 28x28 stage-2 DM, 3 kHz / 1 kHz, PSF every 10th fast frame) in <= 2
 need the DM's full space): 96 px by default (2.4 px per pitch).
 
 Prints, all measured in one run: the calibration (DM influence functions + KL bases) apart;
-the median of ``--repeat`` cascade runs; the per-part split of a run (atmosphere,
-projection on both bases, stage steps, science), each part timed separately on the same
-sizes and scaled to the run; the ratio to the goal and to the single-stage loop (stage 2
-alone, same atmosphere and science) run in the same process. The engine runs with
-``aocontrol.sim._runner.engine_blas_threads()`` BLAS threads (1 unless
+the median of ``--repeat`` cascade runs (CPU, system time and page faults); the per-part
+split of a run (atmosphere, projection on both bases, stage steps, science), each part timed
+separately on the same sizes and scaled to the run; the ratio to the goal and to the
+single-stage loop (stage 2 alone, same atmosphere and science) run in the same process. The
+engine runs with ``aocontrol.sim._runner.engine_blas_threads()`` BLAS threads (1 unless
 ``$AOCONTROL_ENGINE_BLAS_THREADS`` says otherwise); the parts are timed with the same
 setting. ``--compare-threads`` also times the cascade with the BLAS's own threads (the
 variable set to 0), back to back with the engine's setting.
@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import resource
 import statistics
 import time
 
@@ -132,14 +133,18 @@ def main() -> None:
         )
 
     runs, cpus, res = [], [], None
+    sys_faults = []  # (system time, page faults) of each run (getrusage)
     other = []  # (wall, CPU) with the BLAS's own threads (--compare-threads)
     for _ in range(args.repeat):
         atm = atmosphere()  # its first screens are not timed
+        ru0 = resource.getrusage(resource.RUSAGE_SELF)
         c0 = time.process_time()
         t0 = time.perf_counter()
         res = cascade(atm)
         runs.append(time.perf_counter() - t0)
         cpus.append(time.process_time() - c0)
+        ru1 = resource.getrusage(resource.RUSAGE_SELF)
+        sys_faults.append((ru1.ru_stime - ru0.ru_stime, ru1.ru_minflt - ru0.ru_minflt))
         if args.compare_threads:
             saved = os.environ.get(ENV_BLAS_THREADS)
             os.environ[ENV_BLAS_THREADS] = "0"
@@ -254,6 +259,12 @@ def main() -> None:
         f"({t_steps / total:.0%}), science {t_sci:.2f} s ({t_sci / total:.0%}); per-run setup "
         f"(projection matrix P, pole check) {t_setup:.2f} s; per fast frame "
         f"{1e6 * c_run / args.frames:.0f} us CPU"
+    )
+    s_sys = statistics.median(s for s, _ in sys_faults)
+    n_flt = statistics.median(f for _, f in sys_faults)
+    print(
+        f"    system time of a run {s_sys:.2f} s ({s_sys / c_run:.0%} of its CPU time), "
+        f"{n_flt:,.0f} page faults (medians; fresh pages of the chunks' buffers)"
     )
     print(
         f"    projection path {proj.path!r}: {t_proj:.2f} s CPU vs the dense float32 product "

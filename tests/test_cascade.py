@@ -437,3 +437,25 @@ def test_dcao_stroke_clips_the_total_dm_shape(bases):
     late = res.stage2.saturation.sum()
     assert late < 200  # only during the initial transient
     assert np.max(np.abs(t2["residuals"][-100:])) < 1e-3 * 100.0  # converged
+
+
+def test_default_chunk_bounds_the_chunk_phase(bases, monkeypatch):
+    # The rule: at most 1200 frames, and a float32 chunk phase within _CHUNK_PHASE_BYTES
+    # (24 MiB: 888 frames of the 96-pixel VLT pupil's 7084 valid pixels).
+    from aocontrol.sim import _cascade
+
+    assert _cascade.default_chunk(7084) == 888
+    assert 888 * 4 * 7084 <= _cascade._CHUNK_PHASE_BYTES < 889 * 4 * 7084
+    assert _cascade.default_chunk(100) == 1200
+    # run_cascade takes it when no chunk is given, rounded up to the rate ratio (3): with a
+    # budget of 40 frames of this pupil, chunks of 42 fast frames (the last one shorter).
+    b1, b2 = bases
+    n_valid = b1.modes.shape[1]
+    monkeypatch.setattr(_cascade, "_CHUNK_PHASE_BYTES", 40 * 4 * n_valid)
+    src = _ModalPhase(b1, FS2, 0, n_frames=300)
+    sizes = []
+    read = src.phase_vectors
+    src.phase_vectors = lambda n: sizes.append(n) or read(n)
+    s1, s2 = _stages(b1.n_modes, b2.n_modes, 1000.0)
+    run_cascade(s1, s2, src, 150, scheme="dcao", basis1=b1, basis2=b2)
+    assert sizes == [42, 42, 42, 24]

@@ -139,3 +139,17 @@ def test_turbulence_source_uses_its_own_project_for_other_bases(scene):
 
     modal, phase = TurbulenceSource(_atmosphere(pupil, 4), Doubled()).next(50)
     np.testing.assert_array_equal(modal, 2.0 * basis.project(phase))
+
+
+def test_pupil_runs_fill_maps_like_to_map():
+    # Oracle: Pupil.to_map (a scatter through pupil.index). The runs cover every valid pixel
+    # once, in vector order, each inside one map row (the obstruction splits rows in two).
+    pupil = vlt_pupil(24)
+    v = np.random.default_rng(0).standard_normal((3, pupil.n_valid))
+    maps = np.zeros((3, pupil.n_pix, pupil.n_pix))
+    for row, first, stop, col in pupil.runs:
+        assert col + stop - first <= pupil.n_pix
+        maps[:, row, col : col + stop - first] = v[:, first:stop]
+    np.testing.assert_array_equal(maps, pupil.to_map(v))
+    assert sum(stop - first for _, first, stop, _ in pupil.runs) == pupil.n_valid
+    assert len(pupil.runs) > pupil.n_pix - 4  # some rows hold two runs, a few none

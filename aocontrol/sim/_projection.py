@@ -9,9 +9,11 @@ are piston-free), so the least-squares coefficients of a phase vector ``phi`` ar
 The DM's influence functions are Gaussians on a square grid, ``exp(k (x - x_a)^2) exp(k (y -
 y_b)^2)``: separable, so ``phi @ F^T`` over the whole actuator grid is two small matrix
 products on the phase *map*, ``G_y Phi G_x^T`` (``G_x``, ``G_y`` of shape ``(n_actuators,
-n_pix)``), followed by the selection of the valid actuators. For SAXO's 41x41 DM (1360 valid
-actuators, 1200 modes) on a 96-pixel pupil (7084 valid pixels) and SAXO+'s 28x28 (540 modes)
-that is ~2.9 M multiply-adds per frame instead of the dense ``n_valid (1200 + 540)`` = 12.3 M.
+n_pix)``), followed by the selection of the valid actuators; the first product runs on the
+phase vectors themselves, one product per run of valid pixels of a map row (no map is formed,
+the pixels outside the pupil cost nothing). For SAXO's 41x41 DM (1360 valid actuators, 1200
+modes) on a 96-pixel pupil (7084 valid pixels) and SAXO+'s 28x28 (540 modes) that is ~2.7 M
+multiply-adds per frame instead of the dense ``n_valid (1200 + 540)`` = 12.3 M.
 
 :class:`ModalProjector` takes that path when every basis carries its mirror's factors
 (:class:`SeparableMirror`, set by :func:`~aocontrol.sim.modes.kl_basis`), when it is
@@ -41,10 +43,10 @@ logger = logging.getLogger(__name__)
 #: Precision of the projection (module docstring).
 PROJECTION_DTYPE = np.float32
 # The separable path is used when its cost -- its multiply-adds plus _MAP_COST per map pixel
-# (zeroing and filling the maps: memory traffic) -- is at most this fraction of the dense
-# multiply-adds. Measured (float32, one and two BLAS threads): 1200 + 540 modes, 96 px
-# (fraction 0.26): 2.1x faster than the dense product; 400 + 200 modes, 84 px (0.47):
-# 1.4x slower.
+# (the per-row products and their outputs: calls and memory traffic) -- is at most this
+# fraction of the dense multiply-adds. Measured (float32, one and two BLAS threads): 1200 +
+# 540 modes, 96 px (fraction 0.26): 2.1x faster than the dense product; 400 + 200 modes,
+# 84 px (0.47): 1.4x slower.
 _SEPARABLE_COST_FRACTION = 0.3
 _MAP_COST = 40
 # Probe of the separable path against the dense product (float64 both): relative agreement
@@ -186,27 +188,13 @@ class ModalProjector:
         self._npx = npx
         # Contiguous runs of valid pixels per map row: (row, first and last vector index, first
         # column), so the columns are contracted on the vectors themselves (no map is formed).
-        flat = np.asarray(pupil.index)
-        breaks = np.flatnonzero((np.diff(flat) != 1) | (flat[1:] % npx == 0)) + 1
-        starts = np.r_[0, breaks]
-        stops = np.r_[breaks, flat.size]
-        self._runs = [
-            (int(flat[a]) // npx, int(a), int(b), int(flat[a]) % npx)
-            for a, b in zip(starts, stops, strict=True)
-        ]
-        # The complement: (row, first column, stop column) of the pixels outside the runs,
-        # zeroed in an otherwise uninitialised map (half the memory traffic of zeroing all).
-        mask = np.zeros(npx * npx, dtype=bool)
-        mask[flat] = True
-        mask = mask.reshape(npx, npx)
-        self._gaps = []
-        for row in range(npx):
-            edges = np.flatnonzero(np.diff(np.r_[True, mask[row], True].astype(np.int8)))
-            # edges pair up as (start of a gap, end of a gap) in the padded row
-            pairs = zip(edges[::2], edges[1::2], strict=True)
-            self._gaps += [(row, int(a), int(b)) for a, b in pairs]
+        self._runs = list(pupil.runs)
+        # The runs of each map row: (row, [(first, stop vector index, first column), ...]).
+        by_row: dict[int, list] = {row: [] for row in range(npx)}
+        for row, a, b, c0 in self._runs:
+            by_row[row].append((a, b, c0))
+        self._row_runs = list(by_row.items())
         self._mirrors = []  # (gxT, gy, [(basis columns, rows, cols, m2c / n, mean m2c / n)])
-        self._gxt_all: np.ndarray | None = None  # every mirror's gxT side by side
         groups: dict[int, list] = {}
         col = 0
         for b in bases:
@@ -234,29 +222,26 @@ class ModalProjector:
                     )
                 )
             groups[id(m)].append(entry)
-        self._gxt_all = np.concatenate([gxt for gxt, _, _ in self._mirrors], axis=1)
 
     def _separable(self, phase: np.ndarray) -> np.ndarray:
         m, npx = phase.shape[0], self._npx
         phase = phase.astype(self._dtype, copy=False)
         total = phase.sum(axis=1, dtype=self._dtype)
         out = np.empty((m, self.n_modes), dtype=self._dtype)
-        # The phase maps, laid out maps[y, frame, x] (slice copies of the runs of valid pixels,
-        # zeros elsewhere; no small products, which a multithreaded BLAS would run slowly).
-        maps = np.empty((npx, m, npx), dtype=self._dtype)
-        for row, a, b in self._gaps:
-            maps[row, :, a:b] = 0.0
-        for row, a, b, c0 in self._runs:
-            maps[row, :, c0 : c0 + b - a] = phase[:, a:b]
-        maps = maps.reshape(npx * m, npx)
-        # Columns (x) first, every mirror in one product (one pass over the maps):
-        # halves[y, frame, a_x] of each mirror side by side.
-        halves = maps @ self._gxt_all
-        first = 0
-        for _, gy, entries in self._mirrors:
+        for gxt, gy, entries in self._mirrors:
             na = gy.shape[0]
-            half = np.ascontiguousarray(halves[:, first : first + na])
-            first += na
+            # Columns (x) first, on the phase vectors themselves: for each map row, its runs
+            # of valid pixels times the mirror's column factors (no map is formed, the
+            # pixels outside the pupil cost nothing): half[y, frame, a_x].
+            half = np.empty((npx, m, na), dtype=self._dtype)
+            for row, runs in self._row_runs:
+                if not runs:
+                    half[row] = 0.0
+                    continue
+                (a, b, c0), *more = runs
+                np.matmul(phase[:, a:b], gxt[c0 : c0 + b - a], out=half[row])
+                for a, b, c0 in more:
+                    half[row] += phase[:, a:b] @ gxt[c0 : c0 + b - a]
             # Then the rows (y), one product: grid[a_y, frame, a_x].
             grid = (gy @ half.reshape(npx, m * na)).reshape(na, m, na)
             for cols_out, rows, cols, m2c, mean_m2c, _, _ in entries:

@@ -67,6 +67,7 @@ import numpy as np
 import scipy.sparse
 
 from aocontrol._validation import check_int, check_nonnegative, check_positive
+from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._screens import Extruder, fft_screens
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.pupil import Pupil
@@ -550,6 +551,11 @@ class Atmosphere:
                 self._extrude(st, axis, -1, origin - lo)
 
     def _extrude(self, st: _LayerState, axis: int, sign: int, k: int) -> None:
+        # Sequential matrix-vector products: one BLAS thread (Extruder.extrude's notes).
+        with blas_threads(1):
+            self._extrude_columns(st, axis, sign, k)
+
+    def _extrude_columns(self, st: _LayerState, axis: int, sign: int, k: int) -> None:
         s = st.screen
         if axis == 1:
             view = s if sign > 0 else s[:, ::-1]

@@ -102,6 +102,24 @@ class Pupil:
         idx.setflags(write=False)
         return idx
 
+    @cached_property
+    def runs(self) -> tuple[tuple[int, int, int, int], ...]:
+        """Runs of consecutive valid pixels along the map rows, in the order of :attr:`index`.
+
+        Each run is ``(row, first, stop, column)``: the vector elements ``first ... stop - 1``
+        are the map pixels ``(row, column ... column + stop - first - 1)``; so a map is
+        filled from valid-pixel vectors by slices (``maps[..., row, column : column + stop -
+        first] = vectors[..., first:stop]``), without a scatter.
+        """
+        flat = self.index
+        n = self.n_pix
+        breaks = np.flatnonzero((np.diff(flat) != 1) | (flat[1:] % n == 0)) + 1
+        starts, stops = np.r_[0, breaks], np.r_[breaks, flat.size]
+        return tuple(
+            (int(flat[a]) // n, int(a), int(b), int(flat[a]) % n)
+            for a, b in zip(starts, stops, strict=True)
+        )
+
     @property
     def n_valid(self) -> int:
         """Number of pixels inside the pupil."""

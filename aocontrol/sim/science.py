@@ -433,12 +433,24 @@ class ScienceCamera:
 
     # -- propagation ---------------------------------------------------------------------
     def _propagate(self, pupil_field: np.ndarray) -> np.ndarray:
-        """(m, n_pix, n_pix) sign-shifted pupil fields -> (m, n_image, n_image) focal fields."""
+        """(m, n_pix, n_pix) sign-shifted pupil fields -> (m, n_image, n_image) focal fields.
+
+        ``pupil_field`` may also be given zero-padded along its last axis, ``(m, n_pix,
+        n_fft)`` (it is then overwritten): the first transform needs no padded copy.
+        """
         lo, hi = self._crop
+        n, n_fft = self.pupil.n_pix, self.n_fft
         # Pruned 2-D FFT: rows first (only n_pix rows are non-zero), keep the cropped columns,
-        # then along columns (scipy zero-pads with n=).
-        f = scipy.fft.fft(pupil_field, n=self.n_fft, axis=-1, workers=self.workers)[..., lo:hi]
-        return scipy.fft.fft(f, n=self.n_fft, axis=-2, workers=self.workers)[..., lo:hi, :]
+        # then along columns, both on zero-padded arrays (the transforms of the same values
+        # as scipy's padding with n=, without its copies).
+        if pupil_field.shape[-1] != n_fft:
+            padded = np.zeros(pupil_field.shape[:-1] + (n_fft,), dtype=pupil_field.dtype)
+            padded[..., :n] = pupil_field
+            pupil_field = padded
+        f = scipy.fft.fft(pupil_field, axis=-1, workers=self.workers, overwrite_x=True)
+        g = np.zeros(f.shape[:-2] + (n_fft, hi - lo), dtype=f.dtype)
+        g[..., :n, :] = f[..., lo:hi]
+        return scipy.fft.fft(g, axis=-2, workers=self.workers, overwrite_x=True)[..., lo:hi, :]
 
     def _check_opd(self, opd: object) -> np.ndarray:
         """Validated OPD, shape (n_frames, n_pix, n_pix) or (n_frames, n_valid)."""
@@ -469,9 +481,12 @@ class ScienceCamera:
         values.imag = np.sin(phase)
         c = values.sum(axis=-1, dtype=np.complex128) / self.pupil.n_valid
         m, n = phase.shape[0], self.pupil.n_pix
-        pupil_field = np.zeros((m, n * n), dtype=cdtype)
-        pupil_field[:, self.pupil.index] = values * self._valid_sign
-        return self._propagate(pupil_field.reshape(m, n, n)), c
+        # The pupil fields zero-padded for the first transform, filled row run by row run.
+        pupil_field = np.zeros((m, n, self.n_fft), dtype=cdtype)
+        values *= self._valid_sign
+        for row, a, b, c0 in self.pupil.runs:
+            pupil_field[:, row, c0 : c0 + b - a] = values[:, a:b]
+        return self._propagate(pupil_field), c
 
     def images(self, opd_maps: object) -> tuple[np.ndarray, np.ndarray | None]:
         """Instantaneous images of each frame, normalised to the diffraction-limited peak.
