@@ -13,7 +13,7 @@ matrix (15 MB for 400 modes on an 80-pixel pupil, read once per frame: memory bo
 * otherwise as the product with a float32 copy of the modes.
 
 Precision: float32 (relative rounding ~1e-7 of the shape, measured < 1e-5 of its largest
-value in ``tests/test_pyramid_speed.py``), far below what the pyramid's own single-precision
+value in ``tests/test_phase_maps.py``), far below what the pyramid's own single-precision
 propagation rounds (complex64).
 """
 
