@@ -301,8 +301,11 @@ def run_cascade(
     # Residual maps, formed only for a sensor that reads them (references kept per frame).
     resid1 = _ResidualMap(basis1.pupil, n_valid)
     resid2 = _ResidualMap(basis2.pupil, n_valid)
-    # DM shapes for the maps, float32 through the mirrors (aocontrol.sim._phase_maps).
-    synth1, synth2 = shape_synthesizer(basis1), shape_synthesizer(basis2)
+    # DM shapes for the maps, float32 through the mirrors (aocontrol.sim._phase_maps); only
+    # for a sensor that reads maps.
+    reads_maps = run2.needs_phase or (run1 is not None and run1.needs_phase)
+    synth1 = shape_synthesizer(basis1) if reads_maps else None
+    synth2 = shape_synthesizer(basis2) if reads_maps else None
     shape1 = _HeldShape(synth1)
 
     def form1(block: np.ndarray, y1: np.ndarray) -> np.ndarray:
