@@ -35,7 +35,7 @@ def test_shapes_equal_the_float64_synthesis(basis, separable):
         got = synth(y)
         assert got.dtype == np.float32 and got.shape == want.shape
         np.testing.assert_allclose(got, want, rtol=0, atol=REL * np.abs(want).max())
-    # the grid buffer is reused: a zero command gives a flat shape after a non-zero one
+    # a zero command gives a flat shape (nothing kept from the previous call)
     np.testing.assert_array_equal(synth(np.zeros(b.n_modes)), 0.0)
 
 

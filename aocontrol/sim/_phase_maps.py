@@ -55,7 +55,6 @@ class ShapeSynthesizer:
             self._gyt = np.ascontiguousarray(np.asarray(mirror.gy).T, dtype=_DTYPE)
             self._gx = np.ascontiguousarray(mirror.gx, dtype=_DTYPE)
             self._index = np.asarray(pupil.index)
-            self._grid = np.zeros(na * na, dtype=_DTYPE)
         else:
             self._modes = np.asarray(basis.modes, dtype=_DTYPE)
 
@@ -66,10 +65,9 @@ class ShapeSynthesizer:
         if not self.separable:
             return c @ self._modes
         acts = self._m2c @ c
-        grid = self._grid
-        grid[self._act] = acts
-        g = grid.reshape(self._na, self._na)
-        shape = (self._gyt @ g @ self._gx).ravel()[self._index]
+        grid = np.zeros((self._na, self._na), dtype=_DTYPE)  # per call: thread-safe
+        grid.flat[self._act] = acts
+        shape = (self._gyt @ grid @ self._gx).ravel()[self._index]
         shape -= acts @ self._mean
         return shape
 
