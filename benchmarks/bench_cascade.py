@@ -24,6 +24,11 @@ is then 120 s for the 5.1-s exposure (issue 15); the case's geometry is ``--n-pi
 400`` (bright 1). The sensor's parts per fast frame (pyramid propagation, detector noise,
 reconstruction: signals and the reconstructor product) are timed apart on the run's residual
 sizes; the rest of the engine is the run minus them. No single-stage comparison then.
+Measured (``--sensor diffractive --n-pix 80 --modes2 400``, calibrated gains, one run at load
+17-22, wall / CPU 7.3): 187 s CPU (goal 120 s: not met at that load), 12.2 ms CPU per fast
+frame, of which the pyramid propagation 9.9 ms (81 %), detector noise 0.9, reconstruction 0.4,
+the rest of the engine 0.6 (residual maps included: float32 DM shapes through the mirrors,
+``aocontrol.sim._phase_maps``, 0.1 ms instead of 1.7 ms with the float64 ``synthesize``).
 
 Usage: python benchmarks/bench_cascade.py [--frames 15300] [--n-pix 96] [--layers 10]
        [--repeat 3] [--quick] [--compare-threads]
