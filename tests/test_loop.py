@@ -321,8 +321,11 @@ def test_diffractive_loop_matches_the_golden_run(monkeypatch):
     res = _golden_loop.diffractive_run(factory)
     gold = _golden("diffractive/")
     _golden_loop.assert_close_to_golden(_arrays(res, gold), gold)
-    # The sensor reads the phase maps, not the projection: its measurements are exact.
-    np.testing.assert_array_equal(res.telemetry["measurements"], gold["measurements"])
+    # The sensor reads the phase maps, not the projection: its measurements agree to the
+    # float32 rounding of the DM shape and of the reconstructor product
+    # (aocontrol.sim._phase_maps, DiffractiveSensor): measured 1.2e-7 of the largest.
+    m, want = res.telemetry["measurements"], gold["measurements"]
+    np.testing.assert_allclose(m, want, rtol=0, atol=1e-6 * np.abs(want).max())
 
 
 def test_golden_check_can_fail():

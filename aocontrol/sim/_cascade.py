@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from aocontrol._validation import check_int
+from aocontrol.sim._phase_maps import shape_synthesizer
 from aocontrol.sim._projection import ModalProjector
 from aocontrol.sim._result import TELEMETRY, CascadeResult, LoopResult
 from aocontrol.sim._runner import (
@@ -324,14 +325,19 @@ def run_cascade(
     # Residual maps, formed only for a sensor that reads them (references kept per frame).
     resid1 = _ResidualMap(basis1.pupil, n_valid)
     resid2 = _ResidualMap(basis2.pupil, n_valid)
-    shape1 = _HeldShape(basis1)
+    # DM shapes for the maps, float32 through the mirrors (aocontrol.sim._phase_maps); only
+    # for a sensor that reads maps.
+    reads_maps = run2.needs_phase or (run1 is not None and run1.needs_phase)
+    synth1 = shape_synthesizer(basis1) if reads_maps else None
+    synth2 = shape_synthesizer(basis2) if reads_maps else None
+    shape1 = _HeldShape(synth1)
 
     def form1(block: np.ndarray, y1: np.ndarray) -> np.ndarray:
         # Stage 1's WFS integrates its frame: the mean phase minus its (held) DM shape.
-        return block.mean(axis=0, dtype=float) - basis1.synthesize(y1)
+        return block.mean(axis=0, dtype=float) - synth1(y1)
 
     def form2(phase_j: np.ndarray, j1: int, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
-        return phase_j - shape1(j1, y1) - basis2.synthesize(y2)
+        return phase_j - shape1(j1, y1) - synth2(y2)
 
     def stage1_chunk(k: int, m: int) -> tuple:
         """Disturbance, projection and stage 1 of fast frames ``k ... k + m - 1``: what
@@ -539,15 +545,15 @@ class UpstreamRecord:
 
 class _HeldShape:
     """Stage 1's DM shape on the pupil pixels, synthesised once per stage-1 frame (it is held
-    over the frame's fast frames)."""
+    over the frame's fast frames) by ``synth`` (:func:`shape_synthesizer`)."""
 
-    def __init__(self, basis: Any) -> None:
-        self.basis = basis
+    def __init__(self, synth: Any) -> None:
+        self.synth = synth
         self.key = -1
         self.value: np.ndarray | None = None
 
     def __call__(self, j1: int, y1: np.ndarray) -> np.ndarray:
         if j1 != self.key:
             self.key = j1
-            self.value = self.basis.synthesize(y1)
+            self.value = self.synth(y1)
         return self.value

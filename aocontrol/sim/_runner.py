@@ -39,6 +39,7 @@ from aocontrol._validation import check_int
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import z_inverse_coefficients
 from aocontrol.sim._blas import blas_threads
+from aocontrol.sim._phase_maps import shape_synthesizer
 from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
@@ -670,9 +671,10 @@ def run_loop(
         )
     settle = run.settle = _settle(n_frames, settle_frames)
     resid = None if basis is None else _ResidualMap(basis.pupil, basis.pupil.n_valid)
+    synth = None if not run.needs_phase else shape_synthesizer(basis)
 
     def form(phase: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return phase - basis.synthesize(y)
+        return phase - synth(y)  # float32 DM shape (aocontrol.sim._phase_maps)
 
     def advance(first: int, m_chunk: int) -> None:
         d, maps = disturbance.next(m_chunk)
