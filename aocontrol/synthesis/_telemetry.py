@@ -636,10 +636,6 @@ def _below_finest_bin(
     f1`` the PSD stays flat at ``P(f1)`` below ``f1`` (the trapezoid between the dyadic
     points already overestimates a steep spectrum's integral; nothing is removed).
 
-    Before, ``V`` went into the 0-Hz bin as a spike one finest bin wide, which the uniform
-    grids that resample the PSD do not resolve (:func:`aocontrol.analysis.wiener_bound`
-    changed by 59-449 % between FFT sizes on such estimates).
-
     Parameters
     ----------
     freqs : ndarray, shape (n_freqs,)
@@ -654,11 +650,9 @@ def _below_finest_bin(
 
     Returns
     -------
-    freqs : ndarray, shape (n_low,)
+    freqs, psd : ndarray, shapes (n_low,) and (n_modes, n_low)
         0, then ``_SPREAD_PER_OCTAVE`` log-spaced points per octave from ``min(f_record,
-        f1 / 2)`` to below ``f1`` [Hz].
-    psd : ndarray, shape (n_modes, n_low)
-        The PSD there [units^2/Hz].
+        f1 / 2)`` to below ``f1`` [Hz]; the PSD there [units^2/Hz].
     """
     f1 = freqs[1]
     c_min = min(f_record / f1, 0.5)
