@@ -382,7 +382,7 @@ def design_inputs(
     :func:`aocontrol.synthesis.disturbance_from_telemetry` stays 1), as an instrument would
     do. What it cannot see is the sensor's error beyond ``og e`` (aliasing, non-linearity):
     measured on quick scenes (issue 15), it is what keeps the diffractive prediction at
-    0.43-0.83 of the measured residual. ``"none"`` (raw reconstructor): the designs see the
+    0.41-0.83 of the measured residual. ``"none"`` (raw reconstructor): the designs see the
     unit-gain plant, not the loop's ``og G`` (not wired: one plant for all modes).
 
     Parameters
