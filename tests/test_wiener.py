@@ -168,10 +168,13 @@ def test_bad_input(kwargs, err, match):
         wiener_bound(args.pop("plant"), args.pop("freqs"), args.pop("psd"), **args)
 
 
-def test_unresolved_turbulence_psd_is_flagged_and_resolved_one_is_stable():
-    # A linear 2049-point grid cannot resolve the tip PSD below ~1 Hz (it spans decades
-    # between samples): the bound then depends on the FFT size and must say so. A grid
-    # log-spaced at low frequency resolves it: same bound at both FFT sizes, silently.
+def test_unresolved_turbulence_psd_is_refined_flagged_at_the_cap_and_resolved_one_is_stable():
+    # A linear 2049-point grid puts the tip PSD's decades below 1 Hz between two points:
+    # at FFT sizes 2**15 and 2**16 the bound moves 15x (until issue 15 it was returned with a
+    # warning). The unresolved modes are refined (FFT size doubled for them alone) and settle
+    # on the bound of the same PSD on a log-spaced grid (oracle: two samplings of one PSD,
+    # 0.3 % apart at 2**19). With the refinement capped at 2 n_fft (the check only) it still
+    # says so. A log-spaced grid is resolved at once: same bound at both FFT sizes, silently.
     import warnings
 
     from aocontrol.disturbance import synthetic_turbulence_psd
@@ -179,15 +182,20 @@ def test_unresolved_turbulence_psd_is_flagged_and_resolved_one_is_stable():
     fs = 3000.0
     G = loop_plant(fs, 0.83)
     f_lin = np.linspace(0.0, fs / 2, 2049)
+    p_lin = synthetic_turbulence_psd(f_lin, 1, fs=fs)  # the tip mode
     with pytest.warns(UserWarning, match=r"does not resolve the spectrum of modes \[0"):
-        wiener_bound(G, f_lin, synthetic_turbulence_psd(f_lin, 3, fs=fs), 1e-4)
+        wiener_bound(G, f_lin, p_lin, 1e-4, max_n_fft=2**16)
     f_log = np.concatenate([[0.0], np.geomspace(1e-3, fs / 2, 2000)])
     psd = synthetic_turbulence_psd(f_log, 30, fs=fs)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         b1 = wiener_bound(G, f_log, psd, 1e-4)
         b2 = wiener_bound(G, f_log, psd, 1e-4, n_fft=2**16)
+        refined = wiener_bound(G, f_lin, p_lin, 1e-4)
     np.testing.assert_allclose(b1, b2, rtol=1e-4)
+    np.testing.assert_allclose(refined, b1[:1], rtol=0.01)
+    with pytest.raises(ValueError, match="max_n_fft"):
+        wiener_bound(G, f_log, psd, 1e-4, max_n_fft=2**15)
     # Invariant: the optimal integrator (a causal linear controller) never beats the bound.
     K = optimal_modal_gain(G, f_log, psd, 1e-4)
     assert np.all(residual_variance(G, K, f_log, psd, 1e-4) >= b1 * (1 - 1e-6))

@@ -375,6 +375,16 @@ def design_inputs(
 ) -> DesignInputs:
     """Calibration run with the reference integrator and the PSDs of its telemetry.
 
+    Optical gains: the recorded measurements are those the controller received, after the
+    loop's compensation (the calibrated gains for ``"calibrated"`` and ``"two-pass"``, the
+    tracker's running estimate for ``"tracked"``), so the pseudo-open loop ``m + G u`` is
+    already rebuilt with the gains the loop applied (``optical_gain=`` of
+    :func:`aocontrol.synthesis.disturbance_from_telemetry` stays 1), as an instrument would
+    do. What it cannot see is the sensor's error beyond ``og e`` (aliasing, non-linearity):
+    measured on quick scenes (issue 15), it is what keeps the diffractive prediction at
+    0.41-0.83 of the measured residual. ``"none"`` (raw reconstructor): the designs see the
+    unit-gain plant, not the loop's ``og G`` (not wired: one plant for all modes).
+
     Parameters
     ----------
     scene : Scene

@@ -74,7 +74,8 @@ class TelemetryPSD:
     freqs : ndarray, shape (n_freqs,)
         Frequencies [Hz], ascending from 0 to ``fs/2``: the Welch grid ``k fs / nperseg``;
         for ``"prewhitened"``, below its second bin, the dyadic points of the longer
-        segments (step 6 of :func:`disturbance_from_telemetry`), so not uniform.
+        segments and, below their first bin, log-spaced points down to the record's
+        resolution (steps 6-7 of :func:`disturbance_from_telemetry`), so not uniform.
     psd : ndarray, shape (n_modes, n_freqs)
         Disturbance PSD, one-sided [units^2/Hz]: the estimate of ``method`` (POL PSD, plain or
         pre-whitened, minus the white noise floor), clipped to stay > 0.
@@ -285,8 +286,11 @@ _MIN_SEGMENTS, _MAX_NPERSEG, _MIN_NPERSEG = 8, 1024, 64
 # Longest segment of the finer levels below the second Welch bin (step 6). Its first bin,
 # fs / 4096 (0.73 Hz at 3 kHz, 0.24 Hz at 1 kHz), resolves the bright dCAO residual (1.4-s
 # records); finer points of one-segment scatter made the PSD too jagged for the FFT grids
-# that resample it (wiener_bound warned at 8192 frames); the rest goes to the 0-Hz bin.
+# that resample it (wiener_bound warned at 8192 frames); the rest is spread below (step 7).
 _MAX_FINE_NPERSEG = 4096
+# Below the finest bin (step 7): points per octave, steepest power law accepted (f^-4, a
+# double pole), bisection steps of the slope and of the corner (2^-40 of their ranges).
+_SPREAD_PER_OCTAVE, _MAX_SLOPE, _BISECTIONS = 4, 4.0, 40
 
 
 def default_nperseg(n_frames: int, method: str = "prewhitened") -> int:
@@ -380,11 +384,18 @@ def disturbance_from_telemetry(
        once; the finest level also gives its bin 1). Before, that variance sat in the 0-Hz
        bin, where ``|S|^2 = 0``, and the predicted residual came out 17-19 % low in the
        comparison's bright dCAO cases (:func:`_below_second_bin`).
-       The variance the differenced record cannot see (at 0 Hz, below the finest level) is
-       put back in the 0-Hz bin, so that the PSD integrates to at least the pseudo-open
-       loop's variance minus the noise (more when the trapezoid between the dyadic points
+    7. Below the finest bin ``f1`` (0 Hz to ``fs / 4096`` or the finest level's first bin):
+       the variance the differenced record cannot see there (the pseudo-open loop's variance
+       minus the noise's, minus the PSD's integral from ``f1`` up) is spread with the
+       spectrum's own low-frequency slope, flat below a corner, variance conserved
+       (:func:`_below_finest_bin`; the PSD integrates to at least the pseudo-open loop's
+       variance minus the noise, more when the trapezoid between the dyadic points
        overestimates a steep spectrum's integral: up to 6-12 % for ``f^-2`` spectra with
-       corners at 0.3-1 Hz on 4,096 frames).
+       corners at 0.3-1 Hz on 4,096 frames). Before, it went into the 0-Hz bin as a spike:
+       weighted by ``|S(0)|^2 = 0`` with integral action (a low-gain integrator's residual
+       on an ``f^-4`` spectrum came out 0.66 of the true one, now 0.985:
+       ``tests/test_telemetry_prediction.py``), and a line the Wiener bound's FFT grid did
+       not resolve.
 
     Parameters
     ----------
@@ -478,11 +489,12 @@ def disturbance_from_telemetry(
     freqs = np.concatenate([f[:1], f_low, f[keep:]])
     psd = np.concatenate([excess[:, :1], excess_low, excess[:, keep - 1 :]], axis=1)
     psd = np.maximum(psd, floor[:, None])
-    psd[:, 0] = psd[:, 1]
-    target = pol.var(axis=0) - tel.noise_psd * fs_ / 2
-    deficit = target - np.trapezoid(psd, freqs, axis=1)
-    psd[:, 0] += np.maximum(deficit, 0.0) * 2.0 / (freqs[1] - freqs[0])
     pol_psd = np.concatenate([tel.pol_psd[:, :1], pol_low, tel.pol_psd[:, keep:]], axis=1)
+    target = pol.var(axis=0) - tel.noise_psd * fs_ / 2
+    f_sub, psd_sub = _below_finest_bin(freqs, psd, target, fs_ / (2 * n_frames))
+    freqs = np.concatenate([f_sub, freqs[1:]])
+    psd = np.concatenate([psd_sub, psd[:, 1:]], axis=1)
+    pol_psd = np.concatenate([psd_sub + tel.noise_psd[:, None], pol_psd[:, 1:]], axis=1)
     tel = dataclasses.replace(tel, freqs=freqs, psd=psd, pol_psd=pol_psd, method="prewhitened")
     return tel
 
@@ -603,6 +615,92 @@ def _below_second_bin(
     if not freqs:
         return np.empty(0), np.empty((n_modes, 0)), np.empty((n_modes, 0))
     return np.array(freqs[::-1]), np.column_stack(cols[::-1]), np.column_stack(plain[::-1])
+
+
+def _below_finest_bin(
+    freqs: np.ndarray, psd: np.ndarray, target: np.ndarray, f_record: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The disturbance PSD from 0 Hz to the finest bin ``f1 = freqs[1]`` (step 7).
+
+    The variance that the bins from ``f1`` up do not hold, ``V = target - int_f1 psd``,
+    lies below ``f1``. It is spread with the spectrum's own low-frequency slope: ``P(f) =
+    P(f1) (max(f, f_c) / f1)^-alpha``, a power law continuing the estimate below ``f1``,
+    flat below a corner ``f_c`` (the shape of a von Karman spectrum below its outer-scale
+    corner). ``alpha`` is the least-squares log-log slope of the estimate over ``[f1, 4 f1]``,
+    clipped to ``[0, _MAX_SLOPE]``; ``f_c`` is chosen so that the trapezoid over the new points
+    integrates to ``V`` exactly (variance conserved). The corner is not put below the
+    record's resolution ``f_record = fs / (2 n_frames)`` (a record's sample variance holds
+    a frequency ``f`` with the weight ``1 - sinc^2(f n_frames / fs)``, 0.59 at ``f_record``):
+    where the slope cannot hold ``V`` above it, ``alpha`` is raised instead (up to
+    ``_MAX_SLOPE``; beyond it the points below ``f1`` are scaled up). When ``V <= P(f1)
+    f1`` the PSD stays flat at ``P(f1)`` below ``f1`` (the trapezoid between the dyadic
+    points already overestimates a steep spectrum's integral; nothing is removed).
+
+    Parameters
+    ----------
+    freqs : ndarray, shape (n_freqs,)
+        The estimate's grid [Hz], ``freqs[0] = 0``.
+    psd : ndarray, shape (n_modes, n_freqs)
+        The estimate (clipped > 0) [units^2/Hz]; its 0-Hz column is ignored.
+    target : ndarray, shape (n_modes,)
+        Variance the PSD must integrate to: the pseudo-open loop's minus the noise's
+        [units^2].
+    f_record : float
+        Lowest corner [Hz].
+
+    Returns
+    -------
+    freqs, psd : ndarray, shapes (n_low,) and (n_modes, n_low)
+        0, then ``_SPREAD_PER_OCTAVE`` log-spaced points per octave from ``min(f_record,
+        f1 / 2)`` to below ``f1`` [Hz]; the PSD there [units^2/Hz].
+    """
+    f1 = freqs[1]
+    c_min = min(f_record / f1, 0.5)
+    n_pts = max(_SPREAD_PER_OCTAVE, math.ceil(_SPREAD_PER_OCTAVE * math.log2(1 / c_min)))
+    x = np.concatenate([[0.0], np.geomspace(c_min, 1.0, n_pts + 1)])  # f / f1, ends at 1
+    p1 = psd[:, 1]
+    fit = (freqs > 0) & (freqs <= 4 * f1 * (1 + 1e-12))
+    if fit.sum() >= 2:
+        logf = np.log(freqs[fit] / f1)
+        logp = np.log(psd[:, fit])
+        slope = ((logp - logp.mean(axis=1, keepdims=True)) @ (logf - logf.mean())) / np.sum(
+            (logf - logf.mean()) ** 2
+        )
+        alpha = np.clip(-slope, 0.0, _MAX_SLOPE)
+    else:
+        alpha = np.zeros_like(p1)
+    above = np.trapezoid(psd[:, 1:], freqs[1:], axis=1)
+    need = (target - above) / (p1 * f1)  # V in units of P(f1) f1
+
+    def integral(log_c: np.ndarray, a: np.ndarray) -> np.ndarray:
+        shape = np.maximum(x[None, :], np.exp(log_c)[:, None]) ** -a[:, None]
+        return np.trapezoid(shape, x, axis=1)
+
+    spread = need > 1.0
+    lo_c = np.full(p1.shape, math.log(c_min))
+    # Slope too shallow to hold V above the lowest corner: raise it (bisection, vectorised).
+    short = spread & (integral(lo_c, alpha) < need)
+    a_lo, a_hi = alpha.copy(), np.full(p1.shape, _MAX_SLOPE)
+    for _ in range(_BISECTIONS):
+        mid = 0.5 * (a_lo + a_hi)
+        big = integral(lo_c, mid) >= need
+        a_hi, a_lo = np.where(big, mid, a_hi), np.where(big, a_lo, mid)
+    alpha = np.where(short, a_hi, alpha)
+    # The corner holding V exactly (the integral falls as the corner rises).
+    c_lo, c_hi = lo_c.copy(), np.zeros(p1.shape)
+    for _ in range(_BISECTIONS):
+        mid = 0.5 * (c_lo + c_hi)
+        big = integral(mid, alpha) >= need
+        c_lo, c_hi = np.where(big, mid, c_lo), np.where(big, c_hi, mid)
+    corner = np.where(short, lo_c, c_lo)
+    shape = np.maximum(x[None, :], np.exp(corner)[:, None]) ** -alpha[:, None]
+    # Exact trapezoid: scale the points below f1 (a rounding factor, or the excess beyond
+    # the steepest slope).
+    below = np.trapezoid(shape, x, axis=1) - 0.5 * (x[-1] - x[-2])
+    scale = np.maximum(need - 0.5 * (x[-1] - x[-2]), 0.0) / np.maximum(below, 1e-300)
+    shape[:, :-1] *= scale[:, None]
+    shape = np.where(spread[:, None], shape, 1.0)
+    return x[:-1] * f1, p1[:, None] * shape[:, :-1]
 
 
 def _debias(excess: np.ndarray, noise: np.ndarray, dof: float) -> np.ndarray:
