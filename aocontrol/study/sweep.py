@@ -389,9 +389,9 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
     processes) uses the worker's cores instead of starting one process per core in every
     worker. Dask's default ``MALLOC_TRIM_THRESHOLD_`` is not set (it makes every large array
     a fresh ``mmap``: page faults) and the workers' statistical profiler is off. Unless
-    aocontrol logs at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies, connections) are
-    not shown and the shutdown, after every result is in, is silent (a worker slow to exit is
-    killed by its nanny: harmless then).
+    aocontrol logs at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies,
+    connections) are not shown and the shutdown, after every result is in, is silent (a
+    worker slow to exit is killed by its nanny: harmless then).
 
     Parameters
     ----------
