@@ -77,13 +77,16 @@ BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 def environment_run(settings: dict, path: pathlib.Path) -> None:
     """A run that records the worker's BLAS thread variables, the cores joblib gives its
-    process pools (and its process id)."""
+    process pools, glibc's trim threshold, whether Dask profiles the task (and its process
+    id)."""
     import os
 
+    import dask
     import joblib
 
-    env = {k: os.environ.get(k) for k in BLAS_VARS}
+    env = {k: os.environ.get(k) for k in (*BLAS_VARS, "MALLOC_TRIM_THRESHOLD_")}
     env["joblib.cpu_count"] = joblib.cpu_count()
+    env["profile"] = bool(dask.config.get("distributed.worker.profile.enabled", True))
     with h5py.File(path, "w") as f:
         f.attrs["settings"] = json.dumps(settings)
         f.attrs["env"] = json.dumps(env)

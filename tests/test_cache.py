@@ -206,7 +206,8 @@ def test_is_cached_sees_only_entries_of_this_code_and_key(cache_dir, monkeypatch
 def test_sweep_pins_only_cases_whose_calibrations_are_not_on_disk(cache_dir, monkeypatch):
     # Affinity keeps the runs of a case to build its calibrations once; a case already on
     # disk is free (any worker loads it), so the runs balance over the workers.
-    from aocontrol.study.sweep import SweepSpec, _calibrated_cases, _case_affinity
+    from aocontrol.study._sweep_place import _calibrated_cases, _case_affinity
+    from aocontrol.study.sweep import SweepSpec
 
     class _Client:
         def scheduler_info(self):
@@ -229,3 +230,45 @@ def test_sweep_pins_only_cases_whose_calibrations_are_not_on_disk(cache_dir, mon
     pinned = _case_affinity(_Client(), runs)
     assert set(pinned) == {"bright1-best", "red3-medium"}
     assert set(pinned.values()) == {"tcp://a", "tcp://b"}  # one each: balanced
+
+
+def test_sweep_places_calibrated_runs_where_their_scene_is_in_memory(cache_dir):
+    # Cases on disk: their runs are balanced over the workers, each preferably where its scene
+    # is in memory (a worker without it loads it: half a run of work); a case still to build
+    # keeps one worker.
+    from aocontrol.study._sweep_place import _run_placement, _scene_key
+    from aocontrol.study.sweep import SweepSpec
+
+    names = ("bright1-best", "bright1-worst", "red1-fast", "red3-medium", "red5-best")
+    spec = SweepSpec(cases=names, controllers=("reference",), schemes=("standalone",), seeds=(0, 1))
+    runs = spec.runs()
+    keys = {r.settings["case"]: _scene_key(r.settings) for r in runs}
+    for name in names[:4]:
+        cached(keys[name], Counter())  # on disk; red5-best is not
+    held = {"tcp://a": names[0::2], "tcp://b": names[1::2]}  # the cold sweep's cases
+
+    class _Client:
+        def scheduler_info(self):
+            return {"workers": dict.fromkeys(held, {})}
+
+        def run(self, func):
+            return {w: [keys[n] for n in cases] for w, cases in held.items()}
+
+    # a case not on disk: all its runs on one worker (built once)
+    where = _run_placement(_Client(), runs)
+    assert len({where[r.hash] for r in runs if r.settings["case"] == "red5-best"}) == 1
+    cached(keys["red5-best"], Counter())
+    where = _run_placement(_Client(), runs)
+    assert set(where) == {r.hash for r in runs}
+    counts = [sum(w == a for w in where.values()) for a in held]
+    assert counts == [5, 5]  # ten equal runs: five each
+    loads = {(where[r.hash], r.settings["case"]) for r in runs} - {
+        (w, n) for w, cases in held.items() for n in cases
+    }
+    assert len(loads) <= 2  # the balance costs at most two loads (free placement: about five)
+
+    class _Blind(_Client):
+        def run(self, func):
+            raise OSError("no answer")
+
+    assert _run_placement(_Blind(), runs) == {}  # cannot ask: plain scheduling

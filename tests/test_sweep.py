@@ -320,7 +320,7 @@ def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(
     # not verbose, and the shutdown leaves no traceback.
     text = 'cases = ["alpha"]\ncontrollers = ["c"]\nschemes = ["s"]\nseeds = [0, 1, 2, 3]\n'
     runner = SweepRunner(run=environment_run, read=environment_row)
-    for var in (*BLAS_VARS, "LOKY_MAX_CPU_COUNT"):  # a value set by the user would win
+    for var in (*BLAS_VARS, "LOKY_MAX_CPU_COUNT", "MALLOC_TRIM_THRESHOLD_"):  # the user's wins
         monkeypatch.delenv(var, raising=False)
     with caplog.at_level(logging.WARNING, logger="aocontrol"):
         report = run_sweep(
@@ -332,6 +332,10 @@ def test_local_cluster_shares_the_cores_as_blas_threads_and_stays_quiet(
         assert {k: row[f"env.{k}"] for k in BLAS_VARS} == dict.fromkeys(BLAS_VARS, want)
         # the syntheses' process pools inside a run take the worker's cores, not every core
         assert row["env.joblib.cpu_count"] == int(want)
+        # glibc keeps its adaptive mmap threshold (Dask's default trim threshold turns it off:
+        # page faults on every large array) and no profiler samples the running task
+        assert row["env.MALLOC_TRIM_THRESHOLD_"] is None
+        assert row["env.profile"] is False
     assert blas_threads_per_worker(os.cpu_count() or 1) == 1
     # this process's environment left as it was
     assert not {*BLAS_VARS, "LOKY_MAX_CPU_COUNT"} & set(os.environ)

@@ -32,10 +32,12 @@ system). The *worker* writes the result in
 ``out/.partial/`` and renames it to ``out/<hash>.h5`` when complete, so a file with a final name
 is always complete and a killed sweep loses at most the runs in flight; run it again and it
 skips what exists. A run that raises leaves ``out/<hash>.error.json`` (settings, error,
-traceback) instead of a result, and the other runs go on. The runs of one case go to one
-worker where possible (each worker process caches the scenes it builds in memory; their
-calibrations are also cached on disk, :mod:`aocontrol.study._cache`, so that a scene built by
-one worker or an earlier sweep is read, not built again). Start one sweep per folder at a time:
+traceback) instead of a result, and the other runs go on. The runs of a case whose
+calibrations are not yet on disk go to one worker where possible (each worker process caches
+the scenes it builds in memory; their calibrations are also cached on disk,
+:mod:`aocontrol.study._cache`, so that a scene built by one worker or an earlier sweep is read,
+not built again); the runs of cases on disk are balanced over the workers, each preferably on a
+worker that holds its scene in memory. Start one sweep per folder at a time:
 a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
 The sweep's table (:func:`sweep_table`, one row per file, also written to
@@ -59,11 +61,12 @@ import time
 import traceback
 import uuid
 import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from aocontrol._atomic import atomic_path
+from aocontrol.study._sweep_place import _run_placement
 from aocontrol.study._sweep_spec import (
     _HASH_LEN,
     _NAME_KEYS,
@@ -387,10 +390,11 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
     precedence). ``LOKY_MAX_CPU_COUNT`` is set to the same share, so that a data-driven
     synthesis or a disturbance fit inside a run (``n_jobs=None``: ``joblib.cpu_count()``
     processes) uses the worker's cores instead of starting one process per core in every
-    worker. Unless aocontrol logs
-    at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies, connections) are
-    not shown and the shutdown, after every result is in, is silent (a worker slow to exit is
-    killed by its nanny: harmless then).
+    worker. Dask's default ``MALLOC_TRIM_THRESHOLD_`` is not set (it makes every large array
+    a fresh ``mmap``: page faults) and the workers' statistical profiler is off. Unless
+    aocontrol logs at INFO (``aocontrol -v``), Dask's own INFO messages (scheduler, nannies,
+    connections) are not shown and the shutdown, after every result is in, is silent (a
+    worker slow to exit is killed by its nanny: harmless then).
 
     Parameters
     ----------
@@ -406,8 +410,16 @@ def local_cluster(n_workers: int = 2) -> Iterator[Any]:
 
     verbose = _verbose()
     threads = str(blas_threads_per_worker(n_workers))
-    config = {f"distributed.nanny.pre-spawn-environ.{v}": threads for v in _WORKER_VARS}
-    config["distributed.scheduler.work-stealing"] = False
+    config = {
+        # The whole pre-spawn environment, replacing Dask's default, whose
+        # MALLOC_TRIM_THRESHOLD_ turns off glibc's adaptive mmap threshold: every array above
+        # 128 KiB is then a fresh mmap, page-faulted in and unmapped again (measured: twice the
+        # CPU of a quick run in a worker, a third of it system time).
+        "distributed.nanny.pre-spawn-environ": dict.fromkeys(_WORKER_VARS, threads),
+        "distributed.scheduler.work-stealing": False,
+        # the statistical profiler samples the running task's stack every 10 ms (unused here)
+        "distributed.worker.profile.enabled": False,
+    }
     old = None if verbose else _set_levels(dict.fromkeys(_DASK_LOGGERS, logging.WARNING))
     # Dask's nannies copy these variables into this process's environment before spawning;
     # restored once the workers run, so that this process's environment stays the user's
@@ -475,60 +487,6 @@ def _connect(scheduler: Any, n_workers: int, timeout: float, stack: Any) -> Any:
             "unset for a local cluster"
         ) from exc
     return stack.enter_context(client)
-
-
-def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
-    """Worker address per case, balancing the run counts (greedy, largest case first).
-
-    Workers cache the scenes and calibrations they build: runs of one case sent to one worker
-    build its scene once. The restriction is loose (``allow_other_workers``: a lost worker never
-    blocks a sweep); the local cluster runs without work stealing so that runs stay put, a
-    remote scheduler may move them (then a worker builds a scene again). A case whose
-    calibrations are already in the disk cache (:func:`_calibrated_cases`) gets no worker: any
-    worker loads them in a moment, so its runs fill whichever worker is free (with whole cases
-    per worker, five cases on two workers could not beat 5/3 of one process).
-    """
-    try:
-        workers = sorted(client.scheduler_info()["workers"])
-    except Exception:  # an older or unusual scheduler: no affinity, plain scheduling
-        return {}
-    if len(workers) < 2:
-        return {}
-    counts: dict[str, int] = {}
-    free = _calibrated_cases(todo)
-    for r in todo:
-        if r.settings["case"] not in free:
-            counts[r.settings["case"]] = counts.get(r.settings["case"], 0) + 1
-    load = dict.fromkeys(workers, 0)
-    out = {}
-    for case in sorted(counts, key=lambda c: (-counts[c], c)):
-        w = min(workers, key=lambda a: (load[a], a))
-        out[case] = w
-        load[w] += counts[case]
-    return out
-
-
-def _calibrated_cases(todo: Sequence[SweepRun]) -> set[str]:
-    """Cases every run of which finds its scene's calibrations in the disk cache.
-
-    A run whose settings are not a case of the package (another runner's) counts as not
-    calibrated (its case keeps its worker).
-    """
-    from aocontrol.study._cache import is_cached
-    from aocontrol.study.cases import apply_overrides, load_case
-    from aocontrol.study.scene import geometry_cache_key
-
-    out: dict[str, bool] = {}
-    for r in todo:
-        s = r.settings
-        if out.get(s["case"], True):
-            try:
-                c = apply_overrides(load_case(s["case"]), dict(s.get("overrides") or {}) or None)
-                ok = is_cached(geometry_cache_key(c, bool(s.get("quick", False))))
-            except (ValueError, OSError, KeyError, TypeError):  # not a case: keep the affinity
-                ok = False
-            out[s["case"]] = ok
-    return {case for case, ok in out.items() if ok}
 
 
 def _clear_partial(out: pathlib.Path) -> None:
@@ -608,10 +566,10 @@ def run_sweep(
         with ExitStack() as stack:
             client = _connect(scheduler, n_workers, timeout, stack)
             token = uuid.uuid4().hex[:8]
-            affinity = _case_affinity(client, todo)
+            placement = _run_placement(client, todo)
             futures = {}
             for r in todo:
-                where = affinity.get(r.settings["case"])
+                where = placement.get(r.hash)
                 fut = client.submit(
                     _execute,
                     runner.run,
