@@ -12,6 +12,7 @@ from aocontrol.adaptive._redesign import Designer, Proposal, _join, _rows, _subs
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis import (
     DataDrivenError,
+    DataDrivenResult,
     InitialPoleRadiusError,
     ModalGainError,
     TelemetryPSD,
@@ -31,6 +32,13 @@ def _has_integrator(bank: IIRBank) -> np.ndarray:
     shape (n_modes,)."""
     scale = np.abs(bank.a).sum(axis=1)
     return np.abs(bank.a.sum(axis=1)) <= _INTEGRATOR_RTOL * scale
+
+
+def _certified(res: DataDrivenResult) -> np.ndarray:
+    """The margins the synthesis certified (exact over the circle, closed loop stable; ``nan``
+    for a failed mode), passed on so that the adaptive layer does not certify them again."""
+    ok = res.ok & res.stable
+    return np.where(ok, res.modulus_margin, np.nan)
 
 
 def datadriven_designer(
@@ -105,8 +113,9 @@ def datadriven_designer(
             try:
                 res = datadriven(plant, psd.freqs, psd.psd, initial=initial, **kw)
             except DataDrivenError as exc:
-                return Proposal(exc.result.controller, dict(exc.failed))
-            return Proposal(res.controller)
+                res = exc.result
+                return Proposal(res.controller, dict(exc.failed), _certified(res))
+            return Proposal(res.controller, margin=_certified(res))
 
         if current.a.shape[1] - 1 < order:
             return run(tel, None)  # the loop's first bank: a cold design
