@@ -440,6 +440,28 @@ PATIENCE = 3
 _ADD_PER_CHECK = 4
 
 
+def _last_damped(
+    cert: Certifier,
+    grid: GridData,
+    v: np.ndarray,
+    v_best: np.ndarray,
+    w_grid: tuple,
+    J_best: float,
+) -> np.ndarray | None:
+    """The longest damped step ``v_best + t (v - v_best)`` (``t`` in ``_DAMPING``) that
+    lowers the objective on ``grid``, meets its margin rows and passes every certificate."""
+    for t in _DAMPING:
+        vt = v_best + t * (v - v_best)
+        Jt, Pt = true_objective(grid, vt, *w_grid)
+        if not Jt < J_best * (1 - 1e-9):
+            continue
+        if np.any(grid.mu_rows() * np.abs(grid.AY @ vt + grid.F) > np.abs(Pt)):
+            continue
+        if cert.check(vt, v_best).ok:
+            return vt
+    return None
+
+
 def ccp(
     problem: ConvexifiedProblem,
     grid_f: np.ndarray,
@@ -597,7 +619,15 @@ def ccp(
                 "%s check failed at iteration %d: %s Hz join the grid", chk.reason, it, new
             )
             join(new)
-            continue
+            if free or it < max_iter:
+                continue
+            # No solve left: the step damped towards the certified previous iterate (the
+            # convexified objective decreases along it), on the grid with the new points.
+            vt = _last_damped(cert, grid, v, v_best, w_grid, J_best)
+            if vt is None:
+                continue
+            v, chk = vt, Check(True, np.empty(0))
+            damped += 1
         J, P = true_objective(grid, v, *w_grid)
         if not np.isfinite(J):
             if free:
