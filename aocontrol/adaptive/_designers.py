@@ -84,7 +84,9 @@ def datadriven_designer(
         worse than the current controller. Measured on 540 modes after a 20 % wind change
         (``benchmarks/bench_adaptive.py --parts c --sweep``): ``warm_n_grid=32`` with
         ``warm_max_iter=1`` keeps 76 % of the gain of 64 points and 8 iterations for a third
-        of the CPU; with ``select=1, max_modes=230`` (:class:`AdaptiveController`) it is the
+        of the CPU (a later run, after the synthesis certified each candidate once and
+        damped a refused last step: 72 % of the gain for 46 s of CPU against 60 s, on a
+        machine at load 17 to 22); with ``select=1, max_modes=230`` (:class:`AdaptiveController`) it is the
         setting that fits 10 s on 2 idle cores (18 to 21 s of CPU, 40 % of the gain). The
         loop's defaults stay 8 iterations on the cold design's grid: a 24-mode loop affords
         them.

