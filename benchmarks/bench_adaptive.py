@@ -150,6 +150,7 @@ SWEEP = (
     ("bound, 120 modes, 32 pts, 1 it", "bound", 1.0, 120, 32, 1),
     ("bound, 230 modes, 32 pts, 1 it", "bound", 1.0, 230, 32, 1),
     ("shift, 230 modes, 32 pts, 1 it", "shift", 1.0, 230, 32, 1),
+    ("every mode, 24 pts, 1 it", None, None, None, 24, 1),
 )
 
 

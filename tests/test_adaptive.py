@@ -160,6 +160,42 @@ def test_certify_checks_margin_and_controller_poles():
     assert 0.5 < margin[0] < 1.0
 
 
+def test_certify_reuses_a_designers_certified_margin():
+    # A margin the designer certified is not recomputed: it is still compared with the
+    # margin asked for, and the pole radius is still checked (the third controller's pole at
+    # 1.02 is refused whatever margin is claimed); nan: certified here.
+    plant = loop_plant(FS, LATENCY)
+    bank = IIRBank([[0.3, 0.0], [0.3, 0.0], [0.05, 0.0]], [[1, -1.0], [1, -1.0], [1, -1.02]], FS)
+    _, margin, _ = certify(plant, bank, modulus_margin=0.5)
+    claimed = np.array([0.4, np.nan, 0.9])
+    ok, got, reasons = certify(plant, bank, modulus_margin=0.5, certified_margin=claimed)
+    assert ok.tolist() == [False, True, False]
+    assert "modulus margin 0.4" in reasons[0] and "pole radius 1.02" in reasons[2]
+    assert got[0] == 0.4 and got[1] == margin[1]
+    with pytest.raises(ValueError, match="certified_margin"):
+        certify(plant, bank, modulus_margin=0.5, certified_margin=np.ones(2))
+
+
+def test_datadriven_designer_passes_on_the_certified_margins():
+    # Oracle: the margins the synthesis certified (and the designer passes on, so that the
+    # adaptive layer does not certify them again) are those of the analysis layer's
+    # certificate of the proposed controllers, and their closed loops are stable.
+    from aocontrol.analysis import is_stable, modulus_certificate
+
+    plant = loop_plant(FS, LATENCY)
+    f = np.linspace(0.0, FS / 2, 129)
+    psd = 1.0 / (1.0 + (f[None, :] / np.array([[5.0], [20.0]])) ** 2)
+    noise = np.full(2, 1e-3)
+    tel = TelemetryPSD(f, psd, noise, np.zeros((8, 2)), psd, FS, (0.8, 1.0))
+    design = datadriven_designer(order=2, n_grid=16, max_iter=4)
+    prop = design(tel, plant, Integrator(0.3, fs=FS, n_modes=2))
+    assert prop.margin is not None and np.all(prop.margin >= 0.5 * (1 - 1e-9))
+    for i in range(2):
+        K = prop.controller.transfer_function(i)
+        assert is_stable(plant, K)
+        assert prop.margin[i] == pytest.approx(modulus_certificate(plant, K).value, rel=1e-9)
+
+
 # ---------------------------------------------------------------------------- adaptation
 def test_schedule_and_impulse_response():
     # The first design once a window is available (700 frames), then every period (400);

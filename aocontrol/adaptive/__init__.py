@@ -26,15 +26,18 @@ commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 t
    :func:`modal_gain_designer` (the optimised integrator gain of Gendron & Léna, the usual
    practice today) or :func:`lqg_designer` (LQG re-identified from the same window, run as
    its exact transfer function).
-4. **Certify.** Each mode of the proposal is checked here, whatever the designer said:
-   closed-loop stability (:func:`aocontrol.analysis.is_stable` through
-   :func:`aocontrol.analysis.margins`), modulus margin at least ``modulus_margin`` (the
-   margin of :func:`~aocontrol.analysis.margins`, the certificate the analysis layer owns)
-   and every controller pole of modulus at most ``max_pole_radius`` (a controller that
-   survives an open loop: a WFS dropout, a saturated DM). A mode that fails, or that the
-   designer could not design, keeps its current controller and is reported; a proposal
-   with no certified mode is not switched in at all (counted). **An uncertified controller
-   is never used.**
+4. **Certify.** Each mode of the proposal is checked before it is used: closed-loop
+   stability (:func:`aocontrol.analysis.is_stable`), modulus margin at least
+   ``modulus_margin`` (:func:`aocontrol.analysis.modulus_certificate`, the certificate the
+   analysis layer owns: exact over the whole circle for a transfer-function plant) and every
+   controller pole of modulus at most ``max_pole_radius`` (a controller that survives an
+   open loop: a WFS dropout, a saturated DM). A designer that certified its modes with the
+   same certificates on the same plant passes their margins on (:attr:`Proposal.margin`:
+   the data-driven synthesis certifies every design so); those modes are not certified a
+   second time, their margin is still compared with ``modulus_margin`` and their pole
+   radius checked here. A mode that fails, or that the designer could not design, keeps its
+   current controller and is reported; a proposal with no certified mode is not switched in
+   at all (counted). **An uncertified controller is never used.**
 5. **Switch** after the design latency (a set value, or the measured compute time rounded up
    to frames), **bumplessly**: the new bank's Direct-Form I state is set from the recent
    measurements and the commands actually applied (:meth:`IIRBank.set_history`), so the

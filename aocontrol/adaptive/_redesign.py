@@ -11,7 +11,7 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_in_range, check_positive
-from aocontrol.analysis import margins, residual_variance, wiener_bound
+from aocontrol.analysis import is_stable, modulus_certificate, residual_variance, wiener_bound
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis import TelemetryPSD
 
@@ -38,10 +38,19 @@ class Proposal:
     failed : dict of int to str
         Modes the designer could not design, with the reason (they are not certified and keep
         the current controller).
+    margin : ndarray, shape (n_modes,), optional
+        Modulus margin each mode was certified with by the designer on the same plant, with
+        the analysis layer's certificates (:func:`aocontrol.analysis.modulus_certificate`,
+        exact over the whole circle for a transfer-function plant, and
+        :func:`aocontrol.analysis.is_stable`): the data-driven synthesis certifies every
+        design so. :func:`certify` then reuses it instead of certifying the mode again
+        (the pole radius and the margin against ``modulus_margin`` are still checked);
+        ``nan`` (or ``None`` for all) where the designer did not certify.
     """
 
     controller: IIRBank
     failed: dict[int, str] = field(default_factory=dict)
+    margin: np.ndarray | None = None
 
 
 Designer = Callable[[TelemetryPSD, control.TransferFunction, IIRBank], Proposal]
@@ -68,13 +77,18 @@ def certify(
     modulus_margin: float,
     max_pole_radius: float = 1.0,
     modes: object = None,
+    certified_margin: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[int, str]]:
     """Certificates of each mode of ``bank`` on ``plant``: what may be switched into a loop.
 
-    A mode passes when its closed loop is stable, its modulus margin ``min |1 + G K|`` is at
-    least ``modulus_margin`` (both from :func:`aocontrol.analysis.margins`) and every pole of
-    its controller has modulus at most ``max_pole_radius`` (batched companion matrices; 1
-    admits an integrator's pole at ``z = 1``).
+    A mode passes when its closed loop is stable (:func:`aocontrol.analysis.is_stable`), its
+    modulus margin ``min |1 + G K|`` is at least ``modulus_margin``
+    (:func:`aocontrol.analysis.modulus_certificate`: exact over the whole circle for a
+    transfer-function plant; the values :func:`aocontrol.analysis.margins` reports) and every
+    pole of its controller has modulus at most ``max_pole_radius`` (batched companion
+    matrices; 1 admits an integrator's pole at ``z = 1``). A mode whose margin and
+    stability the designer already certified with these certificates
+    (``certified_margin``, :attr:`Proposal.margin`) is not certified twice.
 
     Parameters
     ----------
@@ -88,6 +102,9 @@ def certify(
         Largest controller pole modulus accepted, > 0.
     modes : array_like of int, optional
         Modes to check (default all); the others are reported as not certified.
+    certified_margin : ndarray, shape (n_modes,), optional
+        Margins already certified on ``plant`` (closed loop stable), ``nan`` where not: those
+        modes are checked against ``modulus_margin`` and the pole radius only.
 
     Returns
     -------
@@ -104,18 +121,30 @@ def certify(
     ok = np.zeros(n, dtype=bool)
     margin = np.full(n, np.nan)
     reasons: dict[int, str] = {}
+    known = np.full(n, np.nan)
+    if certified_margin is not None:
+        known = np.asarray(certified_margin, dtype=float)
+        if known.shape != (n,):
+            raise ValueError(
+                f"certified_margin must have shape ({n},) (one per mode), got {known.shape}"
+            )
     radius = _pole_radius(bank.a)
     for i in todo:
         i = int(i)
         if radius[i] > rmax * (1 + _POLE_RTOL):
             reasons[i] = f"controller pole radius {radius[i]:.6g} > {rmax:g}"
             continue
-        m = margins(plant, bank.transfer_function(i))
-        margin[i] = m.modulus_margin
-        if not m.stable:
+        stable = True
+        if np.isfinite(known[i]):
+            margin[i] = known[i]
+        else:
+            K = bank.transfer_function(i)
+            margin[i] = modulus_certificate(plant, K).value
+            stable = is_stable(plant, K)
+        if not stable:
             reasons[i] = "closed loop unstable"
-        elif m.modulus_margin < mu * (1 - _MARGIN_RTOL):
-            reasons[i] = f"modulus margin {m.modulus_margin:.4g} < {mu:g}"
+        elif margin[i] < mu * (1 - _MARGIN_RTOL):
+            reasons[i] = f"modulus margin {margin[i]:.4g} < {mu:g}"
         else:
             ok[i] = True
     return ok, margin, reasons
@@ -145,12 +174,16 @@ def _join(current: IIRBank, parts: list[tuple[np.ndarray, Proposal]]) -> Proposa
     b = np.pad(current.b, ((0, 0), (0, nb - current.b.shape[1])))
     a = np.pad(current.a, ((0, 0), (0, na - current.a.shape[1])))
     failed: dict[int, str] = {}
+    margin = np.full(current.n_modes, np.nan)
     for modes, p in parts:
         c = p.controller
         b[modes] = np.pad(c.b, ((0, 0), (0, nb - c.b.shape[1])))
         a[modes] = np.pad(c.a, ((0, 0), (0, na - c.a.shape[1])))
         failed.update({int(modes[i]): msg for i, msg in p.failed.items()})
-    return Proposal(IIRBank(b, a, current.fs, command_limit=current.command_limit), failed)
+        if p.margin is not None:
+            margin[modes] = p.margin
+    bank = IIRBank(b, a, current.fs, command_limit=current.command_limit)
+    return Proposal(bank, failed, margin)
 
 
 def _merge(current: IIRBank, proposal: IIRBank, take: np.ndarray) -> IIRBank:
@@ -396,6 +429,11 @@ def redesign(
             f"the designer proposed {proposal.controller.n_modes} modes, it was asked for "
             f"{modes.size}"
         )
+    if proposal.margin is not None and np.shape(proposal.margin) != (modes.size,):
+        raise ValueError(
+            f"the designer's Proposal.margin must have shape ({modes.size},), got "
+            f"{np.shape(proposal.margin)}"
+        )
     todo = [i for i in range(modes.size) if i not in proposal.failed]
     ok_s, margin_s, reasons_s = certify(
         plant,
@@ -403,6 +441,7 @@ def redesign(
         modulus_margin=modulus_margin,
         max_pole_radius=max_pole_radius,
         modes=todo,
+        certified_margin=proposal.margin,
     )
     ok[modes], margin[modes] = ok_s, margin_s
     reasons = {

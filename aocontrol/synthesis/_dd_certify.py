@@ -13,18 +13,16 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
-import control
 import numpy as np
 
 from aocontrol.analysis import (
     ModulusCertificate,
-    is_stable,
     modulus_certificate,
     polynomial_certificate,
     winding_stability,
 )
 from aocontrol.analysis import winding_zeros as _winding_zeros
-from aocontrol.plant import frequency_response, tf_from_z_inverse
+from aocontrol.plant import frequency_response_unchecked, tf_from_z_inverse
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, Certifier, Check, GridData
 
@@ -177,14 +175,18 @@ class _ModeCertifier(Certifier):
         self.wind = dense.take(ctx.wind_index)
         self.h2_f = ctx.f_h2
         self.h2_extra = np.empty(0)
+        # Certificates already computed, by the bytes of ``v``: a candidate is certified once
+        # (the start's seeds, the accepted iterate's final check and its peaks reuse it).
+        self._margins: dict[bytes, ModulusCertificate] = {}
+        self._stability: dict[bytes, bool] = {}
 
     # -- grid ---------------------------------------------------------------------------
     def rows(self, f: np.ndarray) -> GridData:
-        g = frequency_response(self.ctx.plant, f, self.ctx.fs)
+        g = frequency_response_unchecked(self.ctx.plant, f, self.ctx.fs)
         return _grid_data(self.ctx, f, g, self.mu_d)
 
     def p_start(self, f: np.ndarray) -> np.ndarray:
-        g = frequency_response(self.ctx.plant, f, self.ctx.fs)
+        g = frequency_response_unchecked(self.ctx.plant, f, self.ctx.fs)
         return _p_of(self.ctx, f, g, self.b0, self.a0)[1]
 
     def weights(self, f: np.ndarray) -> tuple:
@@ -270,13 +272,27 @@ class _ModeCertifier(Certifier):
 
     # -- certificates -------------------------------------------------------------------
     def margin(self, v: np.ndarray) -> ModulusCertificate:
-        """The modulus-margin certificate of ``v`` (exact for a TF plant)."""
-        ctx = self.ctx
-        b, a = _from_v(ctx, v)
-        if ctx.plant_poly is not None:
-            return polynomial_certificate(*ctx.plant_poly, b, a, ctx.fs)
-        K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
-        return modulus_certificate(ctx.plant, K, fs=ctx.fs, extra_freqs=ctx.f_dense)
+        """The modulus-margin certificate of ``v`` (exact for a TF plant; computed once)."""
+        key = np.asarray(v, dtype=float).tobytes()
+        cert = self._margins.get(key)
+        if cert is None:
+            ctx = self.ctx
+            b, a = _from_v(ctx, v)
+            if ctx.plant_poly is not None:
+                cert = polynomial_certificate(*ctx.plant_poly, b, a, ctx.fs)
+            else:
+                K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
+                cert = modulus_certificate(ctx.plant, K, fs=ctx.fs, extra_freqs=ctx.f_dense)
+            self._margins[key] = cert
+        return cert
+
+    def stable(self, v: np.ndarray) -> bool:
+        """Closed-loop stability of ``v`` (:func:`_stable`; computed once)."""
+        key = np.asarray(v, dtype=float).tobytes()
+        ok = self._stability.get(key)
+        if ok is None:
+            ok = self._stability[key] = _stable(self.ctx, self.dense, v)
+        return ok
 
     def check(self, v: np.ndarray, v_prev: np.ndarray | None = None) -> Check:
         """Pole radius, closed-loop stability, certified margin and |S| peaks of ``v``."""
@@ -293,7 +309,7 @@ class _ModeCertifier(Certifier):
         if bad.size:
             logger.debug("margin certificate failed at %s Hz (min %.4g)", bad, cert.value)
             return Check(False, bad, "margin")
-        if not _stable(ctx, self.dense, v):
+        if not self.stable(v):
             # A closed-loop pole crossed the circle between winding points: there P turned
             # by more than 90 degrees from the previous (stabilising) controller's.
             P = self.dense.A @ v + self.dense.F
@@ -317,17 +333,19 @@ class _ModeCertifier(Certifier):
             poles = _free_poles(ctx, v)
             if poles.size and np.max(np.abs(poles)) > ctx.pole_radius * (1 + 1e-12):
                 return None
-        b, a = _from_v(ctx, v)
-        K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
-        try:
-            if isinstance(ctx.plant, control.FRD):
+        if ctx.plant_poly is not None:
+            # The roots of the characteristic polynomial A_G A_K + B_G B_K (what
+            # aocontrol.analysis.is_stable computes for a TF plant, same tolerance).
+            stable = self.stable(v)
+        else:
+            b, a = _from_v(ctx, v)
+            K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
+            try:
                 # The winding number on the dense grid (the FRD's own grid may be too coarse
                 # to follow the phase of Y + G X near a sharp resonance of the controller).
                 stable = winding_stability(ctx.plant, K, fs=ctx.fs, freqs=ctx.f_dense)
-            else:
-                stable = is_stable(ctx.plant, K, fs=ctx.fs)
-        except ValueError:  # winding number not resolved by the grid
-            stable = False
+            except ValueError:  # winding number not resolved by the grid
+                stable = False
         cert = self.margin(v)
         if not stable or cert.value < ctx.mu * (1 - 1e-9):
             return None
@@ -353,7 +371,8 @@ class _ModeCertifier(Certifier):
         # |S|^2 at the neighbouring H2 points, interpolated (what the objective sees).
         j = np.clip(np.searchsorted(h2, f) - 1, 0, h2.size - 2)
         nb = np.concatenate([h2[j], h2[j + 1]])
-        Y, P = _p_of(ctx, nb, frequency_response(ctx.plant, nb, ctx.fs), *_from_v(ctx, v))
+        g_nb = frequency_response_unchecked(ctx.plant, nb, ctx.fs)
+        Y, P = _p_of(ctx, nb, g_nb, *_from_v(ctx, v))
         s2_nb = np.abs(Y) ** 2 / np.abs(P) ** 2
         t = (f - h2[j]) / (h2[j + 1] - h2[j])
         interp = (1 - t) * s2_nb[: f.size] + t * s2_nb[f.size :]

@@ -113,8 +113,7 @@ def fine_residual(
     tuple of numpy.ndarray, each of shape (n_modes,)
         One residual variance per mode for each bank [units^2].
     """
-    from aocontrol.analysis import residual_psd
-    from aocontrol.controllers import IIRBank
+    from aocontrol.plant import frequency_response
 
     lo, hi = freqs[0], freqs[-1]
     pos = freqs[freqs > 0]
@@ -130,12 +129,25 @@ def fine_residual(
     f = np.unique(np.clip(np.concatenate(parts), lo, hi))
     j = np.clip(np.searchsorted(freqs, f, side="right") - 1, 0, freqs.size - 2)
     t = np.clip((f - freqs[j]) / (freqs[j + 1] - freqs[j]), 0.0, 1.0)
+    # |S|^2 psd + |T|^2 noise = (|A|^2 psd + |G B|^2 noise) / |A + G B|^2 for K = B / A (what
+    # aocontrol.analysis.residual_psd gives, A = 0 included: the noise PSD), evaluated from
+    # the coefficients: the plant's response and the powers of z^-1 once for every bank.
+    g = frequency_response(plant, f, fs)
+    n_pow = max(max(bank.b.shape[1], bank.a.shape[1]) for bank in banks)
+    zi = np.exp(-2j * np.pi * f / fs)
+    powers = np.ones((n_pow, f.size), complex)
+    for k in range(1, n_pow):
+        powers[k] = powers[k - 1] * zi
     out = [np.empty(psd.shape[0]) for _ in banks]
     for s in range(0, psd.shape[0], _FINE_BLOCK):
         rows = slice(s, s + _FINE_BLOCK)
         pf = psd[rows, j] * (1 - t) + psd[rows, j + 1] * t
         nf = noise[rows, j] * (1 - t) + noise[rows, j + 1] * t
         for k, bank in enumerate(banks):
-            sub = IIRBank(bank.b[rows], bank.a[rows], bank.fs)
-            out[k][rows] = np.trapezoid(residual_psd(plant, sub, f, pf, nf, fs=fs), f, axis=-1)
+            A = bank.a[rows] @ powers[: bank.a.shape[1]]
+            GB = (bank.b[rows] @ powers[: bank.b.shape[1]]) * g
+            a2, gb2 = A.real**2 + A.imag**2, GB.real**2 + GB.imag**2
+            P = A + GB
+            r = (a2 * pf + gb2 * nf) / (P.real**2 + P.imag**2)
+            out[k][rows] = np.trapezoid(r, f, axis=-1)
     return tuple(out)

@@ -11,6 +11,7 @@ kept.
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from dataclasses import replace
 
 import numpy as np
@@ -29,7 +30,14 @@ from aocontrol.synthesis._dd_certify import (
 )
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._dd_starts import bound_candidate, bound_targets, start_certified
-from aocontrol.synthesis._socp import PATIENCE, SolveFailure, ccp, get_problem, true_objective
+from aocontrol.synthesis._socp import (
+    PATIENCE,
+    GridData,
+    SolveFailure,
+    ccp,
+    get_problem,
+    true_objective,
+)
 
 logger = logging.getLogger(__name__)
 # Modes per work item; within a chunk each mode may start from the previous mode's design.
@@ -51,6 +59,28 @@ _WARM_PATIENCE = 1
 _START_LEAK_MARGIN = 1e-3
 # Gains of the reduced-bound start candidates (1: the fit itself).
 _BOUND_GAINS = (1.0, 0.9, 0.8)
+
+
+# The dense grid's rows of the last contexts (the same for every mode of a call and order):
+# (dense frequencies, their rows), keyed by the arrays' identity (held, so never reused) and
+# the structure. Measured: 1.3 ms per mode on 6,177 dense points.
+_DENSE_ROWS: OrderedDict = OrderedDict()
+_MAX_DENSE = 4
+
+
+def _dense_data(ctx: _Context) -> GridData:
+    """The rows of the dense grid ``ctx.f_dense`` at the margin ``ctx.mu`` (cached)."""
+    key = (id(ctx.f_dense), id(ctx.g_dense), ctx.nq, ctx.fixed.tobytes(), ctx.mu, ctx.fs)
+    key += (ctx.hinf_weight, ctx.g_scale)
+    hit = _DENSE_ROWS.get(key)
+    if hit is not None and hit[0] is ctx.f_dense and hit[1] is ctx.g_dense:
+        _DENSE_ROWS.move_to_end(key)
+        return hit[2]
+    data = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
+    _DENSE_ROWS[key] = (ctx.f_dense, ctx.g_dense, data)
+    while len(_DENSE_ROWS) > _MAX_DENSE:
+        _DENSE_ROWS.popitem(last=False)
+    return data
 
 
 def _design_mode(
@@ -81,7 +111,7 @@ def _design_mode(
     v_ref = float(np.sum((q1 * np.abs(Y0) ** 2 + qn * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2))
     if not v_ref > 1e-12 * np.sum(q1 + qn):
         v_ref = float(np.sum(q1 + qn))
-    dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
+    dense = _dense_data(ctx)
     cert = _ModeCertifier(ctx, psd, noise, v_ref, b0, a0, dense, mu_d)
     r1, rn, h = cert.weights(f)
     grid = cert.rows(f)
