@@ -409,7 +409,7 @@ def _prepare(
             "max_pole_radius", max_pole_radius, 0.0, 1.0, low_inclusive=False
         )
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
-    use_bound = bound_start_modes(bound_start, plant, psd2 + noise2)
+    use_bound = bound_start_modes(bound_start, plant, freqs, psd2, noise2)
     hinf_weight = check_nonnegative("hinf_weight", hinf_weight)
     max_iter = _check_bounded_int("max_iter", max_iter, 1, MAX_ITER)
     tol = check_nonnegative("tol", tol)
