@@ -12,10 +12,11 @@ from __future__ import annotations
 import control
 import numpy as np
 import pytest
+from _resonant_case import design, resonant_mode
 from test_certified import _brute_min  # the independent brute-force margin
 
 from aocontrol import loop_plant
-from aocontrol.analysis import constrained_bound, is_stable
+from aocontrol.analysis import is_stable
 from aocontrol.plant import frequency_response
 from aocontrol.synthesis import _dd_mode as dd
 from aocontrol.synthesis import _dd_starts, datadriven
@@ -27,9 +28,7 @@ FS = 1000.0
 
 def _resonant_mode():
     """Turbulence plus one sharp vibration at 47 Hz (the resonant auto-order test's mode)."""
-    f = np.concatenate([[0.0], np.geomspace(0.05, FS / 2, 500)])
-    psd = 1e2 / (1 + (f / 2.0) ** 2) ** (11 / 6) + 50.0 / (1 + ((f - 47.0) / 0.3) ** 2)
-    return loop_plant(FS, 1.0), f, psd
+    return resonant_mode()
 
 
 @pytest.mark.parametrize("fixed", [np.array([1.0]), np.array([1.0, -1.0])])
@@ -69,28 +68,86 @@ def test_reduced_start_poles_inside_the_radius():
 def test_has_lines_finds_a_vibration_not_turbulence():
     _, f, psd = _resonant_mode()
     turbulence = 1e2 / (1 + (f / 2.0) ** 2) ** (11 / 6)
-    assert _dd_starts.has_lines(np.vstack([psd, turbulence])).tolist() == [True, False]
+    assert _dd_starts.has_lines(f, np.vstack([psd, turbulence])).tolist() == [True, False]
+
+
+def test_a_line_under_the_noise_gets_the_bound_start():
+    # A line 100x below the noise is not in disturbance plus noise but is in the disturbance
+    # (bound_start=None selects the mode); turbulence alone is not selected.
+    G, f, psd = _resonant_mode()
+    turbulence = 1e2 / (1 + (f / 2.0) ** 2) ** (11 / 6)
+    noise = 100 * 50.0 * np.ones(f.size)
+    quiet = turbulence + 50.0 / (1 + ((f - 47.0) / 0.3) ** 2)
+    rows = np.vstack([quiet, turbulence])
+    assert _dd_starts.has_lines(f, rows + noise).tolist() == [False, False]
+    assert _dd_starts.bound_start_modes(None, G, f, rows, noise + 0 * rows).tolist() == [
+        True,
+        False,
+    ]
+
+
+def test_estimated_turbulence_has_no_lines():
+    # Turbulence-like telemetry (white noise through a double pole at 1-20 Hz, plus white
+    # noise above it from ~50 Hz) estimated by disturbance_from_telemetry: the noise-dominated
+    # bins averaged, the detected ones kept, some of them decades above their neighbours. They
+    # are not lines of a model PSD; no mode gets the (costly) bound start.
+    from scipy import signal
+
+    from aocontrol.synthesis import disturbance_from_telemetry
+
+    fs, n_modes = 3000.0, 40
+    rng = np.random.default_rng(0)
+    poles = np.exp(-2 * np.pi * np.geomspace(1.0, 20.0, n_modes) / fs)
+    w = rng.standard_normal((4096 + 5000, n_modes))
+    d = np.column_stack(
+        [signal.lfilter([1.0], np.convolve([1, -a], [1, -a]), w[:, i]) for i, a in enumerate(poles)]
+    )[5000:]
+    d *= 10.0 / np.sqrt(np.arange(1, n_modes + 1)) / d.std(axis=0)
+    m = d + 2.0 * rng.standard_normal(d.shape)
+    G = loop_plant(fs, 0.83)
+    for method in ("prewhitened", "welch"):
+        tel = disturbance_from_telemetry(m, np.zeros_like(m), G, fs=fs, method=method)
+        noise = np.broadcast_to(np.reshape(tel.noise_psd, (-1, 1)), tel.psd.shape)
+        # The line test alone (no model test) takes such bins for lines on some modes.
+        alone = _dd_starts.has_lines(tel.freqs, tel.psd)
+        selected = _dd_starts.bound_start_modes(None, G, tel.freqs, tel.psd, noise)
+        assert alone.sum() >= 5 and selected.sum() <= 2, (method, alone.sum(), selected.sum())
 
 
 @pytest.mark.slow
-def test_bound_start_is_certified_and_better():
+def test_bound_start_is_certified_and_better(monkeypatch):
     # The reduced bound is the start only if it passes the certificates: the design's margin
     # (brute force), closed-loop stability and pole radius hold, and it ends closer to the
     # margin-constrained bound than the design from the integrator. Measured (order 5):
     # 1.164x the 256-tap bound, 1.250x from the integrator; order="auto" 1.163x (1.160x
     # from the integrator; both pick order 5 or 8 here).
+    # The two designs compute the same bound target (256 taps, 1.05 x the margin): one call,
+    # its result reused (cost: about 25 s each, the cutting planes of this 0.3 Hz line).
+    real, memo = _dd_starts.bound_sensitivities, {}
+
+    def once(plant, freqs, psd, noise, mu, n_taps=None):
+        key = (mu, n_taps, psd.tobytes(), noise.tobytes())
+        if key not in memo:
+            memo[key] = real(plant, freqs, psd, noise, mu, n_taps)
+        return memo[key]
+
+    monkeypatch.setattr(_dd_starts, "bound_sensitivities", once)
     G, f, psd = _resonant_mode()
-    kw = dict(noise_psd=1e-3, modulus_margin=0.5, n_jobs=1, progress=False)
-    with_bound = datadriven(G, f, psd, order=5, **kw)  # default: the line is detected
-    without = datadriven(G, f, psd, order=5, bound_start=False, **kw)
-    auto = datadriven(G, f, psd, order="auto", **kw)
+    with_bound = design(5)  # default: the line is detected
+    without = design(5, bound_start=False)
+    auto = design("auto")
+    assert len(memo) == 1
     assert with_bound.reports[0].start == "bound reduction"
     assert without.reports[0].start == "initial"
     K = with_bound.controller.transfer_function(0)
     assert is_stable(G, K)
     assert _brute_min(G, K) >= 0.5 * (1 - 1e-9)
     assert with_bound.pole_radius[0] <= 0.9999
-    bound = constrained_bound(G, f, psd, 1e-3, 0.5, n_taps=256).variance[0]
+    # The oracle: the margin-constrained bound at 1.05 x the margin (the designs' target,
+    # constrained_bound with 256 taps), 2 % above the bound at the margin here (1.253 vs
+    # 1.225): the designs from the integrator (1.25 x 1.225) still fail the 1.2 x below.
+    ((s_b,),) = memo.values()
+    bound = np.trapezoid(np.abs(s_b) ** 2 * psd + np.abs(1 - s_b) ** 2 * 1e-3, f)
     assert with_bound.residual_variance[0] < 0.95 * without.residual_variance[0]
     # 1.2: the measured 1.16 and a few % for solver and platform differences.
     assert with_bound.residual_variance[0] <= 1.2 * bound
