@@ -15,8 +15,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m aocontrol demo --output demo-output
 
+# Two pytest-xdist workers, one test file each at a time (a file's module-scoped fixtures are
+# built once): the suite is CPU-bound and a serial run uses one of CI's two cores.
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 lint: $(STAMP)
 	$(PY) -m ruff check aocontrol tests benchmarks

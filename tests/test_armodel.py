@@ -218,16 +218,23 @@ def test_fit_option_errors_are_clear():
 
 
 @pytest.mark.slow  # worker processes start slowly on a loaded machine (~5-30 s)
-def test_parallel_fit_equals_serial():
-    # Each mode's fit is independent: two workers over chunks give the serial result.
+def test_parallel_fit_equals_serial(monkeypatch):
+    # Each mode's fit is independent: two workers over chunks give the serial result. Chunks
+    # of 2 modes (the library's 16 needed 20 modes, ~1.5 s of fit each, for two chunks).
+    from aocontrol.synthesis import _arfit
+
+    monkeypatch.setattr(_arfit, "_FIT_CHUNK", 2)
     f = np.geomspace(0.01, FS / 2, 800)
-    m = DisturbanceModel(np.tile([1.9, -0.9025], (20, 1)), np.linspace(1, 2, 20),
-                         np.full((20, 1), 60.0), np.full((20, 1), 0.02), np.full((20, 1), 0.3),
+    m = DisturbanceModel(np.tile([1.9, -0.9025], (4, 1)), np.linspace(1, 2, 4),
+                         np.full((4, 1), 60.0), np.full((4, 1), 0.02), np.full((4, 1), 0.3),
                          fs=FS)  # fmt: skip
     serial = fit_disturbance_model(f, m.psd(f), FS, n_vibrations=1)
     parallel = fit_disturbance_model(f, m.psd(f), FS, n_vibrations=1, n_jobs=2)
     np.testing.assert_array_equal(parallel.turbulence_ar, serial.turbulence_ar)
     np.testing.assert_array_equal(parallel.vibration_frequency, serial.vibration_frequency)
+    # The modes differ only in their turbulence variance (1 to 2): the chunks come back in order.
+    np.testing.assert_array_equal(parallel.turbulence_variance, serial.turbulence_variance)
+    assert np.all(np.diff(serial.turbulence_variance) > 0)
     with pytest.raises(ValueError, match="n_jobs must be a nonzero integer"):
         fit_disturbance_model(f, m.psd(f), FS, n_jobs=0)
 

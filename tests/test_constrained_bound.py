@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from unittest import mock
+
 import control
 import numpy as np
 import pytest
@@ -18,7 +20,7 @@ from aocontrol.analysis import (
 )
 from aocontrol.disturbance import vibration_psd
 from aocontrol.plant import loop_plant, measured_plant
-from aocontrol.synthesis import datadriven, optimal_modal_gain
+from aocontrol.synthesis import _dd_starts, datadriven, optimal_modal_gain
 
 FS = 1000.0
 
@@ -114,7 +116,12 @@ def test_no_verified_controller_beats_the_bound(resonant, resonant_bound):
     plant, f, psd, noise = resonant
     bound = resonant_bound.variance[0]
     omg = optimal_modal_gain(plant, f, psd, noise, modulus_margin=0.5)
-    dd = datadriven(plant, f, psd, order=4, noise_psd=noise, n_jobs=1, progress=False)
+    # The data-driven design starts from the reduced bound (the line turns it on), here from a
+    # 64-tap bound: with the library's 256 taps on these 1,801 points the test took 189 s in a
+    # loaded suite run. The design is as close to the bound either way (measured: 1.0318 x the
+    # bound from the 64-tap reduction, 1.0318 from the integrator).
+    with mock.patch.object(_dd_starts, "BOUND_TAPS", 64):
+        dd = datadriven(plant, f, psd, order=4, noise_psd=noise, n_jobs=1, progress=False)
     assert dd.modulus_margin[0] >= 0.5
     for controller in (omg, dd.controller):
         assert residual_variance(plant, controller, f, psd, noise)[0] >= bound * (1 - 1e-3)

@@ -1,9 +1,14 @@
 """The documentation builds from the project's own files with warnings as errors (make docs).
 
 Sphinx + numpydoc (API from the docstrings) + myst-nb (the README tour, the notebooks executed
-in quick mode, so their pages carry outputs and figures). Slow: it runs the four notebooks.
+in quick mode, so their pages carry outputs and figures). Slow: it runs the notebooks. This
+build is also the suite's one run of the notebooks (tests/test_notebooks.py checks their
+sources): myst-nb stops the build on a cell's error (``nb_execution_raise_on_error``, so the
+notebooks' own asserts fail it), and the executed copies it writes are checked below.
 """
 
+import json
+import os
 import pathlib
 import subprocess
 import sys
@@ -58,3 +63,29 @@ def test_notebook_pages_carry_their_outputs(site, name):
     images = [p for p in (site / "_images").glob("*.png") if p.name in page]
     assert images, f"{name}: no figure in the rendered notebook"
     assert all(p.stat().st_size > 1000 for p in images)
+
+
+def _stderr(nb: dict) -> str:
+    return "".join(
+        "".join(out.get("text", ""))
+        for cell in nb["cells"]
+        for out in cell.get("outputs", [])
+        if out.get("output_type") == "stream" and out.get("name") == "stderr"
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", NOTEBOOKS)
+def test_notebooks_ran_top_to_bottom_in_the_build(site, name):
+    # myst-nb writes each executed notebook to <out>/jupyter_execute/. Every code cell ran, in
+    # order, in one kernel, without an error output; and no RuntimeWarning from aocontrol (the
+    # suite's filterwarnings makes those errors in-process; the kernel only prints them).
+    nb = json.loads((site.parent / "jupyter_execute" / "notebooks" / f"{name}.ipynb").read_text())
+    code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+    assert code
+    assert [c["execution_count"] for c in code] == list(range(1, len(code) + 1))
+    errors = [o for c in code for o in c.get("outputs", []) if o.get("output_type") == "error"]
+    assert errors == []
+    ours = f"{ROOT / 'aocontrol'}{os.sep}"
+    bad = [ln for ln in _stderr(nb).splitlines() if ln.startswith(ours) and "RuntimeWarning" in ln]
+    assert bad == [], bad
