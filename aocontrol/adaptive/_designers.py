@@ -7,7 +7,7 @@ import logging
 import control
 import numpy as np
 
-from aocontrol._validation import check_int, check_nonnegative
+from aocontrol._validation import check_in_range, check_int, check_nonnegative
 from aocontrol.adaptive._redesign import Designer, Proposal, _join, _rows, _subset
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis import (
@@ -22,6 +22,14 @@ from aocontrol.synthesis import (
 )
 
 logger = logging.getLogger(__name__)
+
+#: Default ``rtol`` of ``cancel_near_pairs`` (pole/zero distance over the pole's distance
+#: to the unit circle).
+CANCEL_RTOL = 0.1
+#: Default largest relative change of an LQG's response made by a cancellation.
+CANCEL_MAX_ERROR = 0.05
+#: Points of the unit circle on which that change is measured.
+_CHECK_POINTS = 2048
 
 # Relative size of a(1) below which a controller has a pole at z = 1 (integral action).
 _INTEGRATOR_RTOL = 1e-9
@@ -86,9 +94,9 @@ def datadriven_designer(
         ``warm_max_iter=1`` keeps 76 % of the gain of 64 points and 8 iterations for a third
         of the CPU (a later run, after the synthesis certified each candidate once and
         damped a refused last step: 72 % of the gain for 46 s of CPU against 60 s, on a
-        machine at load 17 to 22); with ``select=1, max_modes=230`` (:class:`AdaptiveController`) it is the
-        setting that fits 10 s on 2 idle cores (18 to 21 s of CPU, 40 % of the gain). The
-        loop's defaults stay 8 iterations on the cold design's grid: a 24-mode loop affords
+        machine at load 17 to 22); with ``select=1, max_modes=230``
+        (:class:`AdaptiveController`) it is the setting that fits 10 s on 2 idle cores (18 to
+        21 s of CPU, 40 % of the gain). The loop's defaults stay 8 iterations on the cold design's grid: a 24-mode loop affords
         them.
     **options
         Other keyword arguments of :func:`~aocontrol.synthesis.datadriven` (``n_grid``,
@@ -176,10 +184,78 @@ def modal_gain_designer(*, modulus_margin: float | None = 0.5, leak: float = 0.0
     return design
 
 
-def lqg_designer(*, n_vibrations: int = 2, control_weight: float = 0.0) -> Designer:
+def cancel_near_pairs(tf: control.TransferFunction, rtol: float) -> control.TransferFunction:
+    """``tf`` without its nearly cancelling pole/zero pairs near the unit circle.
+
+    A zero ``z`` cancels the nearest remaining pole ``p`` when ``|z - p| <= rtol (1 - |p|)``
+    (with exact roots each cancelled pair changes the response on the unit circle by at most
+    ``rtol``; the roots of a high-order polynomial with clustered roots are not exact, so the
+    caller measures the change). The gain (leading coefficients) is kept.
+
+    Parameters
+    ----------
+    tf : control.TransferFunction
+        Discrete SISO transfer function.
+    rtol : float
+        Largest ``|z - p| / (1 - |p|)`` cancelled, in [0, 1).
+
+    Returns
+    -------
+    control.TransferFunction
+        Same ``dt`` (``tf`` itself when nothing cancels).
+    """
+    num = np.atleast_1d(np.squeeze(tf.num[0][0]))
+    den = np.atleast_1d(np.squeeze(tf.den[0][0]))
+    poles = list(np.roots(den))
+    kept = []
+    zeros = np.roots(num)
+    for z in zeros:
+        if poles:
+            dist = np.abs(np.asarray(poles) - z)
+            j = int(np.argmin(dist))
+            slack = 1.0 - abs(poles[j])
+            if slack > 0 and dist[j] <= rtol * slack:
+                poles.pop(j)
+                continue
+        kept.append(z)
+    if len(kept) == len(zeros):
+        return tf
+    b = num[0] / den[0] * np.real(np.poly(kept))
+    a = np.real(np.poly(poles))
+    return control.tf(np.atleast_1d(b), np.atleast_1d(a), tf.dt)
+
+
+def _response_error(tf: control.TransferFunction, F, G, H, J) -> float:
+    """Largest relative error of ``tf`` against the state space ``J + H (zI - F)^-1 G``
+    (shapes (ns, ns), (ns,), (ns,), ()) on :data:`_CHECK_POINTS` points of the unit circle."""
+    z = np.exp(1j * np.linspace(0.0, np.pi, _CHECK_POINTS))
+    lhs = z[:, None, None] * np.eye(F.shape[0]) - F
+    x = np.linalg.solve(lhs, np.broadcast_to(G, (z.size, G.size))[..., None])[..., 0]
+    ref = J + x @ H
+    got = np.asarray(tf(z)).ravel()
+    return float(np.max(np.abs(got - ref) / np.maximum(np.abs(ref), 1e-300)))
+
+
+def lqg_designer(
+    *,
+    n_vibrations: int = 2,
+    control_weight: float = 0.0,
+    cancel_rtol: float = CANCEL_RTOL,
+    cancel_max_error: float = CANCEL_MAX_ERROR,
+) -> Designer:
     """Designer: LQG re-identified from the window (:func:`aocontrol.synthesis.lqg` on the
-    estimated PSDs), run as its exact transfer function per mode (an :class:`IIRBank`), so
-    that it is certified, merged per mode and switched bumplessly like the others.
+    estimated PSDs), run as its transfer function per mode (an :class:`IIRBank`), so that it
+    is certified, merged per mode and switched bumplessly like the others.
+
+    The LQG's exact transfer function (``ss2tf`` of its state space) carries nearly
+    cancelling pole/zero pairs at the disturbance model's poles, close to ``z = 1``; in
+    Direct-Form I they are internal modes with a closed-loop gain of ``1e7`` to ``1e9`` from
+    any mismatch of the recursion's state, so a bumpless switch diverged (issue 17: 8th-order
+    filters, ``a(1) = 4e-13``). They are cancelled (``cancel_near_pairs``) when the reduced
+    transfer function stays within ``cancel_max_error`` of the LQG's state-space response
+    (measured on the unit circle); the certificate (:func:`certify`, its recursion gain
+    included) then decides what is switched in: a mode whose recursion stays ill-conditioned
+    keeps its current controller.
 
     Parameters
     ----------
@@ -187,7 +263,13 @@ def lqg_designer(*, n_vibrations: int = 2, control_weight: float = 0.0) -> Desig
         Resonances fitted per mode.
     control_weight : float, default 0.0
         Weight of ``u^2`` in the LQ cost.
+    cancel_rtol : float, default :data:`CANCEL_RTOL`
+        ``rtol`` of ``cancel_near_pairs`` (0: the exact transfer function).
+    cancel_max_error : float, default :data:`CANCEL_MAX_ERROR`
+        Largest relative change of the response a cancellation may make.
     """
+    cancel_rtol = check_in_range("cancel_rtol", cancel_rtol, 0.0, 1.0, high_inclusive=False)
+    max_error = check_nonnegative("cancel_max_error", cancel_max_error)
 
     def design(tel: TelemetryPSD, plant: control.TransferFunction, current: IIRBank) -> Proposal:
         bank = lqg(
@@ -198,7 +280,15 @@ def lqg_designer(*, n_vibrations: int = 2, control_weight: float = 0.0) -> Desig
             n_vibrations=n_vibrations,
             control_weight=control_weight,
         )
-        tfs = [bank.transfer_function(i) for i in range(bank.n_modes)]
+        F, G, H, J = bank.state_space.controller_matrices
+        tfs = []
+        for i in range(bank.n_modes):  # at a redesign only: a short loop of small systems
+            exact = bank.transfer_function(i)
+            reduced = cancel_near_pairs(exact, cancel_rtol) if cancel_rtol > 0 else exact
+            moved = reduced is not exact and (
+                _response_error(reduced, F[i], G[i], H[i], J[i]) > max_error
+            )
+            tfs.append(exact if moved else reduced)  # moved: keep the exact one
         return Proposal(IIRBank.from_transfer_functions(tfs))
 
     design.__name__ = design.__qualname__ = "LQG"

@@ -13,12 +13,18 @@ import numpy as np
 from aocontrol._validation import check_in_range, check_positive
 from aocontrol.analysis import is_stable, modulus_certificate, residual_variance, wiener_bound
 from aocontrol.controllers import IIRBank
+from aocontrol.plant import z_inverse_coefficients
 from aocontrol.synthesis import TelemetryPSD
 
 # Relative slack on the modulus margin certificate (rounding of the margin computation).
 _MARGIN_RTOL = 1e-9
 # Slack on the controller pole radius (rounding of companion-matrix eigenvalues).
 _POLE_RTOL = 1e-9
+#: Default largest closed-loop gain from a perturbation of a controller's recursion to its
+#: command (:func:`recursion_gain`): a well-conditioned filter has tens to hundreds; the
+#: Direct-Form I transfer function of an LQG with nearly cancelling pole/zero pairs near
+#: ``z = 1`` had ``1e12`` and diverged at a bumpless switch (issue 17).
+MAX_RECURSION_GAIN = 1e5
 #: Criteria that rank the modes of a selective redesign (``rank`` of :func:`redesign`).
 RANKINGS = ("bound", "shift")
 #: FFT size of the Wiener bound of the ``"bound"`` ranking (a ranking, not a certificate:
@@ -70,6 +76,49 @@ def _pole_radius(a: np.ndarray) -> np.ndarray:
     return np.abs(np.linalg.eigvals(comp)).max(axis=1)
 
 
+def recursion_gain(plant: control.TransferFunction, b: np.ndarray, a: np.ndarray) -> float:
+    """Closed-loop gain from a perturbation of a Direct-Form I recursion to its command.
+
+    A controller ``u = (b / a) m`` on a plant ``G = gb / ga`` (powers of ``z^-1``) run as
+    ``a u = b m + w``, where ``w`` is any mismatch of its recursion (a switch's initial
+    state, round-off), gives ``u = ga / (a ga + b gb) w``. The transfer function of a
+    controller can be exact and its closed loop stable with a margin while this gain is
+    ``1e12`` (nearly cancelling pole/zero pairs near ``z = 1``): the command then diverges
+    from any mismatch. Returned: ``max_w |ga| / |a ga + b gb|`` on the unit circle, the
+    minimum of ``|a ga + b gb|^2`` taken over its critical points (the unit-circle roots of
+    its derivative, a polynomial) and a 4096-point grid (exact up to rounding).
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+        Loop plant.
+    b, a : ndarray, shape (nb,), (na,)
+        Controller coefficients in powers of ``z^-1``.
+
+    Returns
+    -------
+    float
+        The gain (``inf`` if ``a ga + b gb`` vanishes on the unit circle).
+    """
+    gb, ga = z_inverse_coefficients(plant, "plant")
+    bg = np.convolve(b, gb)
+    ag = np.convolve(a, ga)
+    ch = np.zeros(max(bg.size, ag.size))
+    ch[: bg.size] += bg
+    ch[: ag.size] += ag
+    n = ch.size - 1
+    # |ch(e^jw)|^2 = sum_k r_k e^{jkw}, r the autocorrelation (k = -n..n); its derivative
+    # vanishes where the polynomial sum_k k r_k z^(k+n) has a root on the unit circle.
+    r = np.correlate(ch, ch, mode="full")
+    k = np.arange(-n, n + 1)
+    crit = np.roots((k * r)[::-1]) if n > 0 else np.zeros(0)
+    w = np.concatenate([np.angle(crit), np.linspace(0.0, np.pi, 4097)])
+    zinv = np.exp(-1j * np.abs(w))
+    den = np.abs(np.polyval(ch[::-1], zinv)).min()
+    num = np.abs(np.polyval(ga[::-1], zinv)).max()
+    return float(num / den) if den > 0 else float("inf")
+
+
 def certify(
     plant: control.TransferFunction,
     bank: IIRBank,
@@ -78,17 +127,21 @@ def certify(
     max_pole_radius: float = 1.0,
     modes: object = None,
     certified_margin: np.ndarray | None = None,
+    max_recursion_gain: float = MAX_RECURSION_GAIN,
 ) -> tuple[np.ndarray, np.ndarray, dict[int, str]]:
     """Certificates of each mode of ``bank`` on ``plant``: what may be switched into a loop.
 
     A mode passes when its closed loop is stable (:func:`aocontrol.analysis.is_stable`), its
     modulus margin ``min |1 + G K|`` is at least ``modulus_margin``
     (:func:`aocontrol.analysis.modulus_certificate`: exact over the whole circle for a
-    transfer-function plant; the values :func:`aocontrol.analysis.margins` reports) and every
+    transfer-function plant; the values :func:`aocontrol.analysis.margins` reports), every
     pole of its controller has modulus at most ``max_pole_radius`` (batched companion
-    matrices; 1 admits an integrator's pole at ``z = 1``). A mode whose margin and
-    stability the designer already certified with these certificates
-    (``certified_margin``, :attr:`Proposal.margin`) is not certified twice.
+    matrices; 1 admits an integrator's pole at ``z = 1``) and the coefficients the loop runs
+    are a well-conditioned recursion: the closed-loop gain from a mismatch of the Direct-Form
+    I state to the command (:func:`recursion_gain`) is at most ``max_recursion_gain``. A mode
+    whose margin and stability the designer already certified with these certificates
+    (``certified_margin``, :attr:`Proposal.margin`) does not have them computed twice (its
+    pole radius and recursion gain are still checked).
 
     Parameters
     ----------
@@ -105,6 +158,8 @@ def certify(
     certified_margin : ndarray, shape (n_modes,), optional
         Margins already certified on ``plant`` (closed loop stable), ``nan`` where not: those
         modes are checked against ``modulus_margin`` and the pole radius only.
+    max_recursion_gain : float, default :data:`MAX_RECURSION_GAIN`
+        Largest :func:`recursion_gain` accepted, > 0.
 
     Returns
     -------
@@ -116,6 +171,7 @@ def certify(
     """
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, high_inclusive=False)
     rmax = check_positive("max_pole_radius", max_pole_radius)
+    gmax = check_positive("max_recursion_gain", max_recursion_gain)
     n = bank.n_modes
     todo = np.arange(n) if modes is None else np.asarray(modes, dtype=int)
     ok = np.zeros(n, dtype=bool)
@@ -145,6 +201,8 @@ def certify(
             reasons[i] = "closed loop unstable"
         elif margin[i] < mu * (1 - _MARGIN_RTOL):
             reasons[i] = f"modulus margin {margin[i]:.4g} < {mu:g}"
+        elif (g := recursion_gain(plant, bank.b[i], bank.a[i])) > gmax:
+            reasons[i] = f"recursion gain {g:.3g} > {gmax:g} (ill-conditioned realisation)"
         else:
             ok[i] = True
     return ok, margin, reasons
