@@ -96,8 +96,8 @@ def datadriven_designer(
         damped a refused last step: 72 % of the gain for 46 s of CPU against 60 s, on a
         machine at load 17 to 22); with ``select=1, max_modes=230``
         (:class:`AdaptiveController`) it is the setting that fits 10 s on 2 idle cores (18 to
-        21 s of CPU, 40 % of the gain). The loop's defaults stay 8 iterations on the cold design's grid: a 24-mode loop affords
-        them.
+        21 s of CPU, 40 % of the gain). The loop's defaults stay 8 iterations on the cold
+        design's grid: a 24-mode loop affords them.
     **options
         Other keyword arguments of :func:`~aocontrol.synthesis.datadriven` (``n_grid``,
         ``max_iter``, ``hinf_weight``...).

@@ -103,9 +103,7 @@ def _rate_rows(n_modes: int, horizon: int, has_rate: np.ndarray) -> np.ndarray:
 class _GroupQP:
     """The data of one group's QP shared by both solvers."""
 
-    def __init__(
-        self, Hq: np.ndarray, Gx: np.ndarray, limit: np.ndarray, rate: np.ndarray
-    ) -> None:
+    def __init__(self, Hq: np.ndarray, Gx: np.ndarray, limit: np.ndarray, rate: np.ndarray) -> None:
         self.n_modes, self.horizon, self.ns = Gx.shape
         self.Hq, self.Gx = Hq, Gx  # (ng, N, N), (ng, N, ns)
         self.limit, self.rate = limit, rate  # (ng,), inf for none
@@ -125,9 +123,7 @@ class DaqpQP(_GroupQP):
         Limits per mode (``inf`` for none).
     """
 
-    def __init__(
-        self, Hq: np.ndarray, Gx: np.ndarray, limit: np.ndarray, rate: np.ndarray
-    ) -> None:
+    def __init__(self, Hq: np.ndarray, Gx: np.ndarray, limit: np.ndarray, rate: np.ndarray) -> None:
         super().__init__(Hq, Gx, limit, rate)
         ng, N = self.n_modes, self.horizon
         ns = self.ns
