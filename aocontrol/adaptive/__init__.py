@@ -35,9 +35,13 @@ commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 t
    same certificates on the same plant passes their margins on (:attr:`Proposal.margin`:
    the data-driven synthesis certifies every design so); those modes are not certified a
    second time, their margin is still compared with ``modulus_margin`` and their pole
-   radius checked here. A mode that fails, or that the designer could not design, keeps its
-   current controller and is reported; a proposal with no certified mode is not switched in
-   at all (counted). **An uncertified controller is never used.**
+   radius checked here. The coefficients the loop will run must also be a well-conditioned
+   recursion: ``recursion_gain`` (in ``aocontrol.adaptive._redesign``), the gain from a
+   mismatch of the filter's state to the command, at most ``max_recursion_gain`` (an exact
+   LQG transfer function with nearly cancelling poles and zeros near ``z = 1`` has a stable
+   loop and a margin, and a gain of ``1e12``). A mode that fails, or that the designer
+   could not design, keeps its current controller and is reported; a proposal with no
+   certified mode is not switched in at all (counted). **An uncertified controller is never used.**
 5. **Switch** after the design latency (a set value, or the measured compute time rounded up
    to frames), **bumplessly**: the new bank's Direct-Form I state is set from the recent
    measurements and the commands actually applied (:meth:`IIRBank.set_history`), so the

@@ -11,7 +11,13 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_in_range, check_positive
-from aocontrol.analysis import is_stable, modulus_certificate, residual_variance, wiener_bound
+from aocontrol.analysis import (
+    is_stable,
+    modulus_certificate,
+    rational_modulus_minima,
+    residual_variance,
+    wiener_bound,
+)
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import z_inverse_coefficients
 from aocontrol.synthesis import TelemetryPSD
@@ -84,9 +90,11 @@ def recursion_gain(plant: control.TransferFunction, b: np.ndarray, a: np.ndarray
     state, round-off), gives ``u = ga / (a ga + b gb) w``. The transfer function of a
     controller can be exact and its closed loop stable with a margin while this gain is
     ``1e12`` (nearly cancelling pole/zero pairs near ``z = 1``): the command then diverges
-    from any mismatch. Returned: ``max_w |ga| / |a ga + b gb|`` on the unit circle, the
-    minimum of ``|a ga + b gb|^2`` taken over its critical points (the unit-circle roots of
-    its derivative, a polynomial) and a 4096-point grid (exact up to rounding).
+    from any mismatch. Returned: ``max |ga| / min |a ga + b gb|`` over the unit circle, an
+    upper bound of the gain ``max |ga / (a ga + b gb)|`` (refusing on it is conservative),
+    both extremes certified over the whole circle by
+    ``aocontrol.analysis.rational_modulus_minima`` (stationary points as polynomial
+    roots, and a grid refined around every root near the circle).
 
     Parameters
     ----------
@@ -106,16 +114,8 @@ def recursion_gain(plant: control.TransferFunction, b: np.ndarray, a: np.ndarray
     ch = np.zeros(max(bg.size, ag.size))
     ch[: bg.size] += bg
     ch[: ag.size] += ag
-    n = ch.size - 1
-    # |ch(e^jw)|^2 = sum_k r_k e^{jkw}, r the autocorrelation (k = -n..n); its derivative
-    # vanishes where the polynomial sum_k k r_k z^(k+n) has a root on the unit circle.
-    r = np.correlate(ch, ch, mode="full")
-    k = np.arange(-n, n + 1)
-    crit = np.roots((k * r)[::-1]) if n > 0 else np.zeros(0)
-    w = np.concatenate([np.angle(crit), np.linspace(0.0, np.pi, 4097)])
-    zinv = np.exp(-1j * np.abs(w))
-    den = np.abs(np.polyval(ch[::-1], zinv)).min()
-    num = np.abs(np.polyval(ga[::-1], zinv)).max()
+    den = float(np.min(rational_modulus_minima(ch, np.ones(1))[1]))
+    num = 1.0 / float(np.min(rational_modulus_minima(np.ones(1), ga)[1]))
     return float(num / den) if den > 0 else float("inf")
 
 

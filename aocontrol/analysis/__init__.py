@@ -11,6 +11,7 @@ from aocontrol.analysis._cascade import (
 )
 from aocontrol.analysis._certificate import ModulusCertificate, modulus_certificate
 from aocontrol.analysis._certificate import polynomial_certificate as polynomial_certificate
+from aocontrol.analysis._certificate import rational_modulus_minima as rational_modulus_minima
 from aocontrol.analysis._constrained import (
     ConstrainedBound,
     ConstrainedBoundError,
