@@ -1,12 +1,15 @@
 """Run every benchmark the README quotes, with the README's settings (``make bench``).
 
-Each entry of :data:`BENCHMARKS` is the command line the README gives next to its figure; the
+Each entry of :data:`BENCHMARKS` is one command of the README's benchmark table (the
+figure's own settings) and the smoke settings that exercise the same code quickly; the
 scripts run one after the other (never in parallel: they time themselves) and each prints its
-ratios. Benchmarks present in this folder but not in the table run with ``--quick``, so none is
-forgotten. ``--quick`` runs every benchmark in its quick (smoke) mode instead; ``--only NAME``
-selects scripts. The OOPAO side of the pyramid benchmark needs a virtualenv with OOPAO
-(``OOPAO_PYTHON=/path/to/venv/bin/python``; skipped with a message otherwise). A summary with
-each script's exit code and wall time closes the run; the exit code is non-zero if any failed.
+ratios. ``--quick`` runs the smoke settings instead; ``--only NAME ...`` selects entries (by
+entry name or script name); ``--list`` prints the commands without running them. The OOPAO
+side of the pyramid benchmark needs a virtualenv with OOPAO
+(``OOPAO_PYTHON=/path/to/venv/bin/python``; skipped with a message otherwise). A summary
+with each command's exit code and wall time closes the run; the exit code is non-zero if any
+failed. The full run takes hours on a 2-core machine (the held-out certificate check, the
+paper's tables and the adaptive study dominate).
 """
 
 from __future__ import annotations
@@ -17,51 +20,117 @@ import pathlib
 import subprocess
 import sys
 import time
+from typing import NamedTuple
 
 HERE = pathlib.Path(__file__).resolve().parent
 
-#: script -> arguments of the README's figure (the quick mode only adds ``--quick``).
-BENCHMARKS: dict[str, list[str]] = {
-    "bench_synthesis.py": [],
-    "bench_loop.py": [],
-    "bench_atmosphere.py": [],
-    "bench_pyramid.py": ["--repeats", "3"],
-    "bench_sweep.py": ["--seconds", "2"],
-    "bench_lqg.py": [],
-    "bench_mpc.py": [],
-    "bench_paper_tables.py": [],
+
+class Entry(NamedTuple):
+    """One README command: the script, the figure's arguments, the smoke arguments.
+
+    ``covers``: other README commands whose figures the full run also prints (a part run
+    alone, e.g. ``--resonant-only``).
+    """
+
+    script: str
+    full: tuple[str, ...]
+    quick: tuple[str, ...] = ("--quick",)
+    covers: tuple[str, ...] = ()
+
+
+#: name -> the README's command and its smoke version, in the README table's order.
+BENCHMARKS: dict[str, Entry] = {
+    "pyramid": Entry("bench_pyramid.py", ("--repeats", "3")),
+    "sweep": Entry("bench_sweep.py", ("--seconds", "2")),
+    "synthesis": Entry("bench_synthesis.py", (), covers=("--resonant-only",)),
+    "holdout": Entry("bench_certified_holdout.py", ()),
+    "loop": Entry("bench_loop.py", ()),
+    "cascade": Entry("bench_cascade.py", ("--repeat", "2")),
+    "cascade-diffractive": Entry(
+        "bench_cascade.py",
+        ("--sensor", "diffractive", "--n-pix", "80", "--modes2", "400", "--repeat", "1"),
+        ("--quick", "--sensor", "diffractive", "--repeat", "1"),
+    ),
+    "lqg": Entry("bench_lqg.py", ()),
+    "mpc": Entry("bench_mpc.py", ()),
+    "bounds": Entry("bench_bounds.py", ()),
+    "paper-tables": Entry("bench_paper_tables.py", ()),
+    "telemetry-aot": Entry(
+        "bench_telemetry_design.py",
+        ("aot",),
+        ("aot", "--seconds", "0.5", "--exposure", "0.2", "--controllers", "integrator", "omgi"),
+    ),
+    "telemetry-estimators": Entry(
+        "bench_telemetry_design.py",
+        ("estimators",),
+        ("estimators", "--cases", "bright1-best", "--controllers", "omgi", "--exposure", "0.2"),
+    ),
+    "telemetry-own": Entry(
+        "bench_telemetry_design.py",
+        ("own",),
+        ("own", "--cases", "bright1-best", "--schemes", "standalone"),
+    ),
+    "telemetry-own-diffractive": Entry(
+        "bench_telemetry_design.py",
+        ("own", "--sensor", "diffractive"),
+        ("own", "--sensor", "diffractive", "--cases", "red5-best", "--schemes", "standalone"),
+    ),
+    "fidelity": Entry(
+        "bench_fidelity.py",
+        ("--quick", "--seconds", "1", "--cases", "red5-best"),
+        ("--quick", "--seconds", "0.2", "--cases", "red5-best"),
+    ),
+    "adaptive-study": Entry(
+        "bench_adaptive.py", ("--study", "--quick", "--select", "0.9", "--jobs", "1")
+    ),
+    "warm-redesign": Entry(
+        "bench_adaptive.py",
+        ("--parts", "c", "--sweep", "--start-stride", "10", "--jobs", "2"),
+        ("--quick", "--parts", "c"),
+    ),
+    "atmosphere": Entry("bench_atmosphere.py", ()),
 }
 
 
-def _command(script: pathlib.Path, quick: bool) -> list[str]:
-    args = ["--quick"] if quick or script.name not in BENCHMARKS else list(BENCHMARKS[script.name])
-    if script.name == "bench_pyramid.py" and os.environ.get("OOPAO_PYTHON"):
+def command(name: str, quick: bool) -> list[str]:
+    """The command line of entry ``name`` (``quick``: its smoke settings)."""
+    entry = BENCHMARKS[name]
+    args = list(entry.quick if quick else entry.full)
+    if entry.script == "bench_pyramid.py" and os.environ.get("OOPAO_PYTHON"):
         args += ["--oopao-python", os.environ["OOPAO_PYTHON"]]
-    return [sys.executable, str(script), *args]
+    return [sys.executable, str(HERE / entry.script), *args]
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="every benchmark in quick mode")
-    parser.add_argument("--only", nargs="+", default=None, help="script names (bench_x.py)")
+    parser.add_argument("--quick", action="store_true", help="every benchmark's smoke settings")
+    parser.add_argument("--only", nargs="+", default=None, help="entry or script names")
+    parser.add_argument("--list", action="store_true", help="print the commands, run nothing")
     args = parser.parse_args(argv)
-    present = {p.name: p for p in sorted(HERE.glob("bench_*.py"))}
-    order = [n for n in BENCHMARKS if n in present] + sorted(set(present) - set(BENCHMARKS))
+    missing = sorted({e.script for e in BENCHMARKS.values()} - {p.name for p in HERE.iterdir()})
+    if missing:
+        parser.error(f"benchmark scripts missing from {HERE}: {missing}")
+    order = list(BENCHMARKS)
     if args.only:
-        unknown = sorted(set(args.only) - set(present))
+        scripts = {e.script for e in BENCHMARKS.values()}
+        unknown = sorted(set(args.only) - set(order) - scripts)
         if unknown:
-            parser.error(f"--only: unknown {unknown}; valid: {', '.join(order)}")
-        order = [n for n in order if n in args.only]
+            parser.error(f"--only: unknown {unknown}; valid: {', '.join(order)} (or a script name)")
+        order = [n for n in order if n in args.only or BENCHMARKS[n].script in args.only]
     results = []
     for name in order:
-        cmd = _command(present[name], args.quick)
-        print(f"=== {' '.join([pathlib.Path(cmd[1]).name, *cmd[2:]])}", flush=True)
+        cmd = command(name, args.quick)
+        print(f"=== {name}: {' '.join([pathlib.Path(cmd[1]).name, *cmd[2:]])}", flush=True)
+        if args.list:
+            continue
         t0 = time.perf_counter()
         code = subprocess.call(cmd)
         results.append((name, code, time.perf_counter() - t0))
+    if args.list:
+        return 0
     print("=== summary")
     for name, code, wall in results:
-        print(f"{name:24s} exit {code:3d}  {wall:8.1f} s")
+        print(f"{name:28s} exit {code:3d}  {wall:8.1f} s")
     return 0 if all(code == 0 for _, code, _ in results) else 1
 
 

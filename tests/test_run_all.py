@@ -1,0 +1,51 @@
+"""``make bench`` runs every command the README's benchmark table quotes (issue 19)."""
+
+from __future__ import annotations
+
+import importlib.util
+import pathlib
+import re
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _run_all():
+    spec = importlib.util.spec_from_file_location("run_all", ROOT / "benchmarks" / "run_all.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["run_all"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _readme_commands() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Benchmarks", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| ") and "---" not in line]
+    commands = []
+    for row in rows[1:]:  # the header first
+        cell = row.rstrip(" |").rsplit("|", 1)[-1]
+        commands += [c for c in re.findall(r"`([^`]+)`", cell) if c.startswith("bench_")]
+    return commands
+
+
+def test_every_readme_command_is_run_by_make_bench():
+    run_all = _run_all()
+    run = {" ".join([e.script, *e.full]) for e in run_all.BENCHMARKS.values()}
+    run |= {f"{e.script} {c}" for e in run_all.BENCHMARKS.values() for c in e.covers}
+    commands = _readme_commands()
+    assert len(commands) >= 15, commands
+    for cmd in commands:
+        # Optional parts the README shows in brackets, and the OOPAO python, are not settings.
+        plain = re.sub(r"\s*\[[^\]]*\]", "", cmd).replace(" --oopao-python PY", "").strip()
+        assert plain in run, f"README command {cmd!r} is not in run_all.BENCHMARKS"
+
+
+def test_every_entry_names_an_existing_script_and_lists(capsys):
+    run_all = _run_all()
+    for entry in run_all.BENCHMARKS.values():
+        assert (ROOT / "benchmarks" / entry.script).is_file(), entry.script
+    assert run_all.main(["--list", "--only", "bench_cascade.py"]) == 0
+    out = capsys.readouterr().out
+    assert "bench_cascade.py --repeat 2" in out
+    assert "diffractive" in out  # both entries of the script
