@@ -46,6 +46,7 @@ __all__ = [
     "Check",
     "ConvexifiedProblem",
     "GridData",
+    "SizedProblem",
     "SolveFailure",
     "ccp",
     "get_problem",
@@ -81,7 +82,9 @@ _P_FLOOR = 1e-2
 POLE_FLOOR = 1e-4
 # Worker-local cache of compiled problems, keyed by (slots, nv, stroke term).
 _PROBLEMS: OrderedDict[tuple, ConvexifiedProblem] = OrderedDict()
-_MAX_CACHED = 6
+_MAX_CACHED = 12
+# Compiled problem sizes are multiples of this number of grid slots (SizedProblem).
+_SLOT_STEP = 8
 
 
 class SolveFailure(RuntimeError):
@@ -156,6 +159,7 @@ class ConvexifiedProblem:
     def __init__(self, slots: int, nv: int, stroke: bool, n_wind: int = 0) -> None:
         self.slots, self.nv, self.stroke, self.n_wind = slots, nv, stroke, n_wind
         self._pending: list = []  # (parameter, value) of the grid, assigned by solve()
+        self.grid_source: object = None  # what set the grid (SizedProblem's record)
         nx = self.nx = (nv + 1) // 2
         ny = nv - nx
         v = self.v = cp.Variable(nv, name="v")
@@ -271,13 +275,10 @@ class ConvexifiedProblem:
         denominator (controller poles inside the radius; floor ``POLE_FLOOR``, far above the
         solver's feasibility tolerance, so a pole at the radius cannot slip out by it).
         """
-        rows_A, rows_b = [], []
-        for A, F, Pw, absolute in blocks:
-            scale = 1.0 / np.abs(Pw)  # row scaling: each row has unit size
-            rows_A.append((Pw.real[:, None] * A.real + Pw.imag[:, None] * A.imag) * scale[:, None])
-            floor = np.maximum(_WIND_MIN * np.abs(Pw), np.minimum(absolute, np.abs(Pw)))
-            rows_b.append((Pw.real * F.real + Pw.imag * F.imag) * scale - floor)
-        A_all, b_all = np.vstack(rows_A), np.concatenate(rows_b)
+        self.set_winding_rows(*winding_rows(blocks))
+
+    def set_winding_rows(self, A_all: np.ndarray, b_all: np.ndarray) -> None:
+        """The winding rows ``A_all v + b_all >= 0`` (from :func:`winding_rows`)."""
         if A_all.shape[0] != self.n_wind:  # pragma: no cover - construction bug
             raise AssertionError(f"{A_all.shape[0]} winding rows for {self.n_wind} slots")
         _assign(self.wind_A, A_all)
@@ -335,8 +336,20 @@ def _assign(param: cp.Parameter, value: np.ndarray) -> None:
     param.save_value(value)
 
 
-def get_problem(slots: int, nv: int, stroke: bool, n_wind: int = 0) -> ConvexifiedProblem:
-    """The compiled problem of this size, built once per process."""
+def winding_rows(blocks: list[tuple]) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``(A, b)`` of the linear "same winding" constraints ``A v + b >= 0`` of ``blocks``
+    (see :meth:`ConvexifiedProblem.set_winding`)."""
+    rows_A, rows_b = [], []
+    for A, F, Pw, absolute in blocks:
+        scale = 1.0 / np.abs(Pw)  # row scaling: each row has unit size
+        rows_A.append((Pw.real[:, None] * A.real + Pw.imag[:, None] * A.imag) * scale[:, None])
+        floor = np.maximum(_WIND_MIN * np.abs(Pw), np.minimum(absolute, np.abs(Pw)))
+        rows_b.append((Pw.real * F.real + Pw.imag * F.imag) * scale - floor)
+    return np.vstack(rows_A), np.concatenate(rows_b)
+
+
+def _compiled(slots: int, nv: int, stroke: bool, n_wind: int) -> ConvexifiedProblem:
+    """The worker's compiled problem of this size and structure (an LRU cache of them)."""
     key = (slots, nv, stroke, n_wind)
     if key in _PROBLEMS:
         _PROBLEMS.move_to_end(key)
@@ -345,6 +358,64 @@ def get_problem(slots: int, nv: int, stroke: bool, n_wind: int = 0) -> Convexifi
     while len(_PROBLEMS) > _MAX_CACHED:
         _PROBLEMS.popitem(last=False)
     return prob
+
+
+class SizedProblem:
+    """The convexified problem of one mode with up to ``slots`` grid points, solved at the
+    grid's size.
+
+    Same interface as :class:`ConvexifiedProblem` (``slots``, ``set_grid``, ``set_winding``,
+    ``solve``); each solve uses a compiled problem with the grid's number of points rounded
+    up to a multiple of ``step`` (at most ``slots``). The neutral slots of a problem compiled
+    for the largest grid are cones Clarabel iterates on all the same (a quarter of them on
+    the first steps of a 64-point design with 24 spare slots); a compiled problem costs
+    ~70 ms once per worker and size.
+
+    Parameters
+    ----------
+    slots : int
+        Maximum number of grid points.
+    nv, stroke, n_wind
+        As :class:`ConvexifiedProblem`.
+    step : int, default _SLOT_STEP
+        Granularity of the compiled sizes (``slots`` itself is always one of them).
+    """
+
+    def __init__(self, slots: int, nv: int, stroke: bool, n_wind: int = 0, step: int = 0):
+        self.slots, self.nv, self.stroke, self.n_wind = slots, nv, stroke, n_wind
+        self.step = step or _SLOT_STEP
+        self._grid: tuple | None = None
+        self._wind: tuple | None = None
+
+    def set_grid(self, data: GridData, r1: np.ndarray, rn: np.ndarray, h: np.ndarray) -> None:
+        """Set the grid (``N <= slots`` points) and the H2 weights of one mode."""
+        if data.F.size > self.slots:
+            raise ValueError(f"grid of {data.F.size} points exceeds the {self.slots} slots")
+        self._grid = (data, r1, rn, h)
+
+    def set_winding(self, blocks: list[tuple]) -> None:
+        """Linear "same winding" constraints (see :meth:`ConvexifiedProblem.set_winding`)."""
+        self._wind = winding_rows(blocks) if self.n_wind else None
+
+    def solve(self, Pc: np.ndarray, scale: np.ndarray, iteration: int = 0) -> np.ndarray:
+        """Solve around ``Pc`` (see :meth:`ConvexifiedProblem.solve`) at the grid's size."""
+        if self._grid is None:  # pragma: no cover - construction bug
+            raise AssertionError("solve() before set_grid()")
+        n = self._grid[0].F.size
+        size = min(self.slots, -(-max(n, 1) // self.step) * self.step)
+        prob = _compiled(size, self.nv, self.stroke, self.n_wind)
+        if prob.grid_source is not self._grid:  # held, so never a recycled identity
+            prob.set_grid(*self._grid)
+            prob.grid_source = self._grid
+        if self._wind is not None:
+            prob.set_winding_rows(*self._wind)
+        return prob.solve(Pc, scale, iteration)
+
+
+def get_problem(slots: int, nv: int, stroke: bool, n_wind: int = 0) -> SizedProblem:
+    """The convexified problem of up to ``slots`` grid points, solved at the grid's size
+    (:class:`SizedProblem`; its compiled problems are cached per worker process)."""
+    return SizedProblem(slots, nv, stroke, n_wind)
 
 
 def true_objective(
@@ -463,7 +534,7 @@ def _last_damped(
 
 
 def ccp(
-    problem: ConvexifiedProblem,
+    problem: SizedProblem | ConvexifiedProblem,
     grid_f: np.ndarray,
     cert: Certifier,
     v0: np.ndarray | None,
@@ -499,8 +570,8 @@ def ccp(
 
     Parameters
     ----------
-    problem : ConvexifiedProblem
-        Compiled problem with enough slots and winding rows.
+    problem : SizedProblem or ConvexifiedProblem
+        Problem with enough slots and winding rows.
     grid_f : ndarray, shape (N,)
         Design-grid frequencies [Hz].
     cert : Certifier
