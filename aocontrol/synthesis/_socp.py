@@ -80,7 +80,7 @@ _WIND_MIN = 0.05
 _P_FLOOR = 1e-2
 # Floor of the scaled free denominator: a free pole stays about this fraction inside the radius.
 POLE_FLOOR = 1e-4
-# Worker-local cache of compiled problems, keyed by (slots, nv, stroke term).
+# Worker-local cache of compiled problems, keyed by (slots, nv, stroke term, winding rows).
 _PROBLEMS: OrderedDict[tuple, ConvexifiedProblem] = OrderedDict()
 _MAX_CACHED = 12
 # Compiled problem sizes are multiples of this number of grid slots (SizedProblem).
@@ -229,6 +229,7 @@ class ConvexifiedProblem:
         if n > self.slots:
             raise ValueError(f"grid of {n} points exceeds the {self.slots} slots")
         self.data, self.n = data, n
+        self.grid_source = None
         self.weights = (np.asarray(r1, float), np.asarray(rn, float), np.asarray(h, float))
         nx = self.nx
 
