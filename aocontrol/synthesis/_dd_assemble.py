@@ -44,7 +44,10 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
     bank = IIRBank(b, a, fs)
     var = np.trapezoid(residual_psd(plant, bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
     var0 = np.trapezoid(residual_psd(plant, init_bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
-    peaks = [r.get("peaks_hz", np.empty(0)) for r in outcomes if not r["error"]]
+    peaks = [np.empty(0)] * n_modes  # each mode's |S| peaks [Hz] (none for a failed one)
+    for r in outcomes:
+        if not r["error"]:
+            peaks[r["mode"]] = r.get("peaks_hz", np.empty(0))
     fine, fine0 = fine_residual(plant, (bank, init_bank), freqs, psd2, noise2, fs, peaks)
     worse = designed & ((var > var0 * (1 + _WORSE_TOL)) | (fine > fine0 * (1 + _WORSE_TOL)))
     if worse.any():

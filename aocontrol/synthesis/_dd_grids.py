@@ -104,50 +104,126 @@ def fine_residual(
 
     The reported residual is the trapezoid on the user's grid; this check integrates the exact
     ``|S|^2`` and ``|T|^2`` on 20,001 linear and 2,001 log-spaced points over the input range,
-    the input points and a ladder of points around every ``|S|`` peak (``peaks``, Hz), with
-    the PSDs linear between input points (the model the trapezoid rule assumes): a resonance
-    of ``|S|`` between input points is seen.
+    the input points and, for each mode, a ladder of points around every one of its ``|S|``
+    peaks (``peaks[i]``, Hz, mode ``i``), with the PSDs linear between input points (the
+    model the trapezoid rule assumes): a resonance of ``|S|`` between input points is seen.
+
+    The common points are evaluated for every mode at once; each mode's ladder refines the
+    trapezoid on the intervals it falls in (``_refine``), which is the trapezoid on the
+    common points and that ladder. (It was the union of every mode's ladders for every mode:
+    ~32,000 more points for every mode of a 540-mode turbulence bank, 2.4 times the work.)
 
     Returns
     -------
     tuple of numpy.ndarray, each of shape (n_modes,)
         One residual variance per mode for each bank [units^2].
     """
-    from aocontrol.plant import frequency_response
-
     lo, hi = freqs[0], freqs[-1]
     pos = freqs[freqs > 0]
     parts = [freqs, np.linspace(lo, hi, _FINE_LINEAR)]
     if pos.size:
         parts.append(np.geomspace(pos[0], hi, _FINE_LOG))
-    if peaks:
-        p = np.concatenate([np.ravel(x) for x in peaks] + [np.empty(0)])
-        p = np.unique(p[(p > lo) & (p < hi)])
-        if p.size:
-            d = _PEAK_OFFSETS * fs / 2
-            parts.append((p[:, None] + np.concatenate([-d, d])[None, :]).ravel())
     f = np.unique(np.clip(np.concatenate(parts), lo, hi))
-    j = np.clip(np.searchsorted(freqs, f, side="right") - 1, 0, freqs.size - 2)
-    t = np.clip((f - freqs[j]) / (freqs[j + 1] - freqs[j]), 0.0, 1.0)
-    # |S|^2 psd + |T|^2 noise = (|A|^2 psd + |G B|^2 noise) / |A + G B|^2 for K = B / A (what
-    # aocontrol.analysis.residual_psd gives, A = 0 included: the noise PSD), evaluated from
-    # the coefficients: the plant's response and the powers of z^-1 once for every bank.
-    g = frequency_response(plant, f, fs)
     n_pow = max(max(bank.b.shape[1], bank.a.shape[1]) for bank in banks)
-    zi = np.exp(-2j * np.pi * f / fs)
-    powers = np.ones((n_pow, f.size), complex)
-    for k in range(1, n_pow):
-        powers[k] = powers[k - 1] * zi
+    ev = _Integrand(plant, banks, freqs, psd, noise, fs, n_pow)
     out = [np.empty(psd.shape[0]) for _ in banks]
     for s in range(0, psd.shape[0], _FINE_BLOCK):
-        rows = slice(s, s + _FINE_BLOCK)
-        pf = psd[rows, j] * (1 - t) + psd[rows, j + 1] * t
-        nf = noise[rows, j] * (1 - t) + noise[rows, j + 1] * t
-        for k, bank in enumerate(banks):
-            A = bank.a[rows] @ powers[: bank.a.shape[1]]
-            GB = (bank.b[rows] @ powers[: bank.b.shape[1]]) * g
+        rows = np.arange(s, min(s + _FINE_BLOCK, psd.shape[0]))
+        for k, r in enumerate(ev(f, rows)):
+            out[k][rows] = np.trapezoid(r, f, axis=-1)
+    if peaks is not None:
+        for k, delta in enumerate(_refine(ev, f, peaks, fs)):
+            out[k] += delta
+    return tuple(out)
+
+
+class _Integrand:
+    """``|S|^2 psd + |T|^2 noise`` of each bank's modes at given frequencies."""
+
+    def __init__(self, plant, banks, freqs, psd, noise, fs, n_pow) -> None:
+        self.plant, self.banks, self.freqs = plant, banks, freqs
+        self.psd, self.noise, self.fs, self.n_pow = psd, noise, fs, n_pow
+
+    def __call__(self, f: np.ndarray, rows: np.ndarray) -> list:
+        """Values at ``f`` (shape (m,), the same for every row, or (rows.size, m), one row of
+        points per mode) for the modes ``rows``: one (rows.size, m) array per bank."""
+        from aocontrol.plant import frequency_response
+
+        freqs = self.freqs
+        j = np.clip(np.searchsorted(freqs, f, side="right") - 1, 0, freqs.size - 2)
+        t = np.clip((f - freqs[j]) / (freqs[j + 1] - freqs[j]), 0.0, 1.0)
+        # |S|^2 psd + |T|^2 noise = (|A|^2 psd + |G B|^2 noise) / |A + G B|^2 for K = B / A
+        # (what aocontrol.analysis.residual_psd gives, A = 0 included: the noise PSD),
+        # evaluated from the coefficients: the plant's response and the powers of z^-1 once
+        # for every bank.
+        g = frequency_response(self.plant, f.ravel(), self.fs).reshape(f.shape)
+        zi = np.exp(-2j * np.pi * f / self.fs)
+        powers = np.ones((self.n_pow,) + f.shape, complex)
+        for k in range(1, self.n_pow):
+            powers[k] = powers[k - 1] * zi
+        psd, noise = self.psd[rows], self.noise[rows]
+        if f.ndim == 2:
+            r = np.arange(rows.size)[:, None]
+            pf = psd[r, j] * (1 - t) + psd[r, j + 1] * t
+            nf = noise[r, j] * (1 - t) + noise[r, j + 1] * t
+        else:
+            pf = psd[:, j] * (1 - t) + psd[:, j + 1] * t
+            nf = noise[:, j] * (1 - t) + noise[:, j + 1] * t
+        out = []
+        for bank in self.banks:
+            if f.ndim == 2:
+                A = np.einsum("nk,knm->nm", bank.a[rows], powers[: bank.a.shape[1]])
+                GB = np.einsum("nk,knm->nm", bank.b[rows], powers[: bank.b.shape[1]]) * g
+            else:
+                A = bank.a[rows] @ powers[: bank.a.shape[1]]
+                GB = (bank.b[rows] @ powers[: bank.b.shape[1]]) * g
             a2, gb2 = A.real**2 + A.imag**2, GB.real**2 + GB.imag**2
             P = A + GB
-            r = (a2 * pf + gb2 * nf) / (P.real**2 + P.imag**2)
-            out[k][rows] = np.trapezoid(r, f, axis=-1)
-    return tuple(out)
+            out.append((a2 * pf + gb2 * nf) / (P.real**2 + P.imag**2))
+        return out
+
+
+def _refine(ev: _Integrand, f: np.ndarray, peaks: list, fs: float) -> list:
+    """Change of each mode's trapezoid on the sorted grid ``f`` when its ladder of points
+    around its peaks (``peaks[i]``, Hz) joins the grid, one array (n_modes,) per bank.
+
+    The intervals of ``f`` holding a new point are integrated on their end points and the new
+    points instead; every mode's points are evaluated at once (rows padded with their last
+    point: zero-width segments).
+    """
+    lo, hi = f[0], f[-1]
+    d = np.concatenate([-_PEAK_OFFSETS[::-1], _PEAK_OFFSETS[1:]]) * fs / 2
+    n_modes = len(peaks)
+    modes, pts_rows, kept = [], [], []
+    for i, p in enumerate(peaks):
+        p = np.ravel(p)
+        p = p[(p > lo) & (p < hi)]
+        if not p.size:
+            continue
+        new = np.unique(np.clip((p[:, None] + d[None, :]).ravel(), lo, hi))
+        at = np.searchsorted(f, new)
+        new = new[f[np.minimum(at, f.size - 1)] != new]  # not already on the grid
+        if not new.size:
+            continue
+        k = np.unique(np.clip(np.searchsorted(f, new) - 1, 0, f.size - 2))  # refined intervals
+        pts = np.unique(np.concatenate([f[k], f[k + 1], new]))
+        mid = np.clip(np.searchsorted(f, (pts[:-1] + pts[1:]) / 2) - 1, 0, f.size - 2)
+        inside = k[np.minimum(np.searchsorted(k, mid), k.size - 1)] == mid
+        # Where the refined intervals' end points are among pts: their old trapezoid.
+        ends = np.searchsorted(pts, np.stack([f[k], f[k + 1]]))
+        modes.append(i)
+        pts_rows.append(pts)
+        kept.append((inside, ends, f[k + 1] - f[k]))
+    out = [np.zeros(n_modes) for _ in ev.banks]
+    if not modes:
+        return out
+    m = max(x.size for x in pts_rows)
+    grid = np.array([np.pad(x, (0, m - x.size), mode="edge") for x in pts_rows])
+    for b, vals in enumerate(ev(grid, np.array(modes))):
+        for row, (i, (inside, ends, width)) in enumerate(zip(modes, kept, strict=True)):
+            v = vals[row]
+            x = grid[row, : inside.size + 1]
+            seg = (v[:-1][: inside.size] + v[1 : inside.size + 1]) / 2 * np.diff(x)
+            before = (v[ends[0]] + v[ends[1]]) / 2 * width
+            out[b][i] = float(np.sum(seg[inside]) - np.sum(before))
+    return out
