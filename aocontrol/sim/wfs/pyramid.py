@@ -66,6 +66,7 @@ from aocontrol.sim.wfs._common import bin_matrix, blas_threads, check_opd, opd_t
 from aocontrol.sim.wfs._pyramid_lines import (
     apply_runs,
     gemm_acc,
+    image_pairs,
     line_operator,
     parity_classes,
 )
@@ -213,39 +214,95 @@ class PyramidWFS:
         return out
 
     @cached_property
+    def _pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Modulation points by mirror pairs: ``(k, n_points - k)`` for ``k <= n_points / 2``
+        (the same x tilt, opposite y tilts), and whether a pair is one point (``k = 0`` and
+        ``n_points / 2``, on the x axis)."""
+        n = self.n_points
+        k = np.arange(n // 2 + 1)
+        return k, k == (n - k) % n
+
+    @cached_property
     def _plan(self) -> dict:
-        """Precomputed tilts, line operator and binning (module docstring)."""
+        """Precomputed tilts, line operators, pair kernels and binning (module docstring)."""
         n, n_pix = self.n_fft, self.pupil.n_pix
         q = self.samples_per_lambda_over_d
         x = np.arange(n_pix)
-        # beam tilt of each modulation point (a q focal samples) and half-sample centring
-        ax = np.round(self.modulation_offsets[:, 0] * q, 12)
-        ay = self.modulation_offsets[:, 1] * q
-        ux, x_index = np.unique(ax, return_inverse=True)
-        tx = np.exp(2j * np.pi * (ux[:, None] - 0.5) * x[None, :] / n)
-        ty = np.exp(2j * np.pi * (ay[:, None] - 0.5) * x[None, :] / n)
+        k, single = self._pairs
+        # beam tilt of each pair [focal samples]: (a, +-b); b = 0 exactly on the x axis
+        a = self.modulation_offsets[k, 0] * q
+        b = np.where(single, 0.0, self.modulation_offsets[k, 1] * q)
+        tx = np.exp(2j * np.pi * (a[:, None] - 0.5) * x[None, :] / n)
         # one face of the pyramid per half line; the apex between samples -1 and 0; the ramp
         # places the pupil (transformed from the array corner) at r0 in the padded array
         u = np.fft.fftfreq(n) * n
         r0 = (n - n_pix) // 2
         m1 = np.exp(0.5j * np.pi * np.abs(u + 0.5) - 2j * np.pi * r0 * u / n)
         lines = np.flatnonzero(np.any(self._binning_full != 0, axis=0))
-        classes = parity_classes(line_operator(n, n_pix, m1, lines))
-        order = np.concatenate([c.lines for c in classes])  # detector lines, class by class
-        c = self._complex
+        op = line_operator(n, n_pix, m1, lines)
+        classes = parity_classes(op)
+        pairs = image_pairs(op, lines, n)
+        order = np.concatenate([c.lines for c in classes])  # x lines, class by class
+        rows = np.concatenate([np.r_[p.first, p.second] for p in pairs])  # y lines
+        c, r = self._complex, self._real
+        n_p = [len(range(p, n_pix, 2)) for p in (0, 1)]
+        n_m = max(n_p)
+        # (cos, sin) of the y tilt e^{2 i pi b y / n} of each pair on the samples of parity p
+        cs = np.zeros((k.size, 2, 2, n_m))
+        for p in (0, 1):
+            beta = 2 * np.pi * b[:, None] * np.arange(p, n_pix, 2)[None, :] / n
+            cs[:, p, 0, : n_p[p]] = np.cos(beta)
+            cs[:, p, 1, : n_p[p]] = np.sin(beta)
+        kern, coef = [], []
+        for qy, pr in enumerate(pairs):
+            cd, sd = cs[:, 1 - qy, 0, : n_p[1 - qy]], cs[:, 1 - qy, 1, : n_p[1 - qy]]
+            uu, vv = pr.u[None], pr.v[None]
+            blocks = np.zeros((k.size, 4, pr.first.size, n_m + 2))
+            # the four real blocks A, B, C, -D (module docstring) on the samples of parity 1-q
+            blocks[..., : n_p[1 - qy]] = np.stack(
+                [
+                    uu * cd[:, None] + vv * sd[:, None],
+                    uu * sd[:, None] - vv * cd[:, None],
+                    uu * cd[:, None] - vv * sd[:, None],
+                    -(uu * sd[:, None] + vv * cd[:, None]),
+                ],
+                axis=1,
+            )
+            # the constant c0 sum_y (c + i s) H: rows n_m (c0 sigma_c) and n_m + 1 (c0 sigma_s)
+            blocks[:, :, :, n_m] = np.array([1.0, 0.0, 1.0, 0.0])[None, :, None]
+            blocks[:, :, :, n_m + 1] = np.array([0.0, 1.0, 0.0, -1.0])[None, :, None]
+            kern.append(np.ascontiguousarray(blocks.reshape(k.size, -1, n_m + 2), dtype=r))
+            # direct images: delta (c + i s) at the source sample, split as the four blocks
+            ys = qy + 2 * (pr.src + np.arange(pr.first.size))
+            bs = 2 * np.pi * b[:, None] * ys[None, :] / n
+            cc, ss = np.cos(bs), np.sin(bs)
+            da, db = pr.delta.real[None], -pr.delta.imag[None]
+            w = np.stack(
+                [da * cc + db * ss, da * ss - db * cc, da * cc - db * ss, -(da * ss + db * cc)],
+                axis=1,
+            )
+            w[single, 2:] = 0.0  # one point: blocks C, -D unused (zero)
+            coef.append(np.ascontiguousarray(w[..., None], dtype=r))
         plan = {
-            "amp": (self.pupil.mask / math.sqrt(self.pupil.n_valid * self.n_points)).astype(
-                self._real
-            ),
-            "x_index": x_index,
+            "amp": (
+                self.pupil.mask
+                * np.exp(-1j * np.pi * x / n)[:, None]  # half-sample centring along y
+                / math.sqrt(self.pupil.n_valid * self.n_points)
+            ).astype(c),
             "classes": classes,
-            # tilts split by the parity of the pupil sample: tx (n_x, n_p), ty (n_pts, n_p, 1)
+            "pairs": pairs,
+            "single": single,
+            "n_m": n_m,
+            # tilts split by the parity of the pupil sample: tx (n_x, n_p)
             "tx": [np.ascontiguousarray(tx[:, p::2], dtype=c) for p in (0, 1)],
-            "ty": [np.ascontiguousarray(ty[:, p::2, None], dtype=c) for p in (0, 1)],
-            "dense_t": [np.ascontiguousarray(k.dense.T, dtype=c) for k in classes],
-            "dense": [np.ascontiguousarray(k.dense, dtype=c) for k in classes],
+            "dense_t": [np.ascontiguousarray(k_.dense.T, dtype=c) for k_ in classes],
+            "cs": np.ascontiguousarray(cs, dtype=r),
+            "c0": np.array([pairs[1].c0, pairs[0].c0], dtype=c),  # by the parity of H
+            "kern": kern,
+            "coef": coef,
             # sparse, not BLAS: small GEMMs stall in multi-threaded OpenBLAS on a busy machine
-            "bin": scipy.sparse.csr_matrix(self._binning_full[:, lines[order]]),
+            "bin_rows": scipy.sparse.csr_matrix(self._binning_full[:, lines[rows]]),
+            "bin_cols": scipy.sparse.csr_matrix(self._binning_full[:, lines[order]]),
         }
         for v in plan.values():
             if isinstance(v, np.ndarray):
@@ -296,30 +353,31 @@ class PyramidWFS:
         """Work buffers kept across frames (a few MB, allocated once; lists over the parity
         ``p`` of the pupil samples or the class ``q`` of the detector lines).
 
-        ``a[p]`` ``(n_pix, n_x, n_p)``: the field times each x tilt on the samples ``x = p,
-        p+2, ...``; ``g`` ``(n_pix, n_x, n_lines)`` (lines class by class) and ``gq[q]``
-        ``(n_pix, n_x, n_q)``: step x; ``b[p]`` (flat, ``(n_p, m, n_lines)`` for a chunk of
-        ``m <= step`` points): the y tilts on the rows ``y = p, p+2, ...``; ``out[q]`` (flat,
-        ``(n_q, m, n_lines)``): step y; ``acc[q]`` ``(n_q, 2 n_lines)``: intensity
-        accumulators (real and imaginary parts interleaved). They make an instance not
-        thread-safe (use one instance per thread) and are not pickled.
+        ``a[p]`` ``(n_x, 2, n_m + 2, n_p)``: the field times each pair's x tilt on the columns
+        ``x = p, p+2, ...``, rows by parity (two spare rows, zero); ``gq[q]`` ``(n_x 2 (n_m +
+        2), n_q)``: step x (complex); ``g`` ``(n_x, 2, n_m + 2, 2 n_lines)``: the same, real
+        parts then imaginary parts (real arrays), and the two constant rows; ``o[q]`` (flat,
+        ``(m, 4, n_l, 2 n_lines)`` for a chunk of ``m <= step`` pairs, real and imaginary
+        parts): step y, the blocks A, B, C, -D; ``s[q]`` ``(n_l, 2 n_lines)`` and ``x[q]`` ``(n_l,
+        n_lines)``: intensity accumulators. They make an instance not thread-safe (use one
+        instance per thread) and are not pickled.
         """
         plan = self._plan
-        n_pix, c = self.pupil.n_pix, self._complex
-        classes = plan["classes"]
-        n_x = plan["tx"][0].shape[0]
-        n_q = [k.lines.size for k in classes]
+        n_pix, c, r = self.pupil.n_pix, self._complex, self._real
+        n_x, n_m = plan["tx"][0].shape[0], plan["n_m"]
+        n_q = [k.lines.size for k in plan["classes"]]
+        n_l = [pr.first.size for pr in plan["pairs"]]
         n_p = [len(range(p, n_pix, 2)) for p in (0, 1)]
         nl = sum(n_q)
-        per_point = (n_pix + nl) * nl * np.dtype(c).itemsize
-        step = max(1, min(self.n_points, _CHUNK_BYTES // per_point))
+        per_pair = 4 * sum(n_l) * nl * np.dtype(c).itemsize
+        step = max(1, min(n_x, _CHUNK_BYTES // per_pair))
         return {
-            "a": [np.zeros((n_pix, n_x, n_p[p]), dtype=c) for p in (0, 1)],
-            "gq": [np.zeros((n_pix, n_x, n_q[q]), dtype=c) for q in (0, 1)],
-            "g": [np.zeros((n_pix, n_x, nl), dtype=c)],
-            "b": [np.zeros(n_p[p] * step * nl, dtype=c) for p in (0, 1)],
-            "out": [np.zeros(n_q[q] * step * nl, dtype=c) for q in (0, 1)],
-            "acc": [np.zeros((n_q[q], 2 * nl), dtype=self._real) for q in (0, 1)],
+            "a": [np.zeros((n_x, 2, n_m + 2, n_p[p]), dtype=c) for p in (0, 1)],
+            "gq": [np.zeros((n_x * 2 * (n_m + 2), n_q[q]), dtype=c) for q in (0, 1)],
+            "g": [np.zeros((n_x, 2, n_m + 2, 2 * nl), dtype=r)],
+            "o": [np.zeros(step * 4 * n_l[q] * 2 * nl, dtype=r) for q in (0, 1)],
+            "s": [np.zeros((n_l[q], 2 * nl), dtype=r) for q in (0, 1)],
+            "x": [np.zeros((n_l[q], nl), dtype=r) for q in (0, 1)],
         }
 
     def __getstate__(self) -> dict:
@@ -331,67 +389,102 @@ class PyramidWFS:
         self.__dict__.update(state)
 
     def _fields(self, field: np.ndarray):
-        """Detector-plane fields per chunk of modulation points.
+        """Detector-plane fields per chunk of modulation pairs.
 
-        Yields tuples ``(f0, f1)``, ``f_q`` of shape ``(n_q, k, n_lines)`` (complex): the
-        detector lines of class ``q`` (rows) by all detector lines (columns, class by class),
-        for ``k`` points, from a pupil field ``(n_pix, n_pix)`` (amplitude included). Step x
-        (``L`` along x, per distinct x tilt) is shared by the points with the same x offset;
-        step y (``L`` along y) is one product per class for a chunk of points (module
-        docstring). The result is the discrete beam-tilt propagation (tilt, 2-D FFT, mask,
-        inverse 2-D FFT per point) to rounding.
+        Yields tuples ``(o0, o1)``, ``o_q`` of shape ``(m, 4, n_l, 2 n_lines)`` (real parts,
+        then imaginary parts): for
+        ``m`` pairs, the blocks ``A, B, C, -D`` of the class-``q`` lines (module docstring:
+        the first image sees ``A + iB`` and ``C - iD``, the second ``A - iB`` and ``C + iD``)
+        by all detector columns (class by class), from a pupil field ``(n_pix, n_pix)``
+        (amplitude and half-sample centring included). Step x (``L`` along x) is one complex
+        product per class for all pairs; step y is one real product per pair and class (the
+        pair's y tilt folded into the kernel), after the direct images are written.
 
         The arrays are the work buffers (:attr:`_work`): valid until the generator advances
         (copy them to keep them).
         """
         plan, work = self._plan, self._work
-        classes, dense, dense_t = plan["classes"], plan["dense"], plan["dense_t"]
-        x_index, ty = plan["x_index"], plan["ty"]
-        a, gq, g, b, out = work["a"], work["gq"], work["g"][0], work["b"], work["out"]
-        n_pts, nl = self.n_points, g.shape[-1]
-        n_p = [a[p].shape[-1] for p in (0, 1)]
-        n_q = [k.lines.size for k in classes]
-        step = b[0].size // (n_p[0] * nl)
-        n0 = n_q[0]
-        # step x: g[y, t, l] = sum_x field[y, x] tx[t, x] L[l, x]
-        for p in (0, 1):
-            np.multiply(field[:, None, p::2], plan["tx"][p][None], out=a[p])
+        classes, dense_t = plan["classes"], plan["dense_t"]
+        a, gq, g, o = work["a"], work["gq"], work["g"][0], work["o"]
+        n_x, n_m, r = g.shape[0], plan["n_m"], self._real
+        n_l = [pr.first.size for pr in plan["pairs"]]
+        nl = g.shape[-1] // 2
+        n0 = classes[0].lines.size
+        step = o[0].size // (8 * n_l[0] * nl)
+        # step x: g[t, p, y', l] = sum_x field[p + 2 y', x] tx[t, x] L[l, x]
+        for px in (0, 1):
+            for py in (0, 1):
+                f = field[py::2, px::2]
+                np.multiply(f[None], plan["tx"][px][:, None, :], out=a[px][:, py, : f.shape[0]])
+        g2 = g.reshape(-1, 2 * nl)
         for q in (0, 1):
-            gq2 = gq[q].reshape(-1, gq[q].shape[-1])
-            apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq2.T)
-            gemm_acc(a[1 - q].reshape(-1, a[1 - q].shape[-1]), dense_t[q], gq2)
-        g[..., :n0] = gq[0]
-        g[..., n0:] = gq[1]
-        # step y, per chunk of points: out[l, k, c] = sum_y L[l, y] ty[k, y] g[y, x(k), c]
-        for k0 in range(0, n_pts, step):
-            k1 = min(k0 + step, n_pts)
-            m = k1 - k0
-            # contiguous (rows, m, n_lines) views of the flat buffers, whatever m
-            bm = [b[p][: n_p[p] * m * nl].reshape(n_p[p], m, nl) for p in (0, 1)]
-            om = [out[q][: n_q[q] * m * nl].reshape(n_q[q], m, nl) for q in (0, 1)]
-            for p in (0, 1):
-                for j, k in enumerate(range(k0, k1)):  # per point: no fancy-index temporary
-                    np.multiply(g[p::2, x_index[k]], ty[p][k], out=bm[p][:, j])
+            apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq[q].T)
+            gemm_acc(a[1 - q].reshape(-1, a[1 - q].shape[-1]), dense_t[q], gq[q])
+        for q, cols in ((0, slice(0, n0)), (1, slice(n0, nl))):
+            g2[:, cols] = gq[q].real
+            g2[:, nl:][:, cols] = gq[q].imag
+        # the constant rows: c0 sum_y (cos, sin)(beta_y) g[t, p, y], c0 = i y0 imaginary
+        sig = np.matmul(plan["cs"], g[:, :, :n_m])  # (n_x, 2, 2, 2 nl)
+        y0 = plan["c0"].imag[None, :, None, None]
+        np.multiply(sig[..., nl:], -y0, out=g[:, :, n_m:, :nl])
+        np.multiply(sig[..., :nl], y0, out=g[:, :, n_m:, nl:])
+        gv = g
+        # step y, per chunk of pairs
+        for j0 in range(0, n_x, step):
+            j1 = min(j0 + step, n_x)
+            m = j1 - j0
+            om = [o[q][: m * 8 * n_l[q] * nl].reshape(m, 4, n_l[q], 2 * nl) for q in (0, 1)]
             for q in (0, 1):
-                apply_runs(classes[q].runs, bm[q], om[q])
-                gemm_acc(dense[q], bm[1 - q].reshape(n_p[1 - q], -1), om[q].reshape(n_q[q], -1))
+                pr, kern, coef = plan["pairs"][q], plan["kern"][q], plan["coef"][q]
+                ov = om[q]
+                for i, j in enumerate(range(j0, j1)):
+                    src = gv[j, q, pr.src : pr.src + n_l[q]]
+                    np.multiply(src[None], coef[j], out=ov[i])
+                    rows = 2 * n_l[q] if plan["single"][j] else 4 * n_l[q]
+                    gemm_acc(kern[j][:rows], gv[j, 1 - q], ov[i].reshape(4 * n_l[q], -1)[:rows])
             yield om[0], om[1]
 
     @staticmethod
-    def _accumulate(acc: list[np.ndarray], f: tuple, h: tuple, scale: float = 1.0) -> None:
-        """``acc[q] += scale * sum_k Re(f_q * conj(h_q))`` per real/imaginary part (the
-        interleaved real view; ``f = h`` gives the intensity)."""
+    def _accumulate(acc: dict, f: tuple, h: tuple, scale: float = 1.0) -> None:
+        """``acc`` += ``scale`` times the bilinear intensity terms of the fields ``f`` and ``h``
+        (:meth:`_fields`; ``f = h`` gives the intensity): ``s[q]``, the sum of ``Re(conj(f)
+        h)`` per real/imaginary part over the four blocks, and ``x[q]``, the cross terms
+        ``Im(conj(S_f) F_h) - Im(conj(F_f) S_h)`` of the blocks ``F = A, C``, ``S = B, -D``
+        (the first image is ``s + x``, the second ``s - x``)."""
         for q in (0, 1):
-            fv = f[q].view(acc[q].dtype)
-            hv = h[q].view(acc[q].dtype)
-            term = np.einsum("lkc,lkc->lc", fv, hv)
-            acc[q] += term if scale == 1.0 else scale * term
+            fv, hv = f[q], h[q]
+            m, nl = fv.shape[0], fv.shape[-1] // 2
+            s_term = np.einsum("jhlc,jhlc->lc", fv, hv)
+            f5 = fv.reshape(m, 2, 2, *fv.shape[2:])
+            h5 = hv.reshape(m, 2, 2, *hv.shape[2:])
+            ff, sf = f5[:, :, 0], f5[:, :, 1]
+            fh, sh = h5[:, :, 0], h5[:, :, 1]
 
-    def _bin(self, acc: list[np.ndarray]) -> np.ndarray:
-        """Class accumulators (:meth:`_accumulate`) -> detector frame ``(2n_sub, 2n_sub)``."""
-        img = np.concatenate([a[:, 0::2] + a[:, 1::2] for a in acc]).astype(np.float64)
-        b = self._plan["bin"]
-        return (b @ (b @ img).T).T
+            def cross(sa, fb):  # sum Im(conj(sa) fb) over the pairs and halves
+                return np.einsum("jhlc,jhlc->lc", sa[..., :nl], fb[..., nl:]) - np.einsum(
+                    "jhlc,jhlc->lc", sa[..., nl:], fb[..., :nl]
+                )
+
+            x_term = 2.0 * cross(sf, ff) if f is h else cross(sf, fh) - cross(sh, ff)
+            if scale != 1.0:
+                s_term *= scale
+                x_term *= scale
+            acc["s"][q] += s_term
+            acc["x"][q] += x_term
+
+    def _bin(self, acc: dict) -> np.ndarray:
+        """Accumulators (:meth:`_accumulate`) -> detector frame ``(2n_sub, 2n_sub)``."""
+        parts = []
+        for q in (0, 1):
+            nl = acc["x"][q].shape[-1]
+            s = acc["s"][q][:, :nl] + acc["s"][q][:, nl:]
+            parts += [s + acc["x"][q], s - acc["x"][q]]
+        img = np.concatenate(parts).astype(np.float64)
+        rows = self._plan["bin_rows"] @ img
+        return (self._plan["bin_cols"] @ rows.T).T
+
+    def _new_acc(self) -> dict:
+        return {k: [np.zeros_like(a) for a in self._work[k]] for k in ("s", "x")}
 
     def _field(self, phase: np.ndarray) -> np.ndarray:
         return self._plan["amp"] * np.exp(1j * phase.astype(self._real))
@@ -399,10 +492,10 @@ class PyramidWFS:
     def _frames(self, phase: np.ndarray) -> np.ndarray:
         """Detector frames ``(m, 2 n_sub, 2 n_sub)`` of phase maps ``(m, n_pix, n_pix)`` [rad]."""
         out = np.empty((phase.shape[0], *self.frame_shape))
-        acc = self._work["acc"]
+        acc = {k: self._work[k] for k in ("s", "x")}
         with self._blas_threads():
             for i in range(phase.shape[0]):
-                for a in acc:
+                for a in acc["s"] + acc["x"]:
                     a.fill(0.0)
                 for f in self._fields(self._field(phase[i])):
                     self._accumulate(acc, f, f)
@@ -445,7 +538,7 @@ class PyramidWFS:
         with self._blas_threads():
             base = [tuple(f.copy() for f in fs) for fs in self._fields(field)]  # buffers reused
             for i in range(delta.shape[0]):
-                acc = [np.zeros_like(a) for a in self._work["acc"]]
+                acc = self._new_acc()
                 dfield = 1j * dphase[i].astype(self._real) * field
                 for f0, f1 in zip(base, self._fields(dfield), strict=True):
                     self._accumulate(acc, f0, f1, 2.0)
