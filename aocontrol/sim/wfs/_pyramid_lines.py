@@ -139,8 +139,8 @@ class ImagePairs:
 
     ``first``, ``second``: positions in the line list ``(n_l,)``; ``u``, ``v``: ``(n_l,
     n_{1-q})`` real; ``c0``: complex; ``src``: index of the first line's direct-image sample
-    among the samples of parity ``q`` (consecutive lines read consecutive samples); ``delta``
-    ``(n_l,)`` complex.
+    among the samples of parity ``q`` (consecutive lines read consecutive samples); ``delta``:
+    complex, the same for every line (one face's direct image: one value).
     """
 
     first: np.ndarray
@@ -149,7 +149,7 @@ class ImagePairs:
     v: np.ndarray
     c0: complex
     src: int
-    delta: np.ndarray
+    delta: complex
 
 
 def image_pairs(op: np.ndarray, lines: np.ndarray, n_fft: int) -> tuple[ImagePairs, ImagePairs]:
@@ -186,13 +186,14 @@ def image_pairs(op: np.ndarray, lines: np.ndarray, n_fft: int) -> tuple[ImagePai
             or np.count_nonzero(np.abs(l1) > tol) > first.size
             or np.any(np.abs(delta) <= tol)
             or np.any(src - np.arange(first.size) != src[0])
+            or np.abs(delta - delta[0]).max() > tol
         )
         if bad:
             raise RuntimeError(
                 "the pyramid line operator lacks its conjugate structure between the two "
                 "pupil images (the mask must be two opposite linear phases, n_fft >= 2 n_pix)"
             )
-        out.append(ImagePairs(first, second, k.real.copy(), -k.imag, c0, int(src[0]), delta))
+        out.append(ImagePairs(first, second, k.real.copy(), -k.imag, c0, int(src[0]), complex(delta[0])))
     if out[0].first.size + out[1].first.size != first_all.size:
         raise RuntimeError("the pyramid line operator lacks its parity structure")
     return out[0], out[1]

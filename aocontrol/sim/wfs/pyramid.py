@@ -214,13 +214,14 @@ class PyramidWFS:
         return out
 
     @cached_property
-    def _pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Modulation points by mirror pairs: ``(k, n_points - k)`` for ``k <= n_points / 2``
-        (the same x tilt, opposite y tilts), and whether a pair is one point (``k = 0`` and
-        ``n_points / 2``, on the x axis)."""
+    def _pairs(self) -> tuple[np.ndarray, int]:
+        """Modulation points by mirror pairs ``(k, n_points - k)`` (the same x tilt, opposite y
+        tilts): the ``k`` of the pairs, the ``n_ns`` two-point pairs first, then the points on
+        the x axis (``k = 0`` and ``n_points / 2``), each its own mirror."""
         n = self.n_points
-        k = np.arange(n // 2 + 1)
-        return k, k == (n - k) % n
+        two = [k for k in range(1, n) if k < n - k]
+        one = [k for k in range(n // 2 + 1) if k == (n - k) % n]
+        return np.array(two + one, dtype=int), len(two)
 
     @cached_property
     def _plan(self) -> dict:
@@ -228,10 +229,10 @@ class PyramidWFS:
         n, n_pix = self.n_fft, self.pupil.n_pix
         q = self.samples_per_lambda_over_d
         x = np.arange(n_pix)
-        k, single = self._pairs
-        # beam tilt of each pair [focal samples]: (a, +-b); b = 0 exactly on the x axis
+        k, n_ns = self._pairs
+        # beam tilt of each pair [focal samples]: (a, +-b)
         a = self.modulation_offsets[k, 0] * q
-        b = np.where(single, 0.0, self.modulation_offsets[k, 1] * q)
+        b = self.modulation_offsets[k[:n_ns], 1] * q
         tx = np.exp(2j * np.pi * (a[:, None] - 0.5) * x[None, :] / n)
         # one face of the pyramid per half line; the apex between samples -1 and 0; the ramp
         # places the pupil (transformed from the array corner) at r0 in the padded array
@@ -247,42 +248,24 @@ class PyramidWFS:
         c, r = self._complex, self._real
         n_p = [len(range(p, n_pix, 2)) for p in (0, 1)]
         n_m = max(n_p)
-        # (cos, sin) of the y tilt e^{2 i pi b y / n} of each pair on the samples of parity p
-        cs = np.zeros((k.size, 2, 2, n_m))
+        # column groups: (cos, sin) of the y tilt of each two-point pair, then the one-point
+        # pairs (b = 0) weighted 1/sqrt(2): one formula for both (module docstring)
+        n_one = k.size - n_ns
+        w = np.zeros((2, n_m, n_ns, 2))
         for p in (0, 1):
-            beta = 2 * np.pi * b[:, None] * np.arange(p, n_pix, 2)[None, :] / n
-            cs[:, p, 0, : n_p[p]] = np.cos(beta)
-            cs[:, p, 1, : n_p[p]] = np.sin(beta)
-        kern, coef = [], []
+            beta = 2 * np.pi * np.arange(p, n_pix, 2)[:, None] * b[None, :] / n
+            w[p, : n_p[p], :, 0] = np.cos(beta)
+            w[p, : n_p[p], :, 1] = np.sin(beta)
+        w1 = np.zeros((2, n_m, n_one))
+        for p in (0, 1):
+            w1[p, : n_p[p]] = math.sqrt(0.5)
+        kern = []
         for qy, pr in enumerate(pairs):
-            cd, sd = cs[:, 1 - qy, 0, : n_p[1 - qy]], cs[:, 1 - qy, 1, : n_p[1 - qy]]
-            uu, vv = pr.u[None], pr.v[None]
-            blocks = np.zeros((k.size, 4, pr.first.size, n_m + 2))
-            # the four real blocks A, B, C, -D (module docstring) on the samples of parity 1-q
-            blocks[..., : n_p[1 - qy]] = np.stack(
-                [
-                    uu * cd[:, None] + vv * sd[:, None],
-                    uu * sd[:, None] - vv * cd[:, None],
-                    uu * cd[:, None] - vv * sd[:, None],
-                    -(uu * sd[:, None] + vv * cd[:, None]),
-                ],
-                axis=1,
-            )
-            # the constant c0 sum_y (c + i s) H: rows n_m (c0 sigma_c) and n_m + 1 (c0 sigma_s)
-            blocks[:, :, :, n_m] = np.array([1.0, 0.0, 1.0, 0.0])[None, :, None]
-            blocks[:, :, :, n_m + 1] = np.array([0.0, 1.0, 0.0, -1.0])[None, :, None]
-            kern.append(np.ascontiguousarray(blocks.reshape(k.size, -1, n_m + 2), dtype=r))
-            # direct images: delta (c + i s) at the source sample, split as the four blocks
-            ys = qy + 2 * (pr.src + np.arange(pr.first.size))
-            bs = 2 * np.pi * b[:, None] * ys[None, :] / n
-            cc, ss = np.cos(bs), np.sin(bs)
-            da, db = pr.delta.real[None], -pr.delta.imag[None]
-            w = np.stack(
-                [da * cc + db * ss, da * ss - db * cc, da * cc - db * ss, -(da * ss + db * cc)],
-                axis=1,
-            )
-            w[single, 2:] = 0.0  # one point: blocks C, -D unused (zero)
-            coef.append(np.ascontiguousarray(w[..., None], dtype=r))
+            kq = np.zeros((pr.first.size, 2, n_m + 1))  # rows (line, U/V)
+            kq[:, 0, : n_p[1 - qy]] = pr.u
+            kq[:, 1, : n_p[1 - qy]] = pr.v
+            kq[:, 0, n_m] = 1.0  # the constant row c0 sum_y X[y] (U only)
+            kern.append(np.ascontiguousarray(kq.reshape(-1, n_m + 1), dtype=r))
         plan = {
             "amp": (
                 self.pupil.mask
@@ -291,15 +274,19 @@ class PyramidWFS:
             ).astype(c),
             "classes": classes,
             "pairs": pairs,
-            "single": single,
+            "n_ns": n_ns,
             "n_m": n_m,
             # tilts split by the parity of the pupil sample: tx (n_x, n_p)
             "tx": [np.ascontiguousarray(tx[:, p::2], dtype=c) for p in (0, 1)],
             "dense_t": [np.ascontiguousarray(k_.dense.T, dtype=c) for k_ in classes],
-            "cs": np.ascontiguousarray(cs, dtype=r),
-            "c0": np.array([pairs[1].c0, pairs[0].c0], dtype=c),  # by the parity of H
+            "w": np.ascontiguousarray(w[..., None], dtype=r),
+            "w1": np.ascontiguousarray(w1[..., None], dtype=r),
+            # c0 of the class whose dense part reads the samples of parity p
+            "y0": np.array([pairs[1].c0.imag, pairs[0].c0.imag]),
             "kern": kern,
-            "coef": coef,
+            "delta": [
+                np.array([p_.delta.real, -p_.delta.imag], dtype=r)[:, None, None] for p_ in pairs
+            ],
             # sparse, not BLAS: small GEMMs stall in multi-threaded OpenBLAS on a busy machine
             "bin_rows": scipy.sparse.csr_matrix(self._binning_full[:, lines[rows]]),
             "bin_cols": scipy.sparse.csr_matrix(self._binning_full[:, lines[order]]),
@@ -353,29 +340,30 @@ class PyramidWFS:
         """Work buffers kept across frames (a few MB, allocated once; lists over the parity
         ``p`` of the pupil samples or the class ``q`` of the detector lines).
 
-        ``a[p]`` ``(n_x, 2, n_m + 2, n_p)``: the field times each pair's x tilt on the columns
-        ``x = p, p+2, ...``, rows by parity (two spare rows, zero); ``gq[q]`` ``(n_x 2 (n_m +
-        2), n_q)``: step x (complex); ``g`` ``(n_x, 2, n_m + 2, 2 n_lines)``: the same, real
-        parts then imaginary parts (real arrays), and the two constant rows; ``o[q]`` (flat,
-        ``(m, 4, n_l, 2 n_lines)`` for a chunk of ``m <= step`` pairs, real and imaginary
-        parts): step y, the blocks A, B, C, -D; ``s[q]`` ``(n_l, 2 n_lines)`` and ``x[q]`` ``(n_l,
+        ``a[p]`` ``(2, n_m, n_x, n_p)``: the field times each pair's x tilt on the columns ``x
+        = p, p+2, ...``, rows by parity (``n_m`` the larger count; spare rows zero);
+        ``gq[q]`` ``(2 n_m n_x, n_q)``: step x (complex); ``g`` ``(2, n_m, n_x, 2 n_lines)``:
+        the same, real parts then imaginary parts; ``xs[p]`` ``(n_m + 1, n_g, 2 n_lines)``:
+        the rows of parity ``p`` times the cosine and sine of each pair's y tilt, and the
+        constant row; ``o[q]`` ``(n_l, 2, n_g, 2 n_lines)``: step y, the products ``U`` and
+        ``V`` of every column group; ``s[q]`` ``(n_l, 2 n_lines)`` and ``x[q]`` ``(n_l,
         n_lines)``: intensity accumulators. They make an instance not thread-safe (use one
         instance per thread) and are not pickled.
         """
         plan = self._plan
-        n_pix, c, r = self.pupil.n_pix, self._complex, self._real
-        n_x, n_m = plan["tx"][0].shape[0], plan["n_m"]
+        c, r = self._complex, self._real
+        n_x, n_m, n_ns = plan["tx"][0].shape[0], plan["n_m"], plan["n_ns"]
         n_q = [k.lines.size for k in plan["classes"]]
         n_l = [pr.first.size for pr in plan["pairs"]]
-        n_p = [len(range(p, n_pix, 2)) for p in (0, 1)]
+        n_px = [plan["tx"][p].shape[1] for p in (0, 1)]
         nl = sum(n_q)
-        per_pair = 4 * sum(n_l) * nl * np.dtype(c).itemsize
-        step = max(1, min(n_x, _CHUNK_BYTES // per_pair))
+        n_g = n_x + n_ns
         return {
-            "a": [np.zeros((n_x, 2, n_m + 2, n_p[p]), dtype=c) for p in (0, 1)],
-            "gq": [np.zeros((n_x * 2 * (n_m + 2), n_q[q]), dtype=c) for q in (0, 1)],
-            "g": [np.zeros((n_x, 2, n_m + 2, 2 * nl), dtype=r)],
-            "o": [np.zeros(step * 4 * n_l[q] * 2 * nl, dtype=r) for q in (0, 1)],
+            "a": [np.zeros((2, n_m, n_x, n_px[p]), dtype=c) for p in (0, 1)],
+            "gq": [np.zeros((2 * n_m * n_x, n_q[q]), dtype=c) for q in (0, 1)],
+            "g": [np.zeros((2, n_m, n_x, 2 * nl), dtype=r)],
+            "xs": [np.zeros((n_m + 1, n_g, 2 * nl), dtype=r) for _ in (0, 1)],
+            "o": [np.zeros((n_l[q], 2, n_g, 2 * nl), dtype=r) for q in (0, 1)],
             "s": [np.zeros((n_l[q], 2 * nl), dtype=r) for q in (0, 1)],
             "x": [np.zeros((n_l[q], nl), dtype=r) for q in (0, 1)],
         }
@@ -389,33 +377,30 @@ class PyramidWFS:
         self.__dict__.update(state)
 
     def _fields(self, field: np.ndarray):
-        """Detector-plane fields per chunk of modulation pairs.
+        """Detector-plane fields of all modulation points, as pair products.
 
-        Yields tuples ``(o0, o1)``, ``o_q`` of shape ``(m, 4, n_l, 2 n_lines)`` (real parts,
-        then imaginary parts): for
-        ``m`` pairs, the blocks ``A, B, C, -D`` of the class-``q`` lines (module docstring:
-        the first image sees ``A + iB`` and ``C - iD``, the second ``A - iB`` and ``C + iD``)
-        by all detector columns (class by class), from a pupil field ``(n_pix, n_pix)``
-        (amplitude and half-sample centring included). Step x (``L`` along x) is one complex
-        product per class for all pairs; step y is one real product per pair and class (the
-        pair's y tilt folded into the kernel), after the direct images are written.
+        Yields one tuple ``(o0, o1)``, ``o_q`` of shape ``(n_l, 2, n_g, 2 n_lines)`` (real
+        parts, then imaginary parts): the products ``U`` and ``V`` of the class-``q`` lines
+        (module docstring) for the column groups (cosine and sine of each two-point pair, then
+        the one-point pairs) by all detector columns (class by class), from a pupil field
+        ``(n_pix, n_pix)`` (amplitude and half-sample centring included). Step x (``L`` along
+        x) is one complex product per class for all pairs; step y one real product per class
+        for all pairs, after the direct images are written.
 
         The arrays are the work buffers (:attr:`_work`): valid until the generator advances
         (copy them to keep them).
         """
         plan, work = self._plan, self._work
         classes, dense_t = plan["classes"], plan["dense_t"]
-        a, gq, g, o = work["a"], work["gq"], work["g"][0], work["o"]
-        n_x, n_m, r = g.shape[0], plan["n_m"], self._real
-        n_l = [pr.first.size for pr in plan["pairs"]]
+        a, gq, g, xs, o = work["a"], work["gq"], work["g"][0], work["xs"], work["o"]
+        n_m, n_ns = plan["n_m"], plan["n_ns"]
         nl = g.shape[-1] // 2
         n0 = classes[0].lines.size
-        step = o[0].size // (8 * n_l[0] * nl)
-        # step x: g[t, p, y', l] = sum_x field[p + 2 y', x] tx[t, x] L[l, x]
+        # step x: g[p, y', t, l] = sum_x field[p + 2 y', x] tx[t, x] L[l, x]
         for px in (0, 1):
             for py in (0, 1):
                 f = field[py::2, px::2]
-                np.multiply(f[None], plan["tx"][px][:, None, :], out=a[px][:, py, : f.shape[0]])
+                np.multiply(f[:, None], plan["tx"][px][None], out=a[px][py, : f.shape[0]])
         g2 = g.reshape(-1, 2 * nl)
         for q in (0, 1):
             apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq[q].T)
@@ -423,49 +408,46 @@ class PyramidWFS:
         for q, cols in ((0, slice(0, n0)), (1, slice(n0, nl))):
             g2[:, cols] = gq[q].real
             g2[:, nl:][:, cols] = gq[q].imag
-        # the constant rows: c0 sum_y (cos, sin)(beta_y) g[t, p, y], c0 = i y0 imaginary
-        sig = np.matmul(plan["cs"], g[:, :, :n_m])  # (n_x, 2, 2, 2 nl)
-        y0 = plan["c0"].imag[None, :, None, None]
-        np.multiply(sig[..., nl:], -y0, out=g[:, :, n_m:, :nl])
-        np.multiply(sig[..., :nl], y0, out=g[:, :, n_m:, nl:])
-        gv = g
-        # step y, per chunk of pairs
-        for j0 in range(0, n_x, step):
-            j1 = min(j0 + step, n_x)
-            m = j1 - j0
-            om = [o[q][: m * 8 * n_l[q] * nl].reshape(m, 4, n_l[q], 2 * nl) for q in (0, 1)]
-            for q in (0, 1):
-                pr, kern, coef = plan["pairs"][q], plan["kern"][q], plan["coef"][q]
-                ov = om[q]
-                for i, j in enumerate(range(j0, j1)):
-                    src = gv[j, q, pr.src : pr.src + n_l[q]]
-                    np.multiply(src[None], coef[j], out=ov[i])
-                    rows = 2 * n_l[q] if plan["single"][j] else 4 * n_l[q]
-                    gemm_acc(kern[j][:rows], gv[j, 1 - q], ov[i].reshape(4 * n_l[q], -1)[:rows])
-            yield om[0], om[1]
+        # the y tilts: xs[p][y', group] = (cos, sin)(beta y) g[p, y', pair]; constant row
+        for p in (0, 1):
+            x2 = xs[p][:n_m, : 2 * n_ns].reshape(n_m, n_ns, 2, 2 * nl)
+            np.multiply(g[p, :, :n_ns, None], plan["w"][p], out=x2)
+            np.multiply(g[p, :, n_ns:], plan["w1"][p], out=xs[p][:n_m, 2 * n_ns :])
+            sig = xs[p][:n_m].sum(axis=0)  # c0 sum_y, c0 = i y0
+            np.multiply(sig[:, nl:], -plan["y0"][p], out=xs[p][n_m, :, :nl])
+            np.multiply(sig[:, :nl], plan["y0"][p], out=xs[p][n_m, :, nl:])
+        # step y: the direct images, then o[q] += [u 1; v 0] @ xs[1-q]
+        for q in (0, 1):
+            pr, n_l = plan["pairs"][q], plan["pairs"][q].first.size
+            src = xs[q][pr.src : pr.src + n_l, None]
+            np.multiply(src, plan["delta"][q], out=o[q])
+            gemm_acc(plan["kern"][q], xs[1 - q].reshape(n_m + 1, -1), o[q].reshape(2 * n_l, -1))
+        yield o[0], o[1]
 
-    @staticmethod
-    def _accumulate(acc: dict, f: tuple, h: tuple, scale: float = 1.0) -> None:
+    def _accumulate(self, acc: dict, f: tuple, h: tuple, scale: float = 1.0) -> None:
         """``acc`` += ``scale`` times the bilinear intensity terms of the fields ``f`` and ``h``
         (:meth:`_fields`; ``f = h`` gives the intensity): ``s[q]``, the sum of ``Re(conj(f)
-        h)`` per real/imaginary part over the four blocks, and ``x[q]``, the cross terms
-        ``Im(conj(S_f) F_h) - Im(conj(F_f) S_h)`` of the blocks ``F = A, C``, ``S = B, -D``
-        (the first image is ``s + x``, the second ``s - x``)."""
+        h)`` per real/imaginary part over all products, and ``x[q]``, the symmetrised cross
+        terms ``Im(V_s conj(U_s)) - Im(U_c conj(V_c))`` (the first image is ``2 s + 4 x``,
+        the second ``2 s - 4 x``; module docstring)."""
+        n_ns = self._plan["n_ns"]
         for q in (0, 1):
-            fv, hv = f[q], h[q]
-            m, nl = fv.shape[0], fv.shape[-1] // 2
-            s_term = np.einsum("jhlc,jhlc->lc", fv, hv)
-            f5 = fv.reshape(m, 2, 2, *fv.shape[2:])
-            h5 = hv.reshape(m, 2, 2, *hv.shape[2:])
-            ff, sf = f5[:, :, 0], f5[:, :, 1]
-            fh, sh = h5[:, :, 0], h5[:, :, 1]
+            fq, hq = f[q], h[q]
+            nl = fq.shape[-1] // 2
+            s_term = np.einsum("lhgc,lhgc->lc", fq, hq)
 
-            def cross(sa, fb):  # sum Im(conj(sa) fb) over the pairs and halves
-                return np.einsum("jhlc,jhlc->lc", sa[..., :nl], fb[..., nl:]) - np.einsum(
-                    "jhlc,jhlc->lc", sa[..., nl:], fb[..., :nl]
+            def im(a, b):  # sum over the groups of Im(a conj(b))
+                return np.einsum("lgc,lgc->lc", a[..., nl:], b[..., :nl]) - np.einsum(
+                    "lgc,lgc->lc", a[..., :nl], b[..., nl:]
                 )
 
-            x_term = 2.0 * cross(sf, ff) if f is h else cross(sf, fh) - cross(sh, ff)
+            def cross(p, r):  # Im(Vs conj Us) - Im(Uc conj Vc) of the fields p, r
+                t = im(p[:, 1, 1 : 2 * n_ns : 2], r[:, 0, 1 : 2 * n_ns : 2])
+                t -= im(p[:, 0, 0 : 2 * n_ns : 2], r[:, 1, 0 : 2 * n_ns : 2])
+                t -= im(p[:, 0, 2 * n_ns :], r[:, 1, 2 * n_ns :])
+                return t
+
+            x_term = cross(fq, fq) if f is h else 0.5 * (cross(fq, hq) + cross(hq, fq))
             if scale != 1.0:
                 s_term *= scale
                 x_term *= scale
@@ -477,8 +459,8 @@ class PyramidWFS:
         parts = []
         for q in (0, 1):
             nl = acc["x"][q].shape[-1]
-            s = acc["s"][q][:, :nl] + acc["s"][q][:, nl:]
-            parts += [s + acc["x"][q], s - acc["x"][q]]
+            s = 2.0 * (acc["s"][q][:, :nl] + acc["s"][q][:, nl:])
+            parts += [s + 4.0 * acc["x"][q], s - 4.0 * acc["x"][q]]
         img = np.concatenate(parts).astype(np.float64)
         rows = self._plan["bin_rows"] @ img
         return (self._plan["bin_cols"] @ rows.T).T
