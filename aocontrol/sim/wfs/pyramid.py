@@ -77,7 +77,7 @@ logger = logging.getLogger(__name__)
 
 #: Target size of the per-chunk work arrays of the y step [bytes]: a few points at a time, so
 #: that the arrays stay in the core's cache between the product and the intensity.
-_CHUNK_BYTES = 2**21
+_CHUNK_BYTES = 2**23
 
 
 def default_modulation_points(modulation: float) -> int:
@@ -91,6 +91,17 @@ def default_modulation_points(modulation: float) -> int:
     """
     r = check_nonnegative("modulation", modulation)
     return 1 if r == 0 else 4 * math.ceil(math.pi * r)
+
+
+def _bin_permutation(b: np.ndarray) -> np.ndarray | None:
+    """Order of the lines (columns of the binning matrix ``b``) by bin when every line falls
+    in one bin with weight 1 and every bin holds the same number of lines, else ``None``."""
+    one = (b == 1.0).sum(axis=0) == 1
+    counts = (b != 0).sum(axis=0)
+    per_bin = (b != 0).sum(axis=1)
+    if not (np.all(one) and np.all(counts == 1) and np.all(per_bin == per_bin[0])):
+        return None
+    return np.argsort(np.argmax(b, axis=0), kind="stable")
 
 
 @dataclass(frozen=True)
@@ -224,6 +235,19 @@ class PyramidWFS:
         return np.array(two + one, dtype=int), len(two)
 
     @cached_property
+    def _chunks(self) -> list[tuple[int, int, bool]]:
+        """Chunks of pairs ``(j0, j1, two_point)`` for the y step: a few two-point pairs at a
+        time (their products stay in the core's cache), then the one-point pairs."""
+        k, n_ns = self._pairs
+        n_q = 2 * self.pupil.n_pix  # detector lines
+        per_pair = 2 * self.pupil.n_pix * 2 * 2 * n_q * np.dtype(self._real).itemsize
+        step = max(1, _CHUNK_BYTES // per_pair)
+        out = [(j0, min(j0 + step, n_ns), True) for j0 in range(0, n_ns, step)]
+        if k.size > n_ns:
+            out.append((n_ns, k.size, False))
+        return out
+
+    @cached_property
     def _plan(self) -> dict:
         """Precomputed tilts, line operators, pair kernels and binning (module docstring)."""
         n, n_pix = self.n_fft, self.pupil.n_pix
@@ -290,6 +314,8 @@ class PyramidWFS:
             # sparse, not BLAS: small GEMMs stall in multi-threaded OpenBLAS on a busy machine
             "bin_rows": scipy.sparse.csr_matrix(self._binning_full[:, lines[rows]]),
             "bin_cols": scipy.sparse.csr_matrix(self._binning_full[:, lines[order]]),
+            # an integer binning factor: each line in one bin, summed by a reshape
+            "bin_perm": [_bin_permutation(self._binning_full[:, lines[i]]) for i in (rows, order)],
         }
         for v in plan.values():
             if isinstance(v, np.ndarray):
@@ -357,13 +383,17 @@ class PyramidWFS:
         n_l = [pr.first.size for pr in plan["pairs"]]
         n_px = [plan["tx"][p].shape[1] for p in (0, 1)]
         nl = sum(n_q)
-        n_g = n_x + n_ns
+        chunks = self._chunks
+        n_g = max(j1 - j0 + (j1 - j0 if two else 0) for j0, j1, two in chunks)
         return {
             "a": [np.zeros((2, n_m, n_x, n_px[p]), dtype=c) for p in (0, 1)],
             "gq": [np.zeros((2 * n_m * n_x, n_q[q]), dtype=c) for q in (0, 1)],
-            "g": [np.zeros((2, n_m, n_x, 2 * nl), dtype=r)],
-            "xs": [np.zeros((n_m + 1, n_g, 2 * nl), dtype=r) for _ in (0, 1)],
-            "o": [np.zeros((n_l[q], 2, n_g, 2 * nl), dtype=r) for q in (0, 1)],
+            "xs": [
+                np.zeros((n_m + 1, (j1 - j0) * (2 if two else 1), 2 * nl), dtype=r)
+                for _ in (0, 1)
+                for j0, j1, two in chunks
+            ],
+            "o": [np.zeros(n_l[q] * 2 * n_g * 2 * nl, dtype=r) for q in (0, 1)],
             "s": [np.zeros((n_l[q], 2 * nl), dtype=r) for q in (0, 1)],
             "x": [np.zeros((n_l[q], nl), dtype=r) for q in (0, 1)],
         }
@@ -392,37 +422,57 @@ class PyramidWFS:
         """
         plan, work = self._plan, self._work
         classes, dense_t = plan["classes"], plan["dense_t"]
-        a, gq, g, xs, o = work["a"], work["gq"], work["g"][0], work["xs"], work["o"]
-        n_m, n_ns = plan["n_m"], plan["n_ns"]
-        nl = g.shape[-1] // 2
+        a, gq, xs, o = work["a"], work["gq"], work["xs"], work["o"]
+        n_m, r = plan["n_m"], self._real
         n0 = classes[0].lines.size
-        # step x: g[p, y', t, l] = sum_x field[p + 2 y', x] tx[t, x] L[l, x]
+        nl = n0 + classes[1].lines.size
+        # step x: gq[q][(p, y', t), l] = sum_x field[p + 2 y', x] tx[t, x] L[l, x] (lines of
+        # class q)
         for px in (0, 1):
             for py in (0, 1):
                 f = field[py::2, px::2]
                 np.multiply(f[:, None], plan["tx"][px][None], out=a[px][py, : f.shape[0]])
-        g2 = g.reshape(-1, 2 * nl)
         for q in (0, 1):
             apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq[q].T)
             gemm_acc(a[1 - q].reshape(-1, a[1 - q].shape[-1]), dense_t[q], gq[q])
-        for q, cols in ((0, slice(0, n0)), (1, slice(n0, nl))):
-            g2[:, cols] = gq[q].real
-            g2[:, nl:][:, cols] = gq[q].imag
-        # the y tilts: xs[p][y', group] = (cos, sin)(beta y) g[p, y', pair]; constant row
-        for p in (0, 1):
-            x2 = xs[p][:n_m, : 2 * n_ns].reshape(n_m, n_ns, 2, 2 * nl)
-            np.multiply(g[p, :, :n_ns, None], plan["w"][p], out=x2)
-            np.multiply(g[p, :, n_ns:], plan["w1"][p], out=xs[p][:n_m, 2 * n_ns :])
-            sig = xs[p][:n_m].sum(axis=0)  # c0 sum_y, c0 = i y0
-            np.multiply(sig[:, nl:], -plan["y0"][p], out=xs[p][n_m, :, :nl])
-            np.multiply(sig[:, :nl], plan["y0"][p], out=xs[p][n_m, :, nl:])
-        # step y: the direct images, then o[q] += [u 1; v 0] @ xs[1-q]
-        for q in (0, 1):
-            pr, n_l = plan["pairs"][q], plan["pairs"][q].first.size
-            src = xs[q][pr.src : pr.src + n_l, None]
-            np.multiply(src, plan["delta"][q], out=o[q])
-            gemm_acc(plan["kern"][q], xs[1 - q].reshape(n_m + 1, -1), o[q].reshape(2 * n_l, -1))
-        yield o[0], o[1]
+        # (parity, y', pair, line, real/imaginary) views of step x's output
+        gqv = [gq[q].view(r).reshape(2, n_m, -1, gq[q].shape[-1], 2) for q in (0, 1)]
+        cols = (slice(0, n0), slice(n0, nl))
+        # per chunk of pairs: the y tilts, xs[p][y', group] = (cos, sin)(beta y) g[p, y', pair]
+        # (1/sqrt(2) for the one-point pairs) and the constant row; then step y, the direct
+        # images and o[q] += [u 1; v 0] @ xs[1-q]
+        chunks = self._chunks
+        for ci, (j0, j1, two) in enumerate(chunks):
+            x = [xs[p * len(chunks) + ci] for p in (0, 1)]
+            for p in (0, 1):
+                # real and imaginary parts apart (columns [re | im]), one op per class and part
+                for qx in (0, 1):
+                    for c in (0, 1):
+                        if two:
+                            np.multiply(
+                                gqv[qx][p, :, j0:j1, None, :, c],
+                                plan["w"][p][:, j0:j1],
+                                out=x[p][:n_m].reshape(n_m, j1 - j0, 2, 2, nl)[:, :, :, c, cols[qx]],
+                            )
+                        else:
+                            np.multiply(
+                                gqv[qx][p, :, j0:j1, :, c],
+                                plan["w1"][p],
+                                out=x[p][:n_m].reshape(n_m, j1 - j0, 2, nl)[:, :, c, cols[qx]],
+                            )
+                sig = x[p][:n_m].sum(axis=0)  # c0 sum_y, c0 = i y0
+                np.multiply(sig[:, nl:], -plan["y0"][p], out=x[p][n_m, :, :nl])
+                np.multiply(sig[:, :nl], plan["y0"][p], out=x[p][n_m, :, nl:])
+            n_g = x[0].shape[1]
+            om = []
+            for q in (0, 1):
+                pr = plan["pairs"][q]
+                n_l = pr.first.size
+                oq = o[q][: n_l * 2 * n_g * 2 * nl].reshape(n_l, 2, n_g, 2 * nl)
+                np.multiply(x[q][pr.src : pr.src + n_l, None], plan["delta"][q], out=oq)
+                gemm_acc(plan["kern"][q], x[1 - q].reshape(n_m + 1, -1), oq.reshape(2 * n_l, -1))
+                om.append(oq)
+            yield om[0], om[1], (j1 - j0 if two else 0)
 
     def _accumulate(self, acc: dict, f: tuple, h: tuple, scale: float = 1.0) -> None:
         """``acc`` += ``scale`` times the bilinear intensity terms of the fields ``f`` and ``h``
@@ -430,7 +480,7 @@ class PyramidWFS:
         h)`` per real/imaginary part over all products, and ``x[q]``, the symmetrised cross
         terms ``Im(V_s conj(U_s)) - Im(U_c conj(V_c))`` (the first image is ``2 s + 4 x``,
         the second ``2 s - 4 x``; module docstring)."""
-        n_ns = self._plan["n_ns"]
+        n_ns = f[2]  # two-point pairs of the chunk (their groups first, cosine and sine)
         for q in (0, 1):
             fq, hq = f[q], h[q]
             nl = fq.shape[-1] // 2
@@ -462,6 +512,11 @@ class PyramidWFS:
             s = 2.0 * (acc["s"][q][:, :nl] + acc["s"][q][:, nl:])
             parts += [s + 4.0 * acc["x"][q], s - 4.0 * acc["x"][q]]
         img = np.concatenate(parts).astype(np.float64)
+        perm = self._plan["bin_perm"]
+        if perm[0] is not None and perm[1] is not None:
+            n_b = self._binning_full.shape[0]
+            rows = img[perm[0]].reshape(n_b, -1, img.shape[1]).sum(axis=1)
+            return rows[:, perm[1]].reshape(n_b, n_b, -1).sum(axis=2)
         rows = self._plan["bin_rows"] @ img
         return (self._plan["bin_cols"] @ rows.T).T
 
@@ -518,7 +573,8 @@ class PyramidWFS:
         dphase = opd_to_phase(delta, self.wavelength)
         out = np.empty((delta.shape[0], *self.frame_shape))
         with self._blas_threads():
-            base = [tuple(f.copy() for f in fs) for fs in self._fields(field)]  # buffers reused
+            # copies of the base fields: the generator reuses its buffers
+            base = [tuple(getattr(f, "copy", lambda f=f: f)() for f in fs) for fs in self._fields(field)]
             for i in range(delta.shape[0]):
                 acc = self._new_acc()
                 dfield = 1j * dphase[i].astype(self._real) * field
