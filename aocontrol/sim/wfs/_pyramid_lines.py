@@ -167,7 +167,11 @@ def image_pairs(op: np.ndarray, lines: np.ndarray, n_fft: int) -> tuple[ImagePai
     tol = _ZERO * mag.max()
     first_all = np.flatnonzero(lines < half)
     pos = np.searchsorted(lines, lines[first_all] + half)
-    if pos.max(initial=0) >= lines.size or np.any(lines[np.minimum(pos, lines.size - 1)] != lines[first_all] + half) or 2 * first_all.size != lines.size:
+    if (
+        pos.max(initial=0) >= lines.size
+        or np.any(lines[np.minimum(pos, lines.size - 1)] != lines[first_all] + half)
+        or 2 * first_all.size != lines.size
+    ):
         raise RuntimeError("the detector lines do not pair up between the two pupil images")
     out = []
     for q in (0, 1):
@@ -193,7 +197,9 @@ def image_pairs(op: np.ndarray, lines: np.ndarray, n_fft: int) -> tuple[ImagePai
                 "the pyramid line operator lacks its conjugate structure between the two "
                 "pupil images (the mask must be two opposite linear phases, n_fft >= 2 n_pix)"
             )
-        out.append(ImagePairs(first, second, k.real.copy(), -k.imag, c0, int(src[0]), complex(delta[0])))
+        out.append(
+            ImagePairs(first, second, k.real.copy(), -k.imag, c0, int(src[0]), complex(delta[0]))
+        )
     if out[0].first.size + out[1].first.size != first_all.size:
         raise RuntimeError("the pyramid line operator lacks its parity structure")
     return out[0], out[1]

@@ -16,15 +16,33 @@ inverse FFT, per point; identical to rounding, tested).
 
 Computation. The pyramid mask and the tilts factor into x and y parts, so the propagation of
 one point is ``L diag(t_y) E diag(t_x) L^T`` with ``E`` the pupil field and ``L`` the 1-D line
-operator (pad, FFT, one mask factor, inverse FFT, detector lines; the same along x and y).
-``L`` is applied as a matrix product, at half the cost of a dense one: its mask factor is two
-linear phases, so a detector line sees the pupil samples of one parity through a dense kernel
-and only its direct-image sample of the other parity (:mod:`._pyramid_lines`; zero entries
-exact, not truncated). The x step is shared by the points with the same x tilt; the y step is
-one BLAS ``gemm`` per chunk of points (no FFT per frame: at SAXO+ sampling about 1.4x
-faster than the separable FFT propagation it replaced, measured in one run). Single precision
-by default (``complex64``; the difference from ``complex128`` is < 1e-4 of the signal,
-tested). Threads: ``workers`` BLAS threads during each call.
+operator (pad, FFT, one mask factor, inverse FFT, detector lines; the same along x and y),
+applied as matrix products (no FFT per frame), exact rewrites of the discrete model:
+
+* parity (:mod:`._pyramid_lines`): the mask factor is two linear phases, so a detector line
+  sees the pupil samples of one parity through a dense kernel and, of the other parity, only
+  its direct-image sample;
+* conjugate images: the dense kernels of a line ``l`` of the first pupil image and of its
+  partner ``l + n_fft/2`` in the second are ``u - i v + c0`` and ``u + i v + c0`` with ``u, v``
+  real and ``c0`` one imaginary constant (the kernel is ``1/2 + i/2 cot`` for one face and
+  ``1/2 - i/2 tan`` for the other, ``tan`` being ``cot`` shifted by ``n_fft/2``), and their
+  direct images ``delta`` and ``conj(delta)``: with ``U = u Y + c0 sum(Y) + Re(delta) Y_d``
+  and ``V = v Y - Im(delta) Y_d`` (real kernels), the two images are ``U - iV`` and ``U + iV``;
+* mirror points: the points ``k`` and ``n_points - k`` have the same x tilt and opposite y
+  tilts ``h e^{+-i beta}`` (``h`` the half-sample centring, folded into the pupil field), so
+  with ``Y_c = cos(beta) G`` and ``Y_s = sin(beta) G`` (``G`` step x's output) the four fields
+  of the pair are ``(U_c + V_s) +- i(U_s - V_c)`` and ``(U_c - V_s) +- i(U_s + V_c)``, and
+  the pair's intensities are ``2 S + 4 X`` (first image) and ``2 S - 4 X`` (second) with
+  ``S = |U_c|^2 + |U_s|^2 + |V_c|^2 + |V_s|^2`` and ``X = Im(V_s conj U_s) - Im(U_c conj V_c)``
+  (the points on the x axis are their own mirror: weight 1/2, taken with ``beta = 0``).
+
+Step x (complex ``L``, one product per parity class for all pairs) is shared by the two points
+of a pair; step y is one real product ``[u 1; v 0] @ [Y_c, Y_s of every pair; constant row]``
+per parity class for all points: half the FLOPs of the complex per-point products it replaced
+(issue 15: 135 instead of 213 MFLOP per frame at SAXO+ sampling, ``benchmarks/bench_pyramid.py
+--flops``). Single precision by default (``complex64`` / ``float32``; the difference from
+double precision is < 1e-5 of the largest pixel, tested against frames of the former
+propagation). Threads: ``workers`` BLAS threads during each call.
 
 Detector and signals
 --------------------
@@ -75,8 +93,8 @@ __all__ = ["PyramidWFS", "default_modulation_points"]
 
 logger = logging.getLogger(__name__)
 
-#: Target size of the per-chunk work arrays of the y step [bytes]: a few points at a time, so
-#: that the arrays stay in the core's cache between the product and the intensity.
+#: Target size of the y step's products per chunk of modulation pairs [bytes]: large, one
+#: chunk at SAXO+ sampling (smaller chunks measured slower: more, smaller calls).
 _CHUNK_BYTES = 2**23
 
 
@@ -368,17 +386,18 @@ class PyramidWFS:
 
         ``a[p]`` ``(2, n_m, n_x, n_p)``: the field times each pair's x tilt on the columns ``x
         = p, p+2, ...``, rows by parity (``n_m`` the larger count; spare rows zero);
-        ``gq[q]`` ``(2 n_m n_x, n_q)``: step x (complex); ``g`` ``(2, n_m, n_x, 2 n_lines)``:
-        the same, real parts then imaginary parts; ``xs[p]`` ``(n_m + 1, n_g, 2 n_lines)``:
-        the rows of parity ``p`` times the cosine and sine of each pair's y tilt, and the
-        constant row; ``o[q]`` ``(n_l, 2, n_g, 2 n_lines)``: step y, the products ``U`` and
-        ``V`` of every column group; ``s[q]`` ``(n_l, 2 n_lines)`` and ``x[q]`` ``(n_l,
+        ``gq[q]`` ``(2 n_m n_x, n_q)``: step x (complex, lines of class ``q``); ``xs`` (per
+        parity ``p``, then per chunk of pairs, :attr:`_chunks`) ``(n_m + 1, n_g, 2 n_lines)``:
+        the rows of parity ``p`` times the cosine and sine of each pair's y tilt, real parts
+        then imaginary parts, and the constant row; ``o[q]`` (flat, ``(n_l, 2, n_g, 2
+        n_lines)`` for a chunk): step y, the products ``U`` and ``V`` of the chunk's column
+        groups; ``s[q]`` ``(n_l, 2 n_lines)`` and ``x[q]`` ``(n_l,
         n_lines)``: intensity accumulators. They make an instance not thread-safe (use one
         instance per thread) and are not pickled.
         """
         plan = self._plan
         c, r = self._complex, self._real
-        n_x, n_m, n_ns = plan["tx"][0].shape[0], plan["n_m"], plan["n_ns"]
+        n_x, n_m = plan["tx"][0].shape[0], plan["n_m"]
         n_q = [k.lines.size for k in plan["classes"]]
         n_l = [pr.first.size for pr in plan["pairs"]]
         n_px = [plan["tx"][p].shape[1] for p in (0, 1)]
@@ -452,7 +471,9 @@ class PyramidWFS:
                             np.multiply(
                                 gqv[qx][p, :, j0:j1, None, :, c],
                                 plan["w"][p][:, j0:j1],
-                                out=x[p][:n_m].reshape(n_m, j1 - j0, 2, 2, nl)[:, :, :, c, cols[qx]],
+                                out=x[p][:n_m].reshape(n_m, j1 - j0, 2, 2, nl)[
+                                    :, :, :, c, cols[qx]
+                                ],
                             )
                         else:
                             np.multiply(
@@ -486,7 +507,7 @@ class PyramidWFS:
             nl = fq.shape[-1] // 2
             s_term = np.einsum("lhgc,lhgc->lc", fq, hq)
 
-            def im(a, b):  # sum over the groups of Im(a conj(b))
+            def im(a, b, nl=nl):  # sum over the groups of Im(a conj(b))
                 return np.einsum("lgc,lgc->lc", a[..., nl:], b[..., :nl]) - np.einsum(
                     "lgc,lgc->lc", a[..., :nl], b[..., nl:]
                 )
@@ -574,7 +595,7 @@ class PyramidWFS:
         out = np.empty((delta.shape[0], *self.frame_shape))
         with self._blas_threads():
             # copies of the base fields: the generator reuses its buffers
-            base = [tuple(getattr(f, "copy", lambda f=f: f)() for f in fs) for fs in self._fields(field)]
+            base = [(f0.copy(), f1.copy(), n) for f0, f1, n in self._fields(field)]
             for i in range(delta.shape[0]):
                 acc = self._new_acc()
                 dfield = 1j * dphase[i].astype(self._real) * field
