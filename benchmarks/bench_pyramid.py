@@ -36,7 +36,9 @@ phases of a shared machine hit both; the table gives each code's median with its
 per-repeat ratios.
 
 Without ``--oopao-python`` the OOPAO half is skipped with a message. ``--quick`` runs a small
-configuration (smoke test).
+configuration (smoke test). ``--flops`` prints the propagation's floating-point operations per
+frame, stage by stage, for the propagation before issue 15's pair products and for the current
+one (:func:`propagation_flops`), and exits.
 """
 
 from __future__ import annotations
@@ -83,6 +85,66 @@ def _config(args: argparse.Namespace) -> dict:
 
 
 # --------------------------------------------------------------------------------- ours
+def propagation_flops(wfs) -> dict:
+    """Floating-point operations per frame of the pyramid's propagation, by stage [real flops;
+    a complex multiply-add is 8, a real-by-complex one 4, a real one 2], for the propagation
+    the library used before issue 15's pair products (complex line-operator products: step x
+    per distinct x tilt, step y per modulation point) and for the current one (conjugate pairs
+    of the two pupil images and mirror pairs of modulation points: real products, the y tilts
+    in the columns); the textbook FFT model (per point: tilt, 2-D FFT, mask, inverse 2-D FFT,
+    ``5 N log2 N`` per complex FFT of ``N`` samples) for scale. GEMM counts are exact from the
+    shapes; element-wise passes (tilts, direct images, intensities) are counted as written.
+    """
+    import math
+
+    import numpy as np
+
+    n_pix, n, npts = wfs.pupil.n_pix, wfs.n_fft, wfs.n_points
+    plan = wfs._plan
+    nl = sum(k.lines.size for k in plan["classes"])  # detector lines (both images)
+    n_half = n_pix / 2  # pupil samples of one parity (the dense part of a line)
+    ax = np.round(wfs.modulation_offsets[:, 0] * wfs.samples_per_lambda_over_d, 12)
+    n_xd = np.unique(ax).size  # distinct x tilts
+    before = {
+        "x tilts (field x tilt, per distinct x tilt)": 6 * n_pix * n_pix * n_xd,
+        "step x (complex GEMM, per distinct x tilt)": 8 * n_pix * n_xd * n_half * nl,
+        "y tilts (per point)": 6 * n_pix * nl * npts,
+        "step y (complex GEMM, per point)": 8 * nl * n_half * nl * npts,
+        "intensity |.|^2, summed over the points": 4 * nl * nl * npts,
+    }
+    n_m, n_x = plan["n_m"], plan["tx"][0].shape[0]
+    n_g = sum((j1 - j0) * (2 if two else 1) for j0, j1, two in wfs._chunks)
+    n_l = [p.first.size for p in plan["pairs"]]
+    after = {
+        "x tilts (field x tilt, per mirror pair)": 6 * n_pix * n_pix * n_x,
+        "step x (complex GEMM, per mirror pair)": 8 * (2 * n_m * n_x) * n_half * nl,
+        "y tilts (cos, sin of each pair) and constant rows": 6 * n_m * n_g * 2 * nl,
+        "step y (real GEMM [u 1; v 0], all pairs at once)": sum(
+            2 * (2 * k) * (n_m + 1) * (n_g * 2 * nl) for k in n_l
+        ),
+        "direct images (one value per face)": sum(2 * k * n_g * 2 * nl for k in n_l),
+        "intensity (squares and cross terms of the products)": sum(
+            2 * (2 * k * n_g * 2 * nl) + 4 * (k * n_g * nl) for k in n_l
+        ),
+    }
+    n2 = n * n
+    fft = {
+        "tilt + mask (per point)": 2 * 6 * n2 * npts,
+        "2-D FFT and inverse (per point)": 2 * 5 * n2 * math.log2(n2) * npts,
+        "intensity": 3 * n2 * npts,
+    }
+    return {"before (main ccdd059)": before, "pairs (this code)": after, "textbook FFT": fft}
+
+
+def print_flops(wfs) -> None:
+    """Print :func:`propagation_flops` per stage [MFLOP per frame]."""
+    for name, stages in propagation_flops(wfs).items():
+        total = sum(stages.values())
+        print(f"{name}: {total / 1e6:.1f} MFLOP per frame")
+        for stage, v in stages.items():
+            print(f"    {stage}: {v / 1e6:.2f}")
+
+
 def run_ours(args: argparse.Namespace) -> dict:
     import numpy as np
 
@@ -402,7 +464,32 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--flops",
+        action="store_true",
+        help="print the propagation's FLOPs per frame by stage (former and current; this "
+        "geometry and the cascade's 20 modulation points) and exit",
+    )
     args = parser.parse_args(argv)
+    if args.flops:
+        from aocontrol.sim.pupil import vlt_pupil
+        from aocontrol.sim.wfs import PyramidWFS
+
+        c = _config(args)
+        for points in (None, 20):
+            wfs = PyramidWFS(
+                vlt_pupil(c["n_pix"]),
+                1.215e-6,
+                n_subapertures=c["n_subap"],
+                modulation=c["modulation"],
+                n_modulation_points=points,
+            )
+            print(
+                f"--- {c['n_pix']} px, {c['n_subap']}x{c['n_subap']}, {c['modulation']} "
+                f"lambda/D, {wfs.n_points} points, n_fft {wfs.n_fft}"
+            )
+            print_flops(wfs)
+        return 0
     raw = sys.argv[1:] if argv is None else list(argv)
     repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
     if repeats < 1:

@@ -94,9 +94,18 @@ def parity_classes(op: np.ndarray) -> tuple[LineClass, LineClass]:
     return out[0], out[1]
 
 
+_GEMM = {
+    np.dtype(np.complex64): _blas.cgemm,
+    np.dtype(np.complex128): _blas.zgemm,
+    np.dtype(np.float32): _blas.sgemm,
+    np.dtype(np.float64): _blas.dgemm,
+}
+
+
 def gemm_acc(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
-    """``c += a @ b`` in place (C-contiguous complex 2-D arrays; BLAS ``gemm``, beta = 1)."""
-    gemm = _blas.cgemm if c.dtype == np.complex64 else _blas.zgemm
+    """``c += a @ b`` in place (C-contiguous 2-D arrays, real or complex, one dtype; BLAS
+    ``gemm``, beta = 1)."""
+    gemm = _GEMM[c.dtype]
     # in Fortran order the C-contiguous arrays are the transposes: c.T += b.T @ a.T
     res = gemm(1.0, b.T, a.T, beta=1.0, c=c.T, overwrite_c=True)
     if not np.may_share_memory(res, c):  # pragma: no cover - a BLAS wrapper that copied
@@ -115,3 +124,82 @@ def apply_runs(runs, src: np.ndarray, out: np.ndarray) -> None:
         for r0, r1, _, _ in runs:
             mask[r0:r1] = False
         out[mask] = 0
+
+
+@dataclass(frozen=True)
+class ImagePairs:
+    """The detector lines of one parity class ``q`` in the two pupil images, as conjugate pairs.
+
+    A line ``l`` of the first image and its partner ``l + n/2`` of the second see the pupil
+    samples of parity ``1-q`` through ``u - i v + c0`` and ``u + i v + c0`` (``u, v`` real,
+    ``c0`` one imaginary constant: the kernel's DC term, the same for both faces) and their one
+    direct-image sample of parity ``q`` through ``delta`` and ``conj(delta)``: the two faces
+    are complex conjugate up to the constant (module docstring: the kernel is ``1/2 + i/2
+    cot`` and ``1/2 - i/2 tan``, and ``tan`` is ``cot`` shifted by ``n/2``).
+
+    ``first``, ``second``: positions in the line list ``(n_l,)``; ``u``, ``v``: ``(n_l,
+    n_{1-q})`` real; ``c0``: complex; ``src``: index of the first line's direct-image sample
+    among the samples of parity ``q`` (consecutive lines read consecutive samples); ``delta``:
+    complex, the same for every line (one face's direct image: one value).
+    """
+
+    first: np.ndarray
+    second: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    c0: complex
+    src: int
+    delta: complex
+
+
+def image_pairs(op: np.ndarray, lines: np.ndarray, n_fft: int) -> tuple[ImagePairs, ImagePairs]:
+    """Split ``op`` (:func:`line_operator` on ``lines``) into the conjugate pairs of both parity
+    classes (:class:`ImagePairs`); every structural assumption is checked.
+
+    Raises
+    ------
+    RuntimeError
+        If the lines do not pair up (``l`` and ``l + n_fft/2``) or the operator lacks the
+        conjugate structure.
+    """
+    half = n_fft // 2
+    mag = np.abs(op)
+    tol = _ZERO * mag.max()
+    first_all = np.flatnonzero(lines < half)
+    pos = np.searchsorted(lines, lines[first_all] + half)
+    if (
+        pos.max(initial=0) >= lines.size
+        or np.any(lines[np.minimum(pos, lines.size - 1)] != lines[first_all] + half)
+        or 2 * first_all.size != lines.size
+    ):
+        raise RuntimeError("the detector lines do not pair up between the two pupil images")
+    out = []
+    for q in (0, 1):
+        dense_par = np.count_nonzero(mag[first_all][:, 1 - q :: 2] > tol, axis=1) > 1
+        keep = np.flatnonzero(dense_par)
+        first, second = first_all[keep], pos[keep]
+        d1, d2 = op[first][:, 1 - q :: 2], op[second][:, 1 - q :: 2]
+        c0 = 0.5j * float(np.mean((d2 - np.conj(d1)).imag))
+        k = d1 - c0
+        l1, l2 = op[first][:, q::2], op[second][:, q::2]
+        src = np.argmax(np.abs(l1), axis=1)
+        delta = l1[np.arange(first.size), src]
+        bad = (
+            np.abs(d2 - c0 - np.conj(k)).max(initial=0) > tol
+            or np.abs(l2 - np.conj(l1)).max(initial=0) > tol
+            or np.count_nonzero(np.abs(l1) > tol) > first.size
+            or np.any(np.abs(delta) <= tol)
+            or np.any(src - np.arange(first.size) != src[0])
+            or np.abs(delta - delta[0]).max() > tol
+        )
+        if bad:
+            raise RuntimeError(
+                "the pyramid line operator lacks its conjugate structure between the two "
+                "pupil images (the mask must be two opposite linear phases, n_fft >= 2 n_pix)"
+            )
+        out.append(
+            ImagePairs(first, second, k.real.copy(), -k.imag, c0, int(src[0]), complex(delta[0]))
+        )
+    if out[0].first.size + out[1].first.size != first_all.size:
+        raise RuntimeError("the pyramid line operator lacks its parity structure")
+    return out[0], out[1]

@@ -16,15 +16,33 @@ inverse FFT, per point; identical to rounding, tested).
 
 Computation. The pyramid mask and the tilts factor into x and y parts, so the propagation of
 one point is ``L diag(t_y) E diag(t_x) L^T`` with ``E`` the pupil field and ``L`` the 1-D line
-operator (pad, FFT, one mask factor, inverse FFT, detector lines; the same along x and y).
-``L`` is applied as a matrix product, at half the cost of a dense one: its mask factor is two
-linear phases, so a detector line sees the pupil samples of one parity through a dense kernel
-and only its direct-image sample of the other parity (:mod:`._pyramid_lines`; zero entries
-exact, not truncated). The x step is shared by the points with the same x tilt; the y step is
-one BLAS ``gemm`` per chunk of points (no FFT per frame: at SAXO+ sampling about 1.4x
-faster than the separable FFT propagation it replaced, measured in one run). Single precision
-by default (``complex64``; the difference from ``complex128`` is < 1e-4 of the signal,
-tested). Threads: ``workers`` BLAS threads during each call.
+operator (pad, FFT, one mask factor, inverse FFT, detector lines; the same along x and y),
+applied as matrix products (no FFT per frame), exact rewrites of the discrete model:
+
+* parity (:mod:`._pyramid_lines`): the mask factor is two linear phases, so a detector line
+  sees the pupil samples of one parity through a dense kernel and, of the other parity, only
+  its direct-image sample;
+* conjugate images: the dense kernels of a line ``l`` of the first pupil image and of its
+  partner ``l + n_fft/2`` in the second are ``u - i v + c0`` and ``u + i v + c0`` with ``u, v``
+  real and ``c0`` one imaginary constant (the kernel is ``1/2 + i/2 cot`` for one face and
+  ``1/2 - i/2 tan`` for the other, ``tan`` being ``cot`` shifted by ``n_fft/2``), and their
+  direct images ``delta`` and ``conj(delta)``: with ``U = u Y + c0 sum(Y) + Re(delta) Y_d``
+  and ``V = v Y - Im(delta) Y_d`` (real kernels), the two images are ``U - iV`` and ``U + iV``;
+* mirror points: the points ``k`` and ``n_points - k`` have the same x tilt and opposite y
+  tilts ``h e^{+-i beta}`` (``h`` the half-sample centring, folded into the pupil field), so
+  with ``Y_c = cos(beta) G`` and ``Y_s = sin(beta) G`` (``G`` step x's output) the four fields
+  of the pair are ``(U_c + V_s) +- i(U_s - V_c)`` and ``(U_c - V_s) +- i(U_s + V_c)``, and
+  the pair's intensities are ``2 S + 4 X`` (first image) and ``2 S - 4 X`` (second) with
+  ``S = |U_c|^2 + |U_s|^2 + |V_c|^2 + |V_s|^2`` and ``X = Im(V_s conj U_s) - Im(U_c conj V_c)``
+  (the points on the x axis are their own mirror: weight 1/2, taken with ``beta = 0``).
+
+Step x (complex ``L``, one product per parity class for all pairs) is shared by the two points
+of a pair; step y is one real product ``[u 1; v 0] @ [Y_c, Y_s of every pair; constant row]``
+per parity class for all points: half the FLOPs of the complex per-point products it replaced
+(issue 15: 135 instead of 213 MFLOP per frame at SAXO+ sampling, ``benchmarks/bench_pyramid.py
+--flops``). Single precision by default (``complex64`` / ``float32``; the difference from
+double precision is < 1e-5 of the largest pixel, tested against frames of the former
+propagation). Threads: ``workers`` BLAS threads during each call.
 
 Detector and signals
 --------------------
@@ -66,6 +84,7 @@ from aocontrol.sim.wfs._common import bin_matrix, blas_threads, check_opd, opd_t
 from aocontrol.sim.wfs._pyramid_lines import (
     apply_runs,
     gemm_acc,
+    image_pairs,
     line_operator,
     parity_classes,
 )
@@ -74,9 +93,9 @@ __all__ = ["PyramidWFS", "default_modulation_points"]
 
 logger = logging.getLogger(__name__)
 
-#: Target size of the per-chunk work arrays of the y step [bytes]: a few points at a time, so
-#: that the arrays stay in the core's cache between the product and the intensity.
-_CHUNK_BYTES = 2**21
+#: Target size of the y step's products per chunk of modulation pairs [bytes]: large, one
+#: chunk at SAXO+ sampling (smaller chunks measured slower: more, smaller calls).
+_CHUNK_BYTES = 2**23
 
 
 def default_modulation_points(modulation: float) -> int:
@@ -90,6 +109,17 @@ def default_modulation_points(modulation: float) -> int:
     """
     r = check_nonnegative("modulation", modulation)
     return 1 if r == 0 else 4 * math.ceil(math.pi * r)
+
+
+def _bin_permutation(b: np.ndarray) -> np.ndarray | None:
+    """Order of the lines (columns of the binning matrix ``b``) by bin when every line falls
+    in one bin with weight 1 and every bin holds the same number of lines, else ``None``."""
+    one = (b == 1.0).sum(axis=0) == 1
+    counts = (b != 0).sum(axis=0)
+    per_bin = (b != 0).sum(axis=1)
+    if not (np.all(one) and np.all(counts == 1) and np.all(per_bin == per_bin[0])):
+        return None
+    return np.argsort(np.argmax(b, axis=0), kind="stable")
 
 
 @dataclass(frozen=True)
@@ -213,39 +243,97 @@ class PyramidWFS:
         return out
 
     @cached_property
+    def _pairs(self) -> tuple[np.ndarray, int]:
+        """Modulation points by mirror pairs ``(k, n_points - k)`` (the same x tilt, opposite y
+        tilts): the ``k`` of the pairs, the ``n_ns`` two-point pairs first, then the points on
+        the x axis (``k = 0`` and ``n_points / 2``), each its own mirror."""
+        n = self.n_points
+        two = [k for k in range(1, n) if k < n - k]
+        one = [k for k in range(n // 2 + 1) if k == (n - k) % n]
+        return np.array(two + one, dtype=int), len(two)
+
+    @cached_property
+    def _chunks(self) -> list[tuple[int, int, bool]]:
+        """Chunks of pairs ``(j0, j1, two_point)`` for the y step: a few two-point pairs at a
+        time (their products stay in the core's cache), then the one-point pairs."""
+        k, n_ns = self._pairs
+        n_q = 2 * self.pupil.n_pix  # detector lines
+        per_pair = 2 * self.pupil.n_pix * 2 * 2 * n_q * np.dtype(self._real).itemsize
+        step = max(1, _CHUNK_BYTES // per_pair)
+        out = [(j0, min(j0 + step, n_ns), True) for j0 in range(0, n_ns, step)]
+        if k.size > n_ns:
+            out.append((n_ns, k.size, False))
+        return out
+
+    @cached_property
     def _plan(self) -> dict:
-        """Precomputed tilts, line operator and binning (module docstring)."""
+        """Precomputed tilts, line operators, pair kernels and binning (module docstring)."""
         n, n_pix = self.n_fft, self.pupil.n_pix
         q = self.samples_per_lambda_over_d
         x = np.arange(n_pix)
-        # beam tilt of each modulation point (a q focal samples) and half-sample centring
-        ax = np.round(self.modulation_offsets[:, 0] * q, 12)
-        ay = self.modulation_offsets[:, 1] * q
-        ux, x_index = np.unique(ax, return_inverse=True)
-        tx = np.exp(2j * np.pi * (ux[:, None] - 0.5) * x[None, :] / n)
-        ty = np.exp(2j * np.pi * (ay[:, None] - 0.5) * x[None, :] / n)
+        k, n_ns = self._pairs
+        # beam tilt of each pair [focal samples]: (a, +-b)
+        a = self.modulation_offsets[k, 0] * q
+        b = self.modulation_offsets[k[:n_ns], 1] * q
+        tx = np.exp(2j * np.pi * (a[:, None] - 0.5) * x[None, :] / n)
         # one face of the pyramid per half line; the apex between samples -1 and 0; the ramp
         # places the pupil (transformed from the array corner) at r0 in the padded array
         u = np.fft.fftfreq(n) * n
         r0 = (n - n_pix) // 2
         m1 = np.exp(0.5j * np.pi * np.abs(u + 0.5) - 2j * np.pi * r0 * u / n)
         lines = np.flatnonzero(np.any(self._binning_full != 0, axis=0))
-        classes = parity_classes(line_operator(n, n_pix, m1, lines))
-        order = np.concatenate([c.lines for c in classes])  # detector lines, class by class
-        c = self._complex
+        op = line_operator(n, n_pix, m1, lines)
+        classes = parity_classes(op)
+        pairs = image_pairs(op, lines, n)
+        order = np.concatenate([c.lines for c in classes])  # x lines, class by class
+        rows = np.concatenate([np.r_[p.first, p.second] for p in pairs])  # y lines
+        c, r = self._complex, self._real
+        n_p = [len(range(p, n_pix, 2)) for p in (0, 1)]
+        n_m = max(n_p)
+        # column groups: (cos, sin) of the y tilt of each two-point pair, then the one-point
+        # pairs (b = 0) weighted 1/sqrt(2): one formula for both (module docstring)
+        n_one = k.size - n_ns
+        w = np.zeros((2, n_m, n_ns, 2))
+        for p in (0, 1):
+            beta = 2 * np.pi * np.arange(p, n_pix, 2)[:, None] * b[None, :] / n
+            w[p, : n_p[p], :, 0] = np.cos(beta)
+            w[p, : n_p[p], :, 1] = np.sin(beta)
+        w1 = np.zeros((2, n_m, n_one))
+        for p in (0, 1):
+            w1[p, : n_p[p]] = math.sqrt(0.5)
+        kern = []
+        for qy, pr in enumerate(pairs):
+            kq = np.zeros((pr.first.size, 2, n_m + 1))  # rows (line, U/V)
+            kq[:, 0, : n_p[1 - qy]] = pr.u
+            kq[:, 1, : n_p[1 - qy]] = pr.v
+            kq[:, 0, n_m] = 1.0  # the constant row c0 sum_y X[y] (U only)
+            kern.append(np.ascontiguousarray(kq.reshape(-1, n_m + 1), dtype=r))
         plan = {
-            "amp": (self.pupil.mask / math.sqrt(self.pupil.n_valid * self.n_points)).astype(
-                self._real
-            ),
-            "x_index": x_index,
+            "amp": (
+                self.pupil.mask
+                * np.exp(-1j * np.pi * x / n)[:, None]  # half-sample centring along y
+                / math.sqrt(self.pupil.n_valid * self.n_points)
+            ).astype(c),
             "classes": classes,
-            # tilts split by the parity of the pupil sample: tx (n_x, n_p), ty (n_pts, n_p, 1)
+            "pairs": pairs,
+            "n_ns": n_ns,
+            "n_m": n_m,
+            # tilts split by the parity of the pupil sample: tx (n_x, n_p)
             "tx": [np.ascontiguousarray(tx[:, p::2], dtype=c) for p in (0, 1)],
-            "ty": [np.ascontiguousarray(ty[:, p::2, None], dtype=c) for p in (0, 1)],
-            "dense_t": [np.ascontiguousarray(k.dense.T, dtype=c) for k in classes],
-            "dense": [np.ascontiguousarray(k.dense, dtype=c) for k in classes],
+            "dense_t": [np.ascontiguousarray(k_.dense.T, dtype=c) for k_ in classes],
+            "w": np.ascontiguousarray(w[..., None], dtype=r),
+            "w1": np.ascontiguousarray(w1[..., None], dtype=r),
+            # c0 of the class whose dense part reads the samples of parity p
+            "y0": np.array([pairs[1].c0.imag, pairs[0].c0.imag]),
+            "kern": kern,
+            "delta": [
+                np.array([p_.delta.real, -p_.delta.imag], dtype=r)[:, None, None] for p_ in pairs
+            ],
             # sparse, not BLAS: small GEMMs stall in multi-threaded OpenBLAS on a busy machine
-            "bin": scipy.sparse.csr_matrix(self._binning_full[:, lines[order]]),
+            "bin_rows": scipy.sparse.csr_matrix(self._binning_full[:, lines[rows]]),
+            "bin_cols": scipy.sparse.csr_matrix(self._binning_full[:, lines[order]]),
+            # an integer binning factor: each line in one bin, summed by a reshape
+            "bin_perm": [_bin_permutation(self._binning_full[:, lines[i]]) for i in (rows, order)],
         }
         for v in plan.values():
             if isinstance(v, np.ndarray):
@@ -296,30 +384,37 @@ class PyramidWFS:
         """Work buffers kept across frames (a few MB, allocated once; lists over the parity
         ``p`` of the pupil samples or the class ``q`` of the detector lines).
 
-        ``a[p]`` ``(n_pix, n_x, n_p)``: the field times each x tilt on the samples ``x = p,
-        p+2, ...``; ``g`` ``(n_pix, n_x, n_lines)`` (lines class by class) and ``gq[q]``
-        ``(n_pix, n_x, n_q)``: step x; ``b[p]`` (flat, ``(n_p, m, n_lines)`` for a chunk of
-        ``m <= step`` points): the y tilts on the rows ``y = p, p+2, ...``; ``out[q]`` (flat,
-        ``(n_q, m, n_lines)``): step y; ``acc[q]`` ``(n_q, 2 n_lines)``: intensity
-        accumulators (real and imaginary parts interleaved). They make an instance not
-        thread-safe (use one instance per thread) and are not pickled.
+        ``a[p]`` ``(2, n_m, n_x, n_p)``: the field times each pair's x tilt on the columns ``x
+        = p, p+2, ...``, rows by parity (``n_m`` the larger count; spare rows zero);
+        ``gq[q]`` ``(2 n_m n_x, n_q)``: step x (complex, lines of class ``q``); ``xs`` (per
+        parity ``p``, then per chunk of pairs, :attr:`_chunks`) ``(n_m + 1, n_g, 2 n_lines)``:
+        the rows of parity ``p`` times the cosine and sine of each pair's y tilt, real parts
+        then imaginary parts, and the constant row; ``o[q]`` (flat, ``(n_l, 2, n_g, 2
+        n_lines)`` for a chunk): step y, the products ``U`` and ``V`` of the chunk's column
+        groups; ``s[q]`` ``(n_l, 2 n_lines)`` and ``x[q]`` ``(n_l,
+        n_lines)``: intensity accumulators. They make an instance not thread-safe (use one
+        instance per thread) and are not pickled.
         """
         plan = self._plan
-        n_pix, c = self.pupil.n_pix, self._complex
-        classes = plan["classes"]
-        n_x = plan["tx"][0].shape[0]
-        n_q = [k.lines.size for k in classes]
-        n_p = [len(range(p, n_pix, 2)) for p in (0, 1)]
+        c, r = self._complex, self._real
+        n_x, n_m = plan["tx"][0].shape[0], plan["n_m"]
+        n_q = [k.lines.size for k in plan["classes"]]
+        n_l = [pr.first.size for pr in plan["pairs"]]
+        n_px = [plan["tx"][p].shape[1] for p in (0, 1)]
         nl = sum(n_q)
-        per_point = (n_pix + nl) * nl * np.dtype(c).itemsize
-        step = max(1, min(self.n_points, _CHUNK_BYTES // per_point))
+        chunks = self._chunks
+        n_g = max(j1 - j0 + (j1 - j0 if two else 0) for j0, j1, two in chunks)
         return {
-            "a": [np.zeros((n_pix, n_x, n_p[p]), dtype=c) for p in (0, 1)],
-            "gq": [np.zeros((n_pix, n_x, n_q[q]), dtype=c) for q in (0, 1)],
-            "g": [np.zeros((n_pix, n_x, nl), dtype=c)],
-            "b": [np.zeros(n_p[p] * step * nl, dtype=c) for p in (0, 1)],
-            "out": [np.zeros(n_q[q] * step * nl, dtype=c) for q in (0, 1)],
-            "acc": [np.zeros((n_q[q], 2 * nl), dtype=self._real) for q in (0, 1)],
+            "a": [np.zeros((2, n_m, n_x, n_px[p]), dtype=c) for p in (0, 1)],
+            "gq": [np.zeros((2 * n_m * n_x, n_q[q]), dtype=c) for q in (0, 1)],
+            "xs": [
+                np.zeros((n_m + 1, (j1 - j0) * (2 if two else 1), 2 * nl), dtype=r)
+                for _ in (0, 1)
+                for j0, j1, two in chunks
+            ],
+            "o": [np.zeros(n_l[q] * 2 * n_g * 2 * nl, dtype=r) for q in (0, 1)],
+            "s": [np.zeros((n_l[q], 2 * nl), dtype=r) for q in (0, 1)],
+            "x": [np.zeros((n_l[q], nl), dtype=r) for q in (0, 1)],
         }
 
     def __getstate__(self) -> dict:
@@ -331,67 +426,123 @@ class PyramidWFS:
         self.__dict__.update(state)
 
     def _fields(self, field: np.ndarray):
-        """Detector-plane fields per chunk of modulation points.
+        """Detector-plane fields of all modulation points, as pair products.
 
-        Yields tuples ``(f0, f1)``, ``f_q`` of shape ``(n_q, k, n_lines)`` (complex): the
-        detector lines of class ``q`` (rows) by all detector lines (columns, class by class),
-        for ``k`` points, from a pupil field ``(n_pix, n_pix)`` (amplitude included). Step x
-        (``L`` along x, per distinct x tilt) is shared by the points with the same x offset;
-        step y (``L`` along y) is one product per class for a chunk of points (module
-        docstring). The result is the discrete beam-tilt propagation (tilt, 2-D FFT, mask,
-        inverse 2-D FFT per point) to rounding.
+        Yields one tuple ``(o0, o1)``, ``o_q`` of shape ``(n_l, 2, n_g, 2 n_lines)`` (real
+        parts, then imaginary parts): the products ``U`` and ``V`` of the class-``q`` lines
+        (module docstring) for the column groups (cosine and sine of each two-point pair, then
+        the one-point pairs) by all detector columns (class by class), from a pupil field
+        ``(n_pix, n_pix)`` (amplitude and half-sample centring included). Step x (``L`` along
+        x) is one complex product per class for all pairs; step y one real product per class
+        for all pairs, after the direct images are written.
 
         The arrays are the work buffers (:attr:`_work`): valid until the generator advances
         (copy them to keep them).
         """
         plan, work = self._plan, self._work
-        classes, dense, dense_t = plan["classes"], plan["dense"], plan["dense_t"]
-        x_index, ty = plan["x_index"], plan["ty"]
-        a, gq, g, b, out = work["a"], work["gq"], work["g"][0], work["b"], work["out"]
-        n_pts, nl = self.n_points, g.shape[-1]
-        n_p = [a[p].shape[-1] for p in (0, 1)]
-        n_q = [k.lines.size for k in classes]
-        step = b[0].size // (n_p[0] * nl)
-        n0 = n_q[0]
-        # step x: g[y, t, l] = sum_x field[y, x] tx[t, x] L[l, x]
-        for p in (0, 1):
-            np.multiply(field[:, None, p::2], plan["tx"][p][None], out=a[p])
+        classes, dense_t = plan["classes"], plan["dense_t"]
+        a, gq, xs, o = work["a"], work["gq"], work["xs"], work["o"]
+        n_m, r = plan["n_m"], self._real
+        n0 = classes[0].lines.size
+        nl = n0 + classes[1].lines.size
+        # step x: gq[q][(p, y', t), l] = sum_x field[p + 2 y', x] tx[t, x] L[l, x] (lines of
+        # class q)
+        for px in (0, 1):
+            for py in (0, 1):
+                f = field[py::2, px::2]
+                np.multiply(f[:, None], plan["tx"][px][None], out=a[px][py, : f.shape[0]])
         for q in (0, 1):
-            gq2 = gq[q].reshape(-1, gq[q].shape[-1])
-            apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq2.T)
-            gemm_acc(a[1 - q].reshape(-1, a[1 - q].shape[-1]), dense_t[q], gq2)
-        g[..., :n0] = gq[0]
-        g[..., n0:] = gq[1]
-        # step y, per chunk of points: out[l, k, c] = sum_y L[l, y] ty[k, y] g[y, x(k), c]
-        for k0 in range(0, n_pts, step):
-            k1 = min(k0 + step, n_pts)
-            m = k1 - k0
-            # contiguous (rows, m, n_lines) views of the flat buffers, whatever m
-            bm = [b[p][: n_p[p] * m * nl].reshape(n_p[p], m, nl) for p in (0, 1)]
-            om = [out[q][: n_q[q] * m * nl].reshape(n_q[q], m, nl) for q in (0, 1)]
+            apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq[q].T)
+            gemm_acc(a[1 - q].reshape(-1, a[1 - q].shape[-1]), dense_t[q], gq[q])
+        # (parity, y', pair, line, real/imaginary) views of step x's output
+        gqv = [gq[q].view(r).reshape(2, n_m, -1, gq[q].shape[-1], 2) for q in (0, 1)]
+        cols = (slice(0, n0), slice(n0, nl))
+        # per chunk of pairs: the y tilts, xs[p][y', group] = (cos, sin)(beta y) g[p, y', pair]
+        # (1/sqrt(2) for the one-point pairs) and the constant row; then step y, the direct
+        # images and o[q] += [u 1; v 0] @ xs[1-q]
+        chunks = self._chunks
+        for ci, (j0, j1, two) in enumerate(chunks):
+            x = [xs[p * len(chunks) + ci] for p in (0, 1)]
             for p in (0, 1):
-                for j, k in enumerate(range(k0, k1)):  # per point: no fancy-index temporary
-                    np.multiply(g[p::2, x_index[k]], ty[p][k], out=bm[p][:, j])
+                # real and imaginary parts apart (columns [re | im]), one op per class and part
+                for qx in (0, 1):
+                    for c in (0, 1):
+                        if two:
+                            np.multiply(
+                                gqv[qx][p, :, j0:j1, None, :, c],
+                                plan["w"][p][:, j0:j1],
+                                out=x[p][:n_m].reshape(n_m, j1 - j0, 2, 2, nl)[
+                                    :, :, :, c, cols[qx]
+                                ],
+                            )
+                        else:
+                            np.multiply(
+                                gqv[qx][p, :, j0:j1, :, c],
+                                plan["w1"][p],
+                                out=x[p][:n_m].reshape(n_m, j1 - j0, 2, nl)[:, :, c, cols[qx]],
+                            )
+                sig = x[p][:n_m].sum(axis=0)  # c0 sum_y, c0 = i y0
+                np.multiply(sig[:, nl:], -plan["y0"][p], out=x[p][n_m, :, :nl])
+                np.multiply(sig[:, :nl], plan["y0"][p], out=x[p][n_m, :, nl:])
+            n_g = x[0].shape[1]
+            om = []
             for q in (0, 1):
-                apply_runs(classes[q].runs, bm[q], om[q])
-                gemm_acc(dense[q], bm[1 - q].reshape(n_p[1 - q], -1), om[q].reshape(n_q[q], -1))
-            yield om[0], om[1]
+                pr = plan["pairs"][q]
+                n_l = pr.first.size
+                oq = o[q][: n_l * 2 * n_g * 2 * nl].reshape(n_l, 2, n_g, 2 * nl)
+                np.multiply(x[q][pr.src : pr.src + n_l, None], plan["delta"][q], out=oq)
+                gemm_acc(plan["kern"][q], x[1 - q].reshape(n_m + 1, -1), oq.reshape(2 * n_l, -1))
+                om.append(oq)
+            yield om[0], om[1], (j1 - j0 if two else 0)
 
-    @staticmethod
-    def _accumulate(acc: list[np.ndarray], f: tuple, h: tuple, scale: float = 1.0) -> None:
-        """``acc[q] += scale * sum_k Re(f_q * conj(h_q))`` per real/imaginary part (the
-        interleaved real view; ``f = h`` gives the intensity)."""
+    def _accumulate(self, acc: dict, f: tuple, h: tuple, scale: float = 1.0) -> None:
+        """``acc`` += ``scale`` times the bilinear intensity terms of the fields ``f`` and ``h``
+        (:meth:`_fields`; ``f = h`` gives the intensity): ``s[q]``, the sum of ``Re(conj(f)
+        h)`` per real/imaginary part over all products, and ``x[q]``, the symmetrised cross
+        terms ``Im(V_s conj(U_s)) - Im(U_c conj(V_c))`` (the first image is ``2 s + 4 x``,
+        the second ``2 s - 4 x``; module docstring)."""
+        n_ns = f[2]  # two-point pairs of the chunk (their groups first, cosine and sine)
         for q in (0, 1):
-            fv = f[q].view(acc[q].dtype)
-            hv = h[q].view(acc[q].dtype)
-            term = np.einsum("lkc,lkc->lc", fv, hv)
-            acc[q] += term if scale == 1.0 else scale * term
+            fq, hq = f[q], h[q]
+            nl = fq.shape[-1] // 2
+            s_term = np.einsum("lhgc,lhgc->lc", fq, hq)
 
-    def _bin(self, acc: list[np.ndarray]) -> np.ndarray:
-        """Class accumulators (:meth:`_accumulate`) -> detector frame ``(2n_sub, 2n_sub)``."""
-        img = np.concatenate([a[:, 0::2] + a[:, 1::2] for a in acc]).astype(np.float64)
-        b = self._plan["bin"]
-        return (b @ (b @ img).T).T
+            def im(a, b, nl=nl):  # sum over the groups of Im(a conj(b))
+                return np.einsum("lgc,lgc->lc", a[..., nl:], b[..., :nl]) - np.einsum(
+                    "lgc,lgc->lc", a[..., :nl], b[..., nl:]
+                )
+
+            def cross(p, r):  # Im(Vs conj Us) - Im(Uc conj Vc) of the fields p, r
+                t = im(p[:, 1, 1 : 2 * n_ns : 2], r[:, 0, 1 : 2 * n_ns : 2])
+                t -= im(p[:, 0, 0 : 2 * n_ns : 2], r[:, 1, 0 : 2 * n_ns : 2])
+                t -= im(p[:, 0, 2 * n_ns :], r[:, 1, 2 * n_ns :])
+                return t
+
+            x_term = cross(fq, fq) if f is h else 0.5 * (cross(fq, hq) + cross(hq, fq))
+            if scale != 1.0:
+                s_term *= scale
+                x_term *= scale
+            acc["s"][q] += s_term
+            acc["x"][q] += x_term
+
+    def _bin(self, acc: dict) -> np.ndarray:
+        """Accumulators (:meth:`_accumulate`) -> detector frame ``(2n_sub, 2n_sub)``."""
+        parts = []
+        for q in (0, 1):
+            nl = acc["x"][q].shape[-1]
+            s = 2.0 * (acc["s"][q][:, :nl] + acc["s"][q][:, nl:])
+            parts += [s + 4.0 * acc["x"][q], s - 4.0 * acc["x"][q]]
+        img = np.concatenate(parts).astype(np.float64)
+        perm = self._plan["bin_perm"]
+        if perm[0] is not None and perm[1] is not None:
+            n_b = self._binning_full.shape[0]
+            rows = img[perm[0]].reshape(n_b, -1, img.shape[1]).sum(axis=1)
+            return rows[:, perm[1]].reshape(n_b, n_b, -1).sum(axis=2)
+        rows = self._plan["bin_rows"] @ img
+        return (self._plan["bin_cols"] @ rows.T).T
+
+    def _new_acc(self) -> dict:
+        return {k: [np.zeros_like(a) for a in self._work[k]] for k in ("s", "x")}
 
     def _field(self, phase: np.ndarray) -> np.ndarray:
         return self._plan["amp"] * np.exp(1j * phase.astype(self._real))
@@ -399,10 +550,10 @@ class PyramidWFS:
     def _frames(self, phase: np.ndarray) -> np.ndarray:
         """Detector frames ``(m, 2 n_sub, 2 n_sub)`` of phase maps ``(m, n_pix, n_pix)`` [rad]."""
         out = np.empty((phase.shape[0], *self.frame_shape))
-        acc = self._work["acc"]
+        acc = {k: self._work[k] for k in ("s", "x")}
         with self._blas_threads():
             for i in range(phase.shape[0]):
-                for a in acc:
+                for a in acc["s"] + acc["x"]:
                     a.fill(0.0)
                 for f in self._fields(self._field(phase[i])):
                     self._accumulate(acc, f, f)
@@ -443,9 +594,10 @@ class PyramidWFS:
         dphase = opd_to_phase(delta, self.wavelength)
         out = np.empty((delta.shape[0], *self.frame_shape))
         with self._blas_threads():
-            base = [tuple(f.copy() for f in fs) for fs in self._fields(field)]  # buffers reused
+            # copies of the base fields: the generator reuses its buffers
+            base = [(f0.copy(), f1.copy(), n) for f0, f1, n in self._fields(field)]
             for i in range(delta.shape[0]):
-                acc = [np.zeros_like(a) for a in self._work["acc"]]
+                acc = self._new_acc()
                 dfield = 1j * dphase[i].astype(self._real) * field
                 for f0, f1 in zip(base, self._fields(dfield), strict=True):
                     self._accumulate(acc, f0, f1, 2.0)
