@@ -317,15 +317,24 @@ def bumpless_state(
     return x_end
 
 
+def _rows_of(bank: IIRBank, modes: np.ndarray) -> IIRBank:
+    """The Direct-Form I rows ``modes`` of ``bank`` (trailing zero coefficients dropped)."""
+    b, a = bank.b[modes], bank.a[modes]
+    nb = max(1, int(np.flatnonzero(np.any(b != 0, axis=0)).max(initial=0)) + 1)
+    na = max(1, int(np.flatnonzero(np.any(a != 0, axis=0)).max(initial=0)) + 1)
+    limit = None if bank.command_limit is None else bank.command_limit[modes]
+    return IIRBank(b[:, :nb], a[:, :na], bank.fs, command_limit=limit)
+
+
 class RealisedBank(ControllerBank):
     """A bank whose modes run in Direct-Form I or in state space (:class:`StateSpaceRows`).
 
     ``bank`` describes every mode's controller (its transfer function); the modes in
     ``rows.used`` run the state-space realisation instead of ``bank``'s Direct-Form I
-    recursion (their Direct-Form I rows are not run). Vectorised over modes: a frame is one
-    :class:`~aocontrol.controllers.IIRBank` step on every mode (zero rows for the state-space
-    modes) and one batched product over the state-space modes. The bank's ``command_limit``
-    clips both; a clipped state-space command enters the state through ``E`` (anti-windup).
+    recursion. Vectorised over modes: a frame is one :class:`~aocontrol.controllers.IIRBank`
+    step on the Direct-Form I modes and one batched product over the state-space modes. The
+    bank's ``command_limit`` clips both; a clipped command enters the state (the Direct-Form I
+    history, or the state-space state through ``E``: anti-windup).
 
     Parameters
     ----------
@@ -344,13 +353,18 @@ class RealisedBank(ControllerBank):
         self.rows = rows
         used = rows.used
         self._idx = np.flatnonzero(used)
-        b = np.where(used[:, None], 0.0, bank.b)
-        a = np.where(used[:, None], np.eye(1, bank.a.shape[1]), bank.a)
-        self._df = IIRBank(b, a, bank.fs, command_limit=bank.command_limit)
+        self._df_idx = np.flatnonzero(~used)
+        self._df = None
+        if self._df_idx.size:
+            self._df = _rows_of(bank, self._df_idx)
         idx = self._idx
-        self._F, self._G, self._H, self._J, self._E = (
-            getattr(rows, k)[idx] for k in ("F", "G", "H", "J", "E")
+        # Mode-last layout, (ns, ns, n) and (ns, n): a frame is one pass over contiguous rows
+        # of modes (a batched product of small matrices costs twice as much in numpy).
+        self._F, self._G, self._H, self._E = (
+            np.ascontiguousarray(np.moveaxis(getattr(rows, k)[idx], 0, -1))
+            for k in ("F", "G", "H", "E")
         )
+        self._J = rows.J[idx].copy()
         lim = bank.command_limit
         self._limit = None if lim is None else lim[idx]
         self.reset()
@@ -366,11 +380,12 @@ class RealisedBank(ControllerBank):
     @property
     def state(self) -> np.ndarray:
         """State of the state-space modes, shape ``(n_state_space_modes, ns)`` (a copy)."""
-        return self._x.copy()
+        return self._x.T.copy()
 
     def reset(self) -> None:
-        self._df.reset()
-        self._x = np.zeros((self._idx.size, self.rows.ns))
+        if self._df is not None:
+            self._df.reset()
+        self._x = np.zeros((self.rows.ns, self._idx.size))
 
     def set_history(self, measurements: np.ndarray, commands: np.ndarray, fit_frames: int) -> None:
         """Bumpless start from recent telemetry: Direct-Form I rows by
@@ -378,22 +393,29 @@ class RealisedBank(ControllerBank):
         :func:`bumpless_state` (both fitted over the last ``fit_frames`` frames)."""
         from aocontrol.adaptive._controller import bumpless_outputs
 
-        self._df.set_history(
-            measurements, bumpless_outputs(self._df, measurements, commands, fit_frames=fit_frames)
-        )
-        self._x = bumpless_state(self.rows, measurements, commands, fit_frames=fit_frames)[
-            self._idx
-        ]
+        if self._df is not None:
+            m = np.asarray(measurements, float)[:, self._df_idx]
+            u = np.asarray(commands, float)[:, self._df_idx]
+            self._df.set_history(m, bumpless_outputs(self._df, m, u, fit_frames=fit_frames))
+        x = bumpless_state(self.rows, measurements, commands, fit_frames=fit_frames)
+        self._x = np.ascontiguousarray(x[self._idx].T)
 
     def _step(self, m: np.ndarray) -> np.ndarray:
-        u = self._df.step(m)
+        if self._df is None:
+            u = np.empty(self.n_modes)
+        elif self._idx.size == 0:
+            u = self._df.step(m)
+        else:
+            u = np.empty(self.n_modes)
+            u[self._df_idx] = self._df.step(m[self._df_idx])
         if self._idx.size:
             x, mi = self._x, m[self._idx]
-            v = np.einsum("mi,mi->m", self._H, x) + self._J * mi
-            x_next = np.einsum("mij,mj->mi", self._F, x) + self._G * mi[:, None]
+            v = np.einsum("in,in->n", self._H, x) + self._J * mi
+            x_next = np.einsum("ijn,jn->in", self._F, x)
+            x_next += self._G * mi
             if self._limit is not None:
                 vc = np.clip(v, -self._limit, self._limit)
-                x_next += self._E * (vc - v)[:, None]
+                x_next += self._E * (vc - v)
                 v = vc
             if not np.isfinite(v).all():
                 bad = self._idx[~np.isfinite(v)][:10].tolist()
