@@ -247,8 +247,26 @@ def state_space_gains(plant: control.TransferFunction, rows: StateSpaceRows) -> 
 def state_space_gain(
     plant: control.TransferFunction, F: np.ndarray, G: np.ndarray, H: np.ndarray, J: float
 ) -> float:
-    """:func:`state_space_gains` of one controller ``(F, G, H, J)`` (shapes (ns, ns), (ns,),
-    (ns,), ())."""
+    """:func:`state_space_gains` of one controller.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+        Loop plant.
+    F : ndarray, shape (ns, ns)
+        State transition.
+    G : ndarray, shape (ns,)
+        Measurement input.
+    H : ndarray, shape (ns,)
+        Command output.
+    J : float
+        Direct term.
+
+    Returns
+    -------
+    float
+        The gain (``inf`` if the closed loop is not stable).
+    """
     F = np.atleast_2d(np.asarray(F, float))
     ns = F.shape[0] if F.size else 0
     g, h = (np.asarray(x, float).reshape(1, ns) for x in (G, H))
