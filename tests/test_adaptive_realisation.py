@@ -107,6 +107,16 @@ def test_lqg_in_state_space_is_the_fixed_lqg(case):
     want = np.array([ref.step(x) for x in m])
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
     assert realised.transfer_function(0).dt == 1 / FS
+    # With a command limit the clipped command enters the state through E = B, as the
+    # fixed LQG's anti-windup feeds its delay line.
+    lim = 0.5 * np.abs(want).max(axis=0)
+    limited = IIRBank(exact.b, exact.a, FS, command_limit=lim)
+    realised = RealisedBank(limited, rows)
+    ref = LQGBank(bank.state_space, dense=True, command_limit=lim)
+    got = np.array([realised.step(x) for x in m])
+    want = np.array([ref.step(x) for x in m])
+    assert np.any(np.abs(want) == lim)  # the limit was reached
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * np.abs(want).max())
 
 
 # ---------------------------------------------------------------------------- certificate
