@@ -433,10 +433,13 @@ class AdaptiveController(ControllerBank):
 
     def _switch(self, bank: IIRBank, rows: StateSpaceRows) -> None:
         depth = max(bank.b.shape[1], bank.a.shape[1], rows.ns + 1)
-        m, u = self._history(max(BUMPLESS_FRAMES, 4 * depth) + depth)
+        fit = max(BUMPLESS_FRAMES, 4 * depth)
+        # Direct-Form I rows: fitted over the last `fit` frames (after `depth` frames of
+        # initial state); state-space rows: run over the whole record (bumpless_state).
+        m, u = self._history(self._cap if rows.used.any() else fit + depth)
         bank.reset()
         runtime = RealisedBank(bank, rows)
-        runtime.set_history(m, u, fit_frames=m.shape[0] - depth)
+        runtime.set_history(m, u, fit_frames=min(fit, m.shape[0] - depth))
         self.current, self.realisation, self._runtime = bank, rows, runtime
 
     def _estimate(self, k: int) -> TelemetryPSD:

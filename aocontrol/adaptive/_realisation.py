@@ -197,15 +197,32 @@ def state_space_gains(plant: control.TransferFunction, rows: StateSpaceRows) -> 
     """
     out = np.full(rows.n_modes, np.nan)
     idx = np.flatnonzero(rows.used)
-    ns = rows.ns
     if idx.size == 0:
         return out
-    if ns == 0:
-        out[idx] = 0.0
-        return out
+    block = _command_gramians(plant, rows, idx)
+    gain = np.full(idx.size, np.inf)
+    done = np.all(np.isfinite(block), axis=(1, 2))
+    if done.any() and rows.ns:
+        gain[done] = np.sqrt(np.maximum(np.linalg.eigvalsh(block[done])[:, -1], 0.0))
+    elif rows.ns == 0:
+        gain[:] = 0.0
+    out[idx] = gain
+    return out
+
+
+def _command_gramians(
+    plant: control.TransferFunction, rows: StateSpaceRows, idx: np.ndarray
+) -> np.ndarray:
+    """Controller block ``W`` (shape (len(idx), ns, ns)) of the closed loop's observability
+    Gramian of the command, per mode ``idx``: a state mismatch ``delta`` makes a command
+    transient of energy ``delta^T W delta``. ``inf`` where the loop is not stable."""
+    ns = rows.ns
     F, G, H, J = (getattr(rows, k)[idx] for k in ("F", "G", "H", "J"))
     Ap, Bp, Cp, Dp = _plant_state_space(plant)
     n, npl = idx.size, Cp.size
+    out = np.full((n, ns, ns), np.inf)
+    if ns == 0:
+        return out
     # m = -(Cp xp + Dp u), u = H x + J m  =>  u = (H x - J Cp xp) / (1 + J Dp).
     s = 1.0 + J * Dp
     bad = s == 0
@@ -220,7 +237,6 @@ def state_space_gains(plant: control.TransferFunction, rows: StateSpaceRows) -> 
     acl[:, ns:] += Bp[None, :, None] * cu[:, None, :]
     radius = np.max(np.abs(np.linalg.eigvals(acl)), axis=1)
     stable = ~bad & (radius < 1.0)
-    gain = np.full(n, np.inf)
     if stable.any():
         # Doubling: W_2k = W_k + (A^k)^T W_k A^k, A^2k = A^k A^k.
         c = cu[stable]
@@ -235,12 +251,8 @@ def state_space_gains(plant: control.TransferFunction, rows: StateSpaceRows) -> 
             block = w[:, :ns, :ns]
             block = (block + np.swapaxes(block, 1, 2)) / 2
             converged = np.max(np.abs(a), axis=(1, 2)) < 1e-12
-            done = np.all(np.isfinite(block), axis=(1, 2)) & converged
-        top = np.full(block.shape[0], np.inf)
-        if done.any():
-            top[done] = np.sqrt(np.maximum(np.linalg.eigvalsh(block[done])[:, -1], 0.0))
-        gain[stable] = top
-    out[idx] = gain
+        block[~converged] = np.inf
+        out[stable] = block
     return out
 
 
@@ -281,24 +293,38 @@ def bumpless_state(
 ) -> np.ndarray:
     """Initial state of new state-space controllers entering a running loop (bumpless).
 
-    Run on the telemetry as it will run in the loop, with the commands actually applied
-    entering through ``E`` (``x <- (F - E H) x + (G - E J) m + E u_applied``: for an observer
-    form, the Kalman predictor of the loop state, stable whatever controller applied the
-    commands), from the state ``x0`` at the start of the last ``fit_frames`` frames that brings
-    its own commands ``H x + J m`` closest to the applied ones (weighted least squares: recent
-    frames count more, e-folding 20 frames, the last one most, so that the first new command
-    continues the last applied one). Returned: the state after the last frame, ready for the
-    next one. For the controller that produced the commands the fit is exact and the state is
-    its own (to rounding).
+    Each new controller is run over the whole recorded history as it will run in the loop,
+    from the zero state, with the commands actually applied entering through ``E``
+    (``x <- (F - E H) x + (G - E J) m + E u_applied``, the tracking form). For an observer
+    form (``E = B``) this is the Kalman predictor of the loop state driven by the true
+    measurements and commands, stable whatever controller applied them: the state is the
+    new controller's own estimate of the loop (converged at the estimator's rate from the
+    prior mean), and its first command is the command it would give on that loop: it differs
+    from the last applied command by what the two controllers disagree on (measured in
+    ``tests/test_adaptive_realisation.py``: an integrator lagging slow turbulence, a jump of
+    4 to 20 % of the command where a cold start jumps by all of it; in the issue's study the
+    residual after a switch is no higher than before). Matching the last command exactly
+    (a correction of the state of least transient energy) was tried: it vanished within a
+    frame and left the next command where it was. Returned: the state after the last frame,
+    ready for the next one. For the controller that produced the commands, started at zero at
+    the same frame, it is exactly its own state.
+
+    A least-squares fit of the initial state to the applied commands over the last frames
+    (what :func:`~aocontrol.adaptive.bumpless_outputs` does for Direct-Form I) is used only
+    for a mode whose tracking form is not stable (spectral radius of ``F - E H`` at least 1):
+    for an observer form it was measured to put a large error along the estimator's slow,
+    weakly observable directions (nearly cancelled poles near ``z = 1``), a command offset
+    that lasted the whole period (issue 17: 1e4 nm^2 on one mode).
 
     Parameters
     ----------
     rows : StateSpaceRows
-        The new realisations (only the rows in ``rows.used`` are fitted; others get zeros).
+        The new realisations (only the rows in ``rows.used``; others get zeros).
     measurements, commands : ndarray, shape (n_frames, n_modes)
-        Recent measurements and applied commands, oldest first.
+        Recent measurements and applied commands, oldest first (all of them are run).
     fit_frames : int
-        Frames at the end of the history that are fitted (``0``: the zero state).
+        Frames at the end of the history fitted by least squares for a mode whose tracking
+        form is not stable (``0``: its zero state).
 
     Returns
     -------
@@ -310,28 +336,40 @@ def bumpless_state(
     n, ns = rows.n_modes, rows.ns
     x_end = np.zeros((n, ns))
     idx = np.flatnonzero(rows.used)
-    if fit == 0 or ns == 0 or idx.size == 0:
+    if ns == 0 or idx.size == 0 or m.shape[0] == 0:
         return x_end
     F, G, H, J, E = (getattr(rows, k)[idx] for k in ("F", "G", "H", "J", "E"))
     Ft = F - E[:, :, None] * H[:, None, :]
     Gt = G - E * J[:, None]
-    m, u = m[-fit:, idx], u[-fit:, idx]
+    stable = np.max(np.abs(np.linalg.eigvals(Ft)), axis=1) < 1.0
+    m, u = m[:, idx], u[:, idx]
+    n_run = m.shape[0]
+    start = np.where(stable, 0, n_run - fit)  # fitted modes: zero state at the fit's start
     xs = np.zeros((idx.size, ns))  # zero-state response
-    phi = np.broadcast_to(np.eye(ns), (idx.size, ns, ns)).copy()  # Ft^k
-    own = np.empty((fit, idx.size))
-    free = np.empty((fit, idx.size, ns))
-    for k in range(fit):  # at a switch only, vectorised over modes
-        own[k] = np.einsum("mi,mi->m", H, xs) + J * m[k]
-        free[k] = np.einsum("mi,mij->mj", H, phi)
-        xs = np.einsum("mij,mj->mi", Ft, xs) + Gt * m[k][:, None] + E * u[k][:, None]
-        phi = Ft @ phi
-    age = np.arange(fit)[::-1]
-    w = np.exp(-age / _MEMORY)
-    w[-1] = _LAST_WEIGHT
-    lhs = np.transpose(free, (1, 0, 2)) * w[None, :, None]  # (modes, fit, ns)
-    rhs = ((u - own) * w[:, None]).T  # (modes, fit)
-    x0 = np.einsum("mij,mj->mi", np.linalg.pinv(lhs, rcond=1e-12), rhs)
-    x_end[idx] = xs + np.einsum("mij,mj->mi", phi, x0)
+    phi = np.broadcast_to(np.eye(ns), (idx.size, ns, ns)).copy()  # Ft^k from the fit's start
+    own = np.zeros((fit, idx.size))
+    free = np.zeros((fit, idx.size, ns))
+    fitted = ~stable
+    for k in range(n_run):  # at a switch only, vectorised over modes
+        active = k >= start
+        j = k - (n_run - fit)
+        if j >= 0 and fitted.any():
+            own[j] = np.einsum("mi,mi->m", H, xs) + J * m[k]
+            free[j] = np.einsum("mi,mij->mj", H, phi)
+            phi[fitted] = Ft[fitted] @ phi[fitted]
+        step = np.einsum("mij,mj->mi", Ft, xs) + Gt * m[k][:, None] + E * u[k][:, None]
+        xs = np.where(active[:, None], step, 0.0)
+    x = xs
+    if fitted.any() and fit:
+        age = np.arange(fit)[::-1]
+        w = np.exp(-age / _MEMORY)
+        w[-1] = _LAST_WEIGHT
+        lhs = np.transpose(free[:, fitted], (1, 0, 2)) * w[None, :, None]  # (modes, fit, ns)
+        rhs = ((u[-fit:, fitted] - own[:, fitted]) * w[:, None]).T  # (modes, fit)
+        x0 = np.einsum("mij,mj->mi", np.linalg.pinv(lhs, rcond=1e-12), rhs)
+        x = x.copy()
+        x[fitted] = xs[fitted] + np.einsum("mij,mj->mi", phi[fitted], x0)
+    x_end[idx] = x
     return x_end
 
 
@@ -407,8 +445,8 @@ class RealisedBank(ControllerBank):
 
     def set_history(self, measurements: np.ndarray, commands: np.ndarray, fit_frames: int) -> None:
         """Bumpless start from recent telemetry: Direct-Form I rows by
-        :func:`~aocontrol.adaptive.bumpless_outputs`, state-space rows by
-        :func:`bumpless_state` (both fitted over the last ``fit_frames`` frames)."""
+        :func:`~aocontrol.adaptive.bumpless_outputs` (fitted over the last ``fit_frames``
+        frames), state-space rows by :func:`bumpless_state` (run over all of them)."""
         from aocontrol.adaptive._controller import bumpless_outputs
 
         if self._df is not None:
