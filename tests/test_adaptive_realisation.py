@@ -218,26 +218,41 @@ def test_switch_from_an_integrator_to_the_lqg_starts_from_the_loop_state(case):
 
 
 # ---------------------------------------------------------------------------- the loop
-def test_adaptive_lqg_switches_in_every_mode_and_stays_bounded(case):
+def test_adaptive_lqg_switches_in_every_mode_and_matches_the_fixed_lqg(case):
     # The failure: the exact LQG refused (ill-conditioned) or diverging at a switch.
-    # In state space every certified mode is switched in and the loop stays near the fixed
-    # LQG designed on the truth.
-    plant, bank, _, _ = case
+    # In state space every certified mode is switched in, with no switch transient, and the
+    # loop reaches the residual of the LQG designed on the true disturbance model.
+    plant, _, _, _ = case
     rng = np.random.default_rng(4)
     d = signal.lfilter([1.0], AR2, rng.normal(size=(6000, 3)), axis=0)
     ctrl = AdaptiveController(
         Integrator(0.3, fs=FS, n_modes=3), plant, lqg_designer(n_vibrations=0),
         period=0.5, window=0.5, latency=0.01, modulus_margin=0.2, max_pole_radius=2.0,
     )  # fmt: skip
-    sensor = LinearModalSensor(1.0, 0.05)
+    sigma = 0.05
+    sensor = LinearModalSensor(1.0, sigma)
     res = run_loop(Stage(ctrl, sensor, LATENCY), ModalTimeSeries(d, FS), d.shape[0], rng=5)
     run = ctrl.last_run
     assert run.n_switches == 3
     assert not any("ill-conditioned" in r for red in run.redesigns for r in red.reasons.values())
-    e = res.telemetry["residuals"][3000:]
-    integ = run_loop(
-        Stage(Integrator(0.3, fs=FS, n_modes=3), sensor, LATENCY),
-        ModalTimeSeries(d, FS), d.shape[0], rng=5,
-    )  # fmt: skip
-    e_int = integ.telemetry["residuals"][3000:]
-    assert np.mean(e**2) < np.mean(e_int**2)
+    e = res.telemetry["residuals"].astype(float)
+    for s in run.switch_frames:  # no transient: the 50 frames after within 2x those before
+        assert np.mean(e[s : s + 50] ** 2) <= 2 * np.mean(e[s - 50 : s] ** 2)
+    p1, p2 = 2 * R * np.cos(THETA), -R * R
+    var = (1 - p2) / ((1 + p2) * ((1 - p2) ** 2 - p1**2))  # AR(2), unit innovation
+    truth = DisturbanceModel(
+        [[p1, p2]] * 3,
+        [var] * 3,
+        np.zeros((3, 0)),
+        np.zeros((3, 0)),
+        np.zeros((3, 0)),
+        fs=FS,
+    )
+    freqs = np.linspace(0.0, FS / 2, 1025)
+    noise = sigma**2 * 2 / FS
+    fixed = lqg(plant, freqs, truth.psd(freqs), noise_psd=noise, model=truth)
+    ref = run_loop(Stage(fixed, sensor, LATENCY), ModalTimeSeries(d, FS), d.shape[0], rng=5)
+    late = slice(3000, None)
+    j_adapt = np.mean(e[late] ** 2)
+    j_fixed = np.mean(ref.telemetry["residuals"][late].astype(float) ** 2)
+    assert j_adapt <= 1.2 * j_fixed, (j_adapt, j_fixed)  # measured: 3.38 against 3.25
