@@ -24,7 +24,7 @@ from aocontrol.adaptive._realisation import (
 from aocontrol.adaptive._redesign import MAX_RECURSION_GAIN, recursion_gain
 from aocontrol.controllers import IIRBank, Integrator, LQGBank
 from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, run_loop
-from aocontrol.synthesis import lqg
+from aocontrol.synthesis import TelemetryPSD, lqg
 from aocontrol.synthesis._armodel import DisturbanceModel
 
 FS = 3000.0
@@ -256,3 +256,26 @@ def test_adaptive_lqg_switches_in_every_mode_and_matches_the_fixed_lqg(case):
     j_adapt = np.mean(e[late] ** 2)
     j_fixed = np.mean(ref.telemetry["residuals"][late].astype(float) ** 2)
     assert j_adapt <= 1.2 * j_fixed, (j_adapt, j_fixed)  # measured: 3.38 against 3.25
+
+
+def test_lqg_designer_keeps_a_better_current_controller():
+    # A mode's LQG predicted worse than the current controller on the very estimate (here:
+    # two strong resonances the model without vibrations cannot fit) is not designed; the
+    # same LQG as the current controller is not refused (equal, not worse).
+    plant = loop_plant(FS, LATENCY)
+    model = DisturbanceModel(
+        [[2 * R * np.cos(THETA), -R * R]], [100.0], [[48.0, 117.0]], [[0.005, 0.012]],
+        [[30.0, 30.0]], fs=FS,
+    )  # fmt: skip
+    freqs = np.linspace(0.0, FS / 2, 1025)
+    psd = model.psd(freqs)
+    tel = TelemetryPSD(
+        freqs=freqs, psd=psd, noise_psd=np.array([1e-3]), pseudo_open_loop=np.zeros((8, 1)),
+        pol_psd=psd, fs=FS, noise_band=(0.8, 1.0), method="welch",
+    )  # fmt: skip
+    full = lqg_designer(n_vibrations=2)(tel, plant, Integrator(0.3, fs=FS))
+    assert not full.failed
+    poor = lqg_designer(n_vibrations=0)(tel, plant, full.controller)
+    assert "predicted residual" in poor.failed[0]
+    assert not lqg_designer(n_vibrations=2)(tel, plant, full.controller).failed
+    assert not lqg_designer(n_vibrations=0, no_worse=False)(tel, plant, full.controller).failed
