@@ -263,6 +263,13 @@ def lqg_designer(
     state-space gain of that realisation (:class:`Proposal.realisation`). Measured on the
     issue's disturbance model: gains of 4e2 to 1e4 against ``1e11`` to ``1e13`` for the
     Direct-Form I recursion of the same transfer function. No cancellation is needed.
+    Measured on ``bright1-best`` (quick scene, 24 modes), the wind doubling over 60 s,
+    W = 1 s, ``select=0.9``, latency 0.5 s (machine loaded by other jobs; residuals do not
+    depend on it): the adaptive LQG's residual 23.7 nm^2 at T = 5 s (late 25.0) and 21.7 at
+    T = 1 s, against 141.7 (late 381.9) and 49.2 in Direct-Form I with 61 and 223 mode
+    designs refused; the adaptive data-driven bank 22.5, its fixed design 27.8. No mode
+    design is refused for conditioning; those refused are LQGs predicted worse than the
+    current controller (``no_worse``).
 
     ``realisation="direct"``: run as its transfer function in Direct-Form I. The LQG's exact
     transfer function (``ss2tf`` of its state space) carries nearly
