@@ -86,7 +86,7 @@ def test_exact_lqg_transfer_function_is_refused_by_the_recursion_gain(case):
 def test_lqg_designer_proposal_is_the_lqg_and_certify_matches_the_time_domain(case):
     plant, tel, _ = case
     current = Integrator(0.3, fs=FS, n_modes=1)
-    design = lqg_designer()
+    design = lqg_designer(realisation="direct")  # the Direct-Form I proposal, cancelled
     prop = design(tel, plant, current)
     # The designer's own LQG (same fit): its state-space response is the reference.
     bank = lqg(plant, tel.freqs, tel.psd, noise_psd=tel.noise_psd)

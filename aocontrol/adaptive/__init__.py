@@ -24,8 +24,8 @@ commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 t
    current ones: :func:`datadriven_designer` (``datadriven(..., initial=current)``, each
    mode's structure kept, few iterations),
    :func:`modal_gain_designer` (the optimised integrator gain of Gendron & Léna, the usual
-   practice today) or :func:`lqg_designer` (LQG re-identified from the same window, run as
-   its exact transfer function).
+   practice today) or :func:`lqg_designer` (LQG re-identified from the same window, run in
+   its own observer form: :class:`StateSpaceRows` in :attr:`Proposal.realisation`).
 4. **Certify.** Each mode of the proposal is checked before it is used: closed-loop
    stability (:func:`aocontrol.analysis.is_stable`), modulus margin at least
    ``modulus_margin`` (:func:`aocontrol.analysis.modulus_certificate`, the certificate the
@@ -39,13 +39,17 @@ commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 t
    recursion: ``recursion_gain`` (in ``aocontrol.adaptive._redesign``), the gain from a
    mismatch of the filter's state to the command, at most ``max_recursion_gain`` (an exact
    LQG transfer function with nearly cancelling poles and zeros near ``z = 1`` has a stable
-   loop and a margin, and a gain of ``1e12``). A mode that fails, or that the designer
+   loop and a margin, and a gain of ``1e12``); a mode the loop runs in state space is
+   checked on that realisation instead (:func:`state_space_gains`: the same LQG in its
+   observer form has ``4e2`` to ``1e4``). A mode that fails, or that the designer
    could not design, keeps its current controller and is reported; a proposal with no
    certified mode is not switched in at all (counted). **An uncertified controller is never used.**
 5. **Switch** after the design latency (a set value, or the measured compute time rounded up
-   to frames), **bumplessly**: the new bank's Direct-Form I state is set from the recent
-   measurements and the commands actually applied (:meth:`IIRBank.set_history`), so the
-   first command of the new filter continues the loop instead of restarting from zero.
+   to frames), **bumplessly**: the new bank's state is set from the recent measurements and
+   the commands actually applied, so the first command of the new filter continues the loop
+   instead of restarting from zero: Direct-Form I rows by :func:`bumpless_outputs`,
+   state-space rows by :func:`bumpless_state`. The loop runs a :class:`RealisedBank`
+   (Direct-Form I rows and state-space rows, each batched over its modes).
 
 Timing: frame ``k`` (counted from :meth:`reset`; a frame rejected for a non-finite measurement
 is not stepped, hence not counted) is at ``k / fs``. Designs are requested at
@@ -81,6 +85,13 @@ from aocontrol.adaptive._designers import (
     lqg_designer,
     modal_gain_designer,
 )
+from aocontrol.adaptive._realisation import (
+    RealisedBank,
+    StateSpaceRows,
+    bumpless_state,
+    state_space_gain,
+    state_space_gains,
+)
 from aocontrol.adaptive._redesign import (
     BOUND_N_FFT,
     RANKINGS,
@@ -105,9 +116,12 @@ __all__ = [
     "AdaptiveRun",
     "Designer",
     "Proposal",
+    "RealisedBank",
     "Redesign",
+    "StateSpaceRows",
     "Update",
     "bumpless_outputs",
+    "bumpless_state",
     "certify",
     "datadriven_designer",
     "lqg_designer",
@@ -116,4 +130,6 @@ __all__ = [
     "redesign",
     "residual_shift",
     "select_modes",
+    "state_space_gain",
+    "state_space_gains",
 ]

@@ -12,6 +12,7 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_in_range, check_int, check_nonnegative, check_positive
+from aocontrol.adaptive._realisation import RealisedBank, StateSpaceRows
 from aocontrol.adaptive._redesign import RANKINGS, Designer, _merge, redesign
 from aocontrol.controllers import ControllerBank, IIRBank
 from aocontrol.plant import check_system, plant_fs, z_inverse_coefficients
@@ -261,7 +262,10 @@ class AdaptiveController(ControllerBank):
     Attributes
     ----------
     current : IIRBank
-        The bank in use.
+        The bank in use (every mode's transfer function).
+    realisation : StateSpaceRows
+        The modes of ``current`` the loop runs in state space (``realisation.used``; e.g. an
+        LQG's observer form), the others running ``current``'s Direct-Form I recursion.
     run : AdaptiveRun
         Record of the run in progress; :attr:`last_run` that of the previous one.
     """
@@ -379,13 +383,15 @@ class AdaptiveController(ControllerBank):
             self.last_run = self.run
         self.run = AdaptiveRun()
         self.current = _merge(self._initial, self._initial, np.zeros(self.n_modes, dtype=bool))
+        self.realisation = StateSpaceRows.none(self.n_modes)
+        self._runtime = RealisedBank(self.current, self.realisation)
         self._last_ratio = np.full(self.n_modes, np.nan)
         cap = self._window_frames + self._lead
         self._cap = cap
         self._m = np.zeros((cap, self.n_modes))
         self._u = np.zeros((cap, self.n_modes))
         self._k = 0
-        self._pending: tuple[int, IIRBank] | None = None
+        self._pending: tuple[int, IIRBank, StateSpaceRows] | None = None
 
     def transfer_function(self, mode: int = 0) -> control.TransferFunction:
         """The current bank's controller of ``mode`` (it changes at each switch)."""
@@ -394,7 +400,7 @@ class AdaptiveController(ControllerBank):
     def _step(self, m: np.ndarray) -> np.ndarray:
         k = self._k
         if self._pending is not None and self._pending[0] == k:
-            self._switch(self._pending[1])
+            self._switch(*self._pending[1:])
             self._pending = None
         # The first design once a window is available, then every period: every period
         # starts from the same first design (that of the fixed strategy).
@@ -406,11 +412,11 @@ class AdaptiveController(ControllerBank):
             if self._pending is None:
                 self._redesign(k)
                 if self._pending is not None and self._pending[0] == k:  # zero latency
-                    self._switch(self._pending[1])
+                    self._switch(*self._pending[1:])
                     self._pending = None
             else:
                 self.run.n_skipped += 1
-        u = self.current.step(m)
+        u = self._runtime.step(m)
         slot = k % self._cap
         self._m[slot] = m
         self._u[slot] = u
@@ -425,12 +431,16 @@ class AdaptiveController(ControllerBank):
         idx = np.arange(self._k - n, self._k) % self._cap
         return self._m[idx], self._u[idx]
 
-    def _switch(self, bank: IIRBank) -> None:
-        depth = max(bank.b.shape[1], bank.a.shape[1])
-        m, u = self._history(max(BUMPLESS_FRAMES, 4 * depth) + depth)
+    def _switch(self, bank: IIRBank, rows: StateSpaceRows) -> None:
+        depth = max(bank.b.shape[1], bank.a.shape[1], rows.ns + 1)
+        fit = max(BUMPLESS_FRAMES, 4 * depth)
+        # Direct-Form I rows: fitted over the last `fit` frames (after `depth` frames of
+        # initial state); state-space rows: run over the whole record (bumpless_state).
+        m, u = self._history(self._cap if rows.used.any() else fit + depth)
         bank.reset()
-        bank.set_history(m, bumpless_outputs(bank, m, u, fit_frames=m.shape[0] - depth))
-        self.current = bank
+        runtime = RealisedBank(bank, rows)
+        runtime.set_history(m, u, fit_frames=min(fit, m.shape[0] - depth))
+        self.current, self.realisation, self._runtime = bank, rows, runtime
 
     def _estimate(self, k: int) -> TelemetryPSD:
         """The disturbance and noise estimate of a design requested at frame ``k``."""
@@ -473,7 +483,12 @@ class AdaptiveController(ControllerBank):
         switch = None
         if up.certified.any():
             switch = k + latency
-            self._pending = (switch, up.bank)
+            rows = self.realisation
+            if up.realisation is not None:
+                rows = rows.merge(up.realisation, up.certified)
+            else:  # the replaced modes run in Direct-Form I
+                rows = rows.merge(StateSpaceRows.none(self.n_modes), up.certified)
+            self._pending = (switch, up.bank, rows)
         elif up.selected is None or up.selected.any():
             logger.warning(
                 "redesign at frame %d: no mode certified, the current bank stays (%s)",

@@ -11,6 +11,7 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_in_range, check_positive
+from aocontrol.adaptive._realisation import StateSpaceRows, state_space_gains
 from aocontrol.analysis import (
     is_stable,
     modulus_certificate,
@@ -58,11 +59,18 @@ class Proposal:
         design so. :func:`certify` then reuses it instead of certifying the mode again
         (the pole radius and the margin against ``modulus_margin`` are still checked);
         ``nan`` (or ``None`` for all) where the designer did not certify.
+    realisation : StateSpaceRows, optional
+        State-space realisations the loop runs instead of ``controller``'s Direct-Form I
+        recursion, for the modes in ``realisation.used`` (e.g. an LQG's observer form: its
+        exact transfer function is an ill-conditioned recursion); ``controller`` still
+        holds their transfer functions (certified from it). ``None``: every mode in
+        Direct-Form I.
     """
 
     controller: IIRBank
     failed: dict[int, str] = field(default_factory=dict)
     margin: np.ndarray | None = None
+    realisation: StateSpaceRows | None = None
 
 
 Designer = Callable[[TelemetryPSD, control.TransferFunction, IIRBank], Proposal]
@@ -128,6 +136,7 @@ def certify(
     modes: object = None,
     certified_margin: np.ndarray | None = None,
     max_recursion_gain: float = MAX_RECURSION_GAIN,
+    realisation: StateSpaceRows | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[int, str]]:
     """Certificates of each mode of ``bank`` on ``plant``: what may be switched into a loop.
 
@@ -138,7 +147,11 @@ def certify(
     pole of its controller has modulus at most ``max_pole_radius`` (batched companion
     matrices; 1 admits an integrator's pole at ``z = 1``) and the coefficients the loop runs
     are a well-conditioned recursion: the closed-loop gain from a mismatch of the Direct-Form
-    I state to the command (:func:`recursion_gain`) is at most ``max_recursion_gain``. A mode
+    I state to the command (:func:`recursion_gain`) is at most ``max_recursion_gain``; a mode
+    the loop runs in state space (``realisation``) is checked on that realisation instead:
+    the closed-loop gain from a mismatch of its state to the command
+    (:func:`~aocontrol.adaptive._realisation.state_space_gains`) is at most
+    ``max_recursion_gain``. A mode
     whose margin and stability the designer already certified with these certificates
     (``certified_margin``, :attr:`Proposal.margin`) does not have them computed twice (its
     pole radius and recursion gain are still checked).
@@ -159,7 +172,10 @@ def certify(
         Margins already certified on ``plant`` (closed loop stable), ``nan`` where not: those
         modes are checked against ``modulus_margin`` and the pole radius only.
     max_recursion_gain : float, default :data:`MAX_RECURSION_GAIN`
-        Largest :func:`recursion_gain` accepted, > 0.
+        Largest :func:`recursion_gain` (or state-space gain) accepted, > 0.
+    realisation : StateSpaceRows, optional
+        The state-space realisations the loop will run for the modes in ``realisation.used``
+        (rows aligned with ``bank``); their transfer functions are ``bank``'s.
 
     Returns
     -------
@@ -184,6 +200,13 @@ def certify(
             raise ValueError(
                 f"certified_margin must have shape ({n},) (one per mode), got {known.shape}"
             )
+    if realisation is not None and realisation.n_modes != n:
+        raise ValueError(
+            f"realisation must have {n} modes (one per mode), got {realisation.n_modes}"
+        )
+    ss_gain = np.full(n, np.nan)
+    if realisation is not None and realisation.used.any():
+        ss_gain = state_space_gains(plant, realisation)
     radius = _pole_radius(bank.a)
     for i in todo:
         i = int(i)
@@ -201,6 +224,13 @@ def certify(
             reasons[i] = "closed loop unstable"
         elif margin[i] < mu * (1 - _MARGIN_RTOL):
             reasons[i] = f"modulus margin {margin[i]:.4g} < {mu:g}"
+        elif realisation is not None and realisation.used[i]:
+            if not ss_gain[i] <= gmax:
+                reasons[i] = (
+                    f"state-space gain {ss_gain[i]:.3g} > {gmax:g} (ill-conditioned realisation)"
+                )
+            else:
+                ok[i] = True
         elif (g := recursion_gain(plant, bank.b[i], bank.a[i])) > gmax:
             reasons[i] = f"recursion gain {g:.3g} > {gmax:g} (ill-conditioned realisation)"
         else:
@@ -404,6 +434,9 @@ class Update:
         Modes redesigned (``None``: all).
     ratio : ndarray, shape (n_modes,) or None
         ``last_ratio`` updated for the replaced modes (``None`` without selection).
+    realisation : StateSpaceRows or None
+        State-space realisations of the replaced modes that run in state space (rows of all
+        modes; ``used`` only where certified), ``None`` if none.
     """
 
     bank: IIRBank
@@ -412,6 +445,7 @@ class Update:
     reasons: dict[int, str]
     selected: np.ndarray | None
     ratio: np.ndarray | None
+    realisation: StateSpaceRows | None = None
 
 
 def redesign(
@@ -492,6 +526,11 @@ def redesign(
             f"the designer's Proposal.margin must have shape ({modes.size},), got "
             f"{np.shape(proposal.margin)}"
         )
+    rows = proposal.realisation
+    if rows is not None and rows.n_modes != modes.size:
+        raise ValueError(
+            f"the designer's Proposal.realisation must have {modes.size} modes, got {rows.n_modes}"
+        )
     todo = [i for i in range(modes.size) if i not in proposal.failed]
     ok_s, margin_s, reasons_s = certify(
         plant,
@@ -500,6 +539,7 @@ def redesign(
         max_pole_radius=max_pole_radius,
         modes=todo,
         certified_margin=proposal.margin,
+        realisation=rows,
     )
     ok[modes], margin[modes] = ok_s, margin_s
     reasons = {
@@ -513,4 +553,8 @@ def redesign(
         )
         ratio[modes[take]] = rho
     full = _join(current, [(modes, proposal)]).controller
-    return Update(_merge(current, full, ok), ok, margin, reasons, selected, ratio)
+    realised = None
+    if rows is not None and (rows.used & ok_s).any():
+        taken = dataclasses.replace(rows, used=rows.used & ok_s)
+        realised = taken.expand(modes, n)
+    return Update(_merge(current, full, ok), ok, margin, reasons, selected, ratio, realised)
