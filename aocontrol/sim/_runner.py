@@ -44,6 +44,7 @@ from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
 from aocontrol.sim.science import LongExposure
+from aocontrol.sim.wfs.sensors import _LinearRun
 
 __all__ = ["run_loop", "drive", "engine_blas_threads", "ENV_BLAS_THREADS"]
 
@@ -68,6 +69,9 @@ _POLE_RADIUS_TOL = 1e-9
 _GROWTH_FACTOR = 2.0
 _GROWTH_CHUNKS = 3
 _GROWTH_RATIO = 30.0
+# The fused frame loop (_StageRun.run_frames) needs no check of the measurement's finiteness
+# when the residual guard and the noise are below this bound: their sum is then finite.
+_FUSED_BOUND = 1e150
 
 
 #: Environment variable: BLAS threads of a run (module docstring); ``0`` leaves the BLAS's own.
@@ -243,6 +247,15 @@ class _StageRun:
                 float(radius.max()),
             )
         self.ctrl.reset()
+        # The frames of a chunk in one fused loop (run_frames): a linear sensor, no tracker,
+        # no DM clip, a controller whose step is the plain IIR recursion.
+        self.fusable = (
+            type(self.sensor) is _LinearRun
+            and self.tracker is None
+            and not self.clip
+            and isinstance(self.ctrl, IIRBank)
+            and self.ctrl._recursion_state() is not None
+        )
 
     # -- chunk bookkeeping ------------------------------------------------------------------
     def begin_chunk(self, d: np.ndarray, m_chunk: int) -> None:
@@ -305,6 +318,96 @@ class _StageRun:
                     "energy (sustained growth, a slowly diverging loop)",
                 )
             del self.energy[0]
+
+    # -- the frames of a chunk -------------------------------------------------------------
+    def run_frames(
+        self,
+        d: np.ndarray,
+        opd: Callable[[], np.ndarray],
+        r: np.ndarray | None = None,
+        offset: np.ndarray | None = None,
+    ) -> None:
+        """Frames ``0 ... len(d) - 1`` of the chunk, for a sensor that reads no map.
+
+        The same as :meth:`step` frame after frame (``d``, ``r`` and ``offset`` give one row
+        per frame); a linear stage (:attr:`fusable`) runs in one fused loop
+        (:meth:`_fused_frames`), with the same values bit for bit.
+        """
+        if self.fusable and self._fused_frames(d, d if r is None else r, offset):
+            return
+        step = self.step
+        for j in range(d.shape[0]):
+            step(j, d[j], opd, None if r is None else r[j], None if offset is None else offset[j])
+
+    def _fused_frames(self, d: np.ndarray, r: np.ndarray, offset: np.ndarray | None) -> bool:
+        """The chunk's frames in one loop: per frame exactly the operations of :meth:`step`
+        (sensor read, ``IIRBank.step``, delay line, DM, residual, guard) on the same values,
+        without the calls and checks that a linear stage makes redundant. The measurement
+        ``e_prev + noise`` is finite (the guard bounds the residual, the noise is checked
+        per chunk); a non-finite command is reported with the controller's
+        ``FloatingPointError`` (at the guard that it trips, or at the end of the chunk).
+        Returns False (nothing done) when the chunk's noise or guard is too large for that.
+        """
+        sensor = self.sensor
+        noise = sensor.noise
+        m = d.shape[0]
+        if not (self.limit < _FUSED_BOUND and np.all(np.abs(noise[:m]) < _FUSED_BOUND)):
+            return False
+        ctrl = self.ctrl
+        taps, hist_c, products, sums = ctrl._recursion_state()
+        n, depth = self.n, taps.shape[0]
+        og = None if sensor.unit_gain else sensor.optical_gain
+        ring, ring_depth, k0, w0, frac = self.hist, self.depth, self.k0, self.w0, self.frac
+        out_m = self.out_m if self.out_m is not None else np.empty((m, n))
+        out_u = self.out_u if self.out_u is not None else np.empty((m, n))
+        out_y, out_e = self.out_y, self.out_e
+        tmp = np.empty(n)
+        head, k, e, limit = ctrl._head, self.k, self.e_prev, self.limit_check
+        two = depth == 2
+        j = 0
+        try:
+            for j in range(m):
+                # The sensor (_LinearRun.read): og e + noise.
+                mj = out_m[j]
+                if og is None:
+                    np.add(e, noise[j], out=mj)
+                else:
+                    np.multiply(og, e, out=mj)
+                    mj += noise[j]
+                # IIRBank._step on a finite measurement.
+                head = (head - 1) % depth
+                hist_c[head, :n] = mj
+                hist_c[head + depth, :n] = mj
+                np.multiply(taps, hist_c[head : head + depth], out=products)
+                if two:
+                    np.add(products[0], products[1], out=sums)
+                else:
+                    np.add.reduce(products, axis=0, out=sums)
+                u = np.add(sums[:n], sums[n:], out=out_u[j])
+                hist_c[head, n:] = u
+                hist_c[head + depth, n:] = u
+                # The delay line and the DM (frame()).
+                ring[k % ring_depth] = u
+                y = out_y[j]
+                if frac:
+                    np.multiply(ring[(k - k0) % ring_depth], w0, out=y)
+                    y += np.multiply(frac, ring[(k - k0 - 1) % ring_depth], out=tmp)
+                else:
+                    y[...] = ring[(k - k0) % ring_depth]
+                if offset is not None:
+                    y += offset[j]
+                e = np.subtract(r[j], y, out=out_e[j])
+                if not e @ e < limit:
+                    self.k = k
+                    _finite_commands(out_u[: j + 1])
+                    self._diverged(k, np.abs(e))
+                k += 1
+            _finite_commands(out_u[:m])
+        finally:
+            ctrl._head = head
+            self.k, self.e_prev = k, e
+        ctrl._last_command = out_u[m - 1].copy()
+        return True
 
     # -- one frame of the stage's rate --------------------------------------------------------
     def step(
@@ -443,6 +546,15 @@ def controller_counters(ctrl: Any) -> dict[str, int]:
         if value is not None:
             out[name] = int(np.sum(value))
     return out
+
+
+def _finite_commands(u: np.ndarray) -> None:
+    """Raise the controller's ``FloatingPointError`` at the first non-finite command row."""
+    bad_rows = ~np.isfinite(u).all(axis=1)
+    if bad_rows.any():
+        row = u[int(np.flatnonzero(bad_rows)[0])]
+        bad = np.flatnonzero(~np.isfinite(row))[:10].tolist()
+        raise FloatingPointError(f"controller command is not finite for modes {bad}")
 
 
 def _sequential_sum(total: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -691,8 +803,7 @@ def run_loop(
                 y = run.step(j, d[j], resid)
                 resid.set(form, maps[j], y)  # references only: the map formed if asked
         else:
-            for j in range(m_chunk):
-                run.step(j, d[j], resid)
+            run.run_frames(d, resid)
         ys = run.chunk_dm  # the chunk's DM shapes (m_chunk, n)
         run.end_chunk(d, first)
         if science is not None:
