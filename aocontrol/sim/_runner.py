@@ -38,6 +38,7 @@ import numpy as np
 from aocontrol._validation import check_int
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import z_inverse_coefficients
+from aocontrol.sim import _fused
 from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._phase_maps import shape_synthesizer
 from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
@@ -361,6 +362,10 @@ class _StageRun:
         out_m = self.out_m if self.out_m is not None else np.empty((m, n))
         out_u = self.out_u if self.out_u is not None else np.empty((m, n))
         out_y, out_e = self.out_y, self.out_e
+        compiled = _fused.kernel()
+        if compiled is not None:
+            self._compiled_frames(compiled, np.ascontiguousarray(r), offset, out_m, out_u)
+            return True
         tmp = np.empty(n)
         head, k, e, limit = ctrl._head, self.k, self.e_prev, self.limit_check
         two = depth == 2
@@ -408,6 +413,44 @@ class _StageRun:
             self.k, self.e_prev = k, e
         ctrl._last_command = out_u[m - 1].copy()
         return True
+
+    def _compiled_frames(
+        self,
+        compiled: Callable,
+        r: np.ndarray,
+        offset: np.ndarray | None,
+        out_m: np.ndarray,
+        out_u: np.ndarray,
+    ) -> None:
+        """:meth:`_fused_frames` through the compiled loop (:mod:`aocontrol.sim._fused`)."""
+        ctrl, sensor = self.ctrl, self.sensor
+        taps, hist_c, _, _ = ctrl._recursion_state()
+        m = r.shape[0]
+        og = np.ascontiguousarray(sensor.optical_gain, dtype=float)
+        has_offset = offset is not None
+        off = np.ascontiguousarray(offset) if has_offset else np.zeros((1, self.n))
+        k_start, head, first, e_prev = self.k, ctrl._head, 0, self.e_prev
+        try:
+            while True:
+                status, j, head = compiled(
+                    first, r, off, has_offset, sensor.noise, og, bool(sensor.unit_gain),
+                    e_prev, taps, hist_c, head, self.hist, k_start + first, self.k0,
+                    self.w0, self.frac, self.limit_check, out_m, out_u, self.out_y, self.out_e,
+                )  # fmt: skip
+                if status == _fused.DONE:
+                    self.k, self.e_prev = k_start + m, self.out_e[m - 1]
+                    break
+                self.k = k_start + j
+                if status == _fused.NOT_FINITE:
+                    _finite_commands(out_u[j : j + 1])
+                self._diverged(k_start + j, np.abs(self.out_e[j]))  # raises, or goes on
+                first, e_prev = j + 1, self.out_e[j]
+                if first == m:
+                    self.k, self.e_prev = k_start + m, self.out_e[m - 1]
+                    break
+        finally:
+            ctrl._head = head
+        ctrl._last_command = out_u[m - 1].copy()
 
     # -- one frame of the stage's rate --------------------------------------------------------
     def step(

@@ -541,12 +541,17 @@ class Atmosphere:
             # window at most once (the windows of a layer are distinct, the layers' apart).
             weights = np.concatenate([p[0] for p in parts], axis=1).astype(self._dtype)
             numbers = np.concatenate([p[1] for p in parts], axis=1)
+            present = np.zeros(total, dtype=bool)
             for s in range(lo, hi, sub):
                 e = min(s + sub, hi)
-                used, local = np.unique(numbers[s - lo : e - lo], return_inverse=True)
+                nums = numbers[s - lo : e - lo]
+                # The windows the sub-block uses, in order, and each one's column.
+                present[:] = False
+                present[nums] = True
+                used = np.flatnonzero(present)
+                column = np.cumsum(present) - 1
                 dense = np.zeros((e - s, used.size), dtype=self._dtype)
-                rows = np.arange(e - s)[:, None]
-                dense[rows, local.reshape(e - s, -1)] = weights[s - lo : e - lo]
+                dense[np.arange(e - s)[:, None], column[nums]] = weights[s - lo : e - lo]
                 values = dense @ windows[used]
                 first, last = max(s, start), min(e, stop)
                 store(slice(first - k0, last - k0), values[first - s : last - s])
