@@ -184,6 +184,8 @@ class Extruder:
         cond = 0.5 * (cond + cond.T)
         w, v = np.linalg.eigh(cond)
         b = v * np.sqrt(np.clip(w, 0.0, None))
+        # Column-major A: its matrix-vector products (one per new column) are ~1.4x faster.
+        a = np.asfortranarray(a)
         for arr in (rows, cols, a, b):
             arr.setflags(write=False)
         return cls(size=size, rows=rows, cols=cols, A=a, B=b)
@@ -218,8 +220,11 @@ class Extruder:
         buf[:, :n] = view
         a, b, rows, cols = self.A, self.B, self.rows, self.cols
         noise = np.empty(n)
+        # The stencil of column j as flat indices into buf shifted by j (no 2-D fancy index).
+        flat_buf = buf.reshape(-1)
+        stencil = rows * (n + k) + cols
         for j in range(k):
-            new = a @ buf[rows, cols + j]
+            new = a @ flat_buf[j:].take(stencil)
             # The noise term of this column alone (a matrix-vector product: the same sums
             # whatever k; numpy.einsum over all k columns at once was ~10x slower).
             np.matmul(b, white[j], out=noise)

@@ -615,9 +615,17 @@ class Atmosphere:
         ):
             raise RuntimeError("internal error: pupil window outside the layer's screen")
         t, n_frames = np.asarray(taps), len(frames)
-        # Window (cy + a, cx + b) for every pair of taps (a, b), weight wy[a] wx[b].
-        keys = (cy[:, None] + t)[:, :, None] * size + (cx[:, None] + t)[:, None, :]
-        keys = keys.reshape(n_frames, -1)
+        # Window (cy + a, cx + b) for every pair of taps (a, b), weight wy[a] wx[b]; the
+        # distinct windows in the order of their flat screen index, found on the small box
+        # of rows and columns the block covers (what numpy.unique gives, without a sort).
+        ys, xs = cy[:, None] + t, cx[:, None] + t
+        y0, x0 = int(ys.min()), int(xs.min())
+        hx = int(xs.max()) - x0 + 1
+        local = ((ys - y0)[:, :, None] * hx + (xs - x0)[:, None, :]).reshape(n_frames, -1)
+        present = np.zeros((int(ys.max()) - y0 + 1) * hx, dtype=bool)
+        present[local] = True
+        pos = np.flatnonzero(present)
+        origins = (pos // hx + y0) * size + (pos % hx + x0)
+        inverse = (np.cumsum(present) - 1)[local]
         w = (wy[:, :, None] * wx[:, None, :]).reshape(n_frames, -1)
-        origins, inverse = np.unique(keys, return_inverse=True)
-        return w, inverse.reshape(keys.shape), origins
+        return w, inverse, origins
