@@ -426,15 +426,19 @@ class _StageRun:
         ctrl, sensor = self.ctrl, self.sensor
         taps, hist_c, _, _ = ctrl._recursion_state()
         m = r.shape[0]
-        og = np.ascontiguousarray(sensor.optical_gain, dtype=float)
+        # Writable C-contiguous float64 arrays only: one compiled signature (numba types
+        # read-only arrays apart).
+        r, taps, og, noise = (
+            _plain(x) for x in (r, taps, np.asarray(sensor.optical_gain, float), sensor.noise)
+        )
         has_offset = offset is not None
-        off = np.ascontiguousarray(offset) if has_offset else np.zeros((1, self.n))
+        off = _plain(offset) if has_offset else np.zeros((1, self.n))
         k_start, head, first, e_prev = self.k, ctrl._head, 0, self.e_prev
         try:
             while True:
                 status, j, head = compiled(
-                    first, r, off, has_offset, sensor.noise, og, bool(sensor.unit_gain),
-                    e_prev, taps, hist_c, head, self.hist, k_start + first, self.k0,
+                    first, r, off, has_offset, noise, og, bool(sensor.unit_gain),
+                    _plain(e_prev), taps, hist_c, head, self.hist, k_start + first, self.k0,
                     self.w0, self.frac, self.limit_check, out_m, out_u, self.out_y, self.out_e,
                 )  # fmt: skip
                 if status == _fused.DONE:
@@ -589,6 +593,13 @@ def controller_counters(ctrl: Any) -> dict[str, int]:
         if value is not None:
             out[name] = int(np.sum(value))
     return out
+
+
+def _plain(x: np.ndarray) -> np.ndarray:
+    """``x`` as a writable C-contiguous float64 array (a copy only when it is not)."""
+    if x.flags.writeable and x.flags.c_contiguous and x.dtype == np.float64:
+        return x
+    return np.array(x, dtype=np.float64, order="C")
 
 
 def _finite_commands(u: np.ndarray) -> None:
