@@ -14,7 +14,7 @@ guard's element-wise check runs (``_StageRun._diverged``).
 
 numba is imported on first use (a run of a linear stage), not with :mod:`aocontrol.sim`;
 its compiled code is cached on disk (``cache=True``). Without numba (import error), or with
-``$AOCONTROL_NO_NUMBA`` set to a non-empty value, the runner uses its numpy loop.
+``$AOCONTROL_NO_NUMBA`` set to a non-empty value, :func:`run_chunk` runs its numpy loop.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -29,6 +30,10 @@ logger = logging.getLogger(__name__)
 
 #: Environment variable: set (non-empty) to run the numpy loop instead of the compiled one.
 ENV_NO_NUMBA = "AOCONTROL_NO_NUMBA"
+
+# The fused loop needs no check of the measurement's finiteness when the residual guard and
+# the noise are below this bound: their sum is then finite.
+_FUSED_BOUND = 1e150
 
 # Status codes of linear_frames.
 DONE, GUARD, NOT_FINITE = 0, 1, 2
@@ -70,7 +75,7 @@ def linear_frames(
     """Frames ``first ... len(r) - 1`` of a chunk of a linear stage (plain Python; compiled
     by :func:`kernel`).
 
-    Per frame ``j`` and mode ``i`` (the numpy loop of ``_StageRun._fused_frames``):
+    Per frame ``j`` and mode ``i`` (the numpy loop of :func:`run_chunk`):
     measurement ``m = og e_prev + noise[j]`` (``e_prev + noise[j]`` with unit gains); the
     IIR bank's ``_step`` on the history window ``hist_c[head : head + depth]`` (products by
     ``taps``, summed row after row, then the measurement half plus the command half); the
@@ -140,3 +145,139 @@ def linear_frames(
         if not energy < limit:
             return GUARD, j, head
     return DONE, m, head
+
+
+def run_chunk(run: Any, r: np.ndarray, offset: np.ndarray | None) -> bool:
+    """The chunk's frames of ``run`` (a ``_StageRun``) in one loop: per frame exactly the
+    operations of ``_StageRun.step``
+    (sensor read, ``IIRBank.step``, delay line, DM, residual, guard) on the same values (``r``
+    the residual inputs, ``offset`` the dCAO offsets, one row per frame),
+    without the calls and checks that a linear stage makes redundant. The measurement
+    ``e_prev + noise`` is finite (the guard bounds the residual, the noise is checked
+    per chunk); a non-finite command is reported with the controller's
+    ``FloatingPointError`` (at the guard that it trips, or at the end of the chunk).
+    Returns False (nothing done) when the chunk's noise or guard is too large for that.
+    """
+    sensor = run.sensor
+    noise = sensor.noise
+    m = r.shape[0]
+    if not (run.limit < _FUSED_BOUND and np.all(np.abs(noise[:m]) < _FUSED_BOUND)):
+        return False
+    ctrl = run.ctrl
+    taps, hist_c, products, sums = ctrl._recursion_state()
+    n, depth = run.n, taps.shape[0]
+    og = None if sensor.unit_gain else sensor.optical_gain
+    ring, ring_depth, k0, w0, frac = run.hist, run.depth, run.k0, run.w0, run.frac
+    out_m = run.out_m if run.out_m is not None else np.empty((m, n))
+    out_u = run.out_u if run.out_u is not None else np.empty((m, n))
+    out_y, out_e = run.out_y, run.out_e
+    compiled = kernel()
+    if compiled is not None:
+        _run_compiled(run, compiled, np.ascontiguousarray(r), offset, out_m, out_u)
+        return True
+    tmp = np.empty(n)
+    head, k, e, limit = ctrl._head, run.k, run.e_prev, run.limit_check
+    two = depth == 2
+    j = 0
+    try:
+        for j in range(m):
+            # The sensor (_LinearRun.read): og e + noise.
+            mj = out_m[j]
+            if og is None:
+                np.add(e, noise[j], out=mj)
+            else:
+                np.multiply(og, e, out=mj)
+                mj += noise[j]
+            # IIRBank._step on a finite measurement.
+            head = (head - 1) % depth
+            hist_c[head, :n] = mj
+            hist_c[head + depth, :n] = mj
+            np.multiply(taps, hist_c[head : head + depth], out=products)
+            if two:
+                np.add(products[0], products[1], out=sums)
+            else:
+                np.add.reduce(products, axis=0, out=sums)
+            u = np.add(sums[:n], sums[n:], out=out_u[j])
+            hist_c[head, n:] = u
+            hist_c[head + depth, n:] = u
+            # The delay line and the DM (frame()).
+            ring[k % ring_depth] = u
+            y = out_y[j]
+            if frac:
+                np.multiply(ring[(k - k0) % ring_depth], w0, out=y)
+                y += np.multiply(frac, ring[(k - k0 - 1) % ring_depth], out=tmp)
+            else:
+                y[...] = ring[(k - k0) % ring_depth]
+            if offset is not None:
+                y += offset[j]
+            e = np.subtract(r[j], y, out=out_e[j])
+            if not e @ e < limit:
+                run.k = k
+                _finite_commands(out_u[: j + 1])
+                run._diverged(k, np.abs(e))
+            k += 1
+        _finite_commands(out_u[:m])
+    finally:
+        ctrl._head = head
+        run.k, run.e_prev = k, e
+    ctrl._last_command = out_u[m - 1].copy()
+    return True
+
+
+def _run_compiled(
+    run: Any,
+    compiled: Callable,
+    r: np.ndarray,
+    offset: np.ndarray | None,
+    out_m: np.ndarray,
+    out_u: np.ndarray,
+) -> None:
+    """:func:`run_chunk` through the compiled loop :func:`linear_frames`."""
+    ctrl, sensor = run.ctrl, run.sensor
+    taps, hist_c, _, _ = ctrl._recursion_state()
+    m = r.shape[0]
+    # Writable C-contiguous float64 arrays only: one compiled signature (numba types
+    # read-only arrays apart).
+    r, taps, og, noise = (
+        _plain(x) for x in (r, taps, np.asarray(sensor.optical_gain, float), sensor.noise)
+    )
+    has_offset = offset is not None
+    off = _plain(offset) if has_offset else np.zeros((1, run.n))
+    k_start, head, first, e_prev = run.k, ctrl._head, 0, run.e_prev
+    try:
+        while True:
+            status, j, head = compiled(
+                first, r, off, has_offset, noise, og, bool(sensor.unit_gain),
+                _plain(e_prev), taps, hist_c, head, run.hist, k_start + first, run.k0,
+                run.w0, run.frac, run.limit_check, out_m, out_u, run.out_y, run.out_e,
+            )  # fmt: skip
+            if status == DONE:
+                run.k, run.e_prev = k_start + m, run.out_e[m - 1]
+                break
+            run.k = k_start + j
+            if status == NOT_FINITE:
+                _finite_commands(out_u[j : j + 1])
+            run._diverged(k_start + j, np.abs(run.out_e[j]))  # raises, or goes on
+            first, e_prev = j + 1, run.out_e[j]
+            if first == m:
+                run.k, run.e_prev = k_start + m, run.out_e[m - 1]
+                break
+    finally:
+        ctrl._head = head
+    ctrl._last_command = out_u[m - 1].copy()
+
+
+def _plain(x: np.ndarray) -> np.ndarray:
+    """``x`` as a writable C-contiguous float64 array (a copy only when it is not)."""
+    if x.flags.writeable and x.flags.c_contiguous and x.dtype == np.float64:
+        return x
+    return np.array(x, dtype=np.float64, order="C")
+
+
+def _finite_commands(u: np.ndarray) -> None:
+    """Raise the controller's ``FloatingPointError`` at the first non-finite command row."""
+    bad_rows = ~np.isfinite(u).all(axis=1)
+    if bad_rows.any():
+        row = u[int(np.flatnonzero(bad_rows)[0])]
+        bad = np.flatnonzero(~np.isfinite(row))[:10].tolist()
+        raise FloatingPointError(f"controller command is not finite for modes {bad}")

@@ -11,6 +11,12 @@ checks, the controllers' reset) shared by :func:`run_loop` (one stage) and
 :func:`~aocontrol.sim._cascade.run_cascade` (two stages on the fast clock), which differ only
 in how a chunk's disturbance reaches the stages.
 
+Linear stages (a linear modal sensor, no optical-gain tracker, no DM clip, an
+:class:`~aocontrol.controllers.IIRBank` without a command limit) run the frames of a chunk in
+one fused loop (:meth:`_StageRun.run_frames`): the same operations as :meth:`_StageRun.step`
+frame after frame, bit for bit, compiled with numba (:mod:`aocontrol.sim._fused`; ~2 us
+instead of ~35 us per frame at 540 modes) or, without numba, in numpy.
+
 BLAS threads (engine setting): :func:`drive` runs a whole run with at most
 :func:`engine_blas_threads` BLAS threads, 1 by default. The engine's products are small
 (a frame's vectors) or medium (a chunk's projection, ~100 ms): a multithreaded OpenBLAS
@@ -70,9 +76,6 @@ _POLE_RADIUS_TOL = 1e-9
 _GROWTH_FACTOR = 2.0
 _GROWTH_CHUNKS = 3
 _GROWTH_RATIO = 30.0
-# The fused frame loop (_StageRun.run_frames) needs no check of the measurement's finiteness
-# when the residual guard and the noise are below this bound: their sum is then finite.
-_FUSED_BOUND = 1e150
 
 
 #: Environment variable: BLAS threads of a run (module docstring); ``0`` leaves the BLAS's own.
@@ -332,129 +335,13 @@ class _StageRun:
 
         The same as :meth:`step` frame after frame (``d``, ``r`` and ``offset`` give one row
         per frame); a linear stage (:attr:`fusable`) runs in one fused loop
-        (:meth:`_fused_frames`), with the same values bit for bit.
+        (:func:`aocontrol.sim._fused.run_chunk`), with the same values bit for bit.
         """
-        if self.fusable and self._fused_frames(d, d if r is None else r, offset):
+        if self.fusable and _fused.run_chunk(self, d if r is None else r, offset):
             return
         step = self.step
         for j in range(d.shape[0]):
             step(j, d[j], opd, None if r is None else r[j], None if offset is None else offset[j])
-
-    def _fused_frames(self, d: np.ndarray, r: np.ndarray, offset: np.ndarray | None) -> bool:
-        """The chunk's frames in one loop: per frame exactly the operations of :meth:`step`
-        (sensor read, ``IIRBank.step``, delay line, DM, residual, guard) on the same values,
-        without the calls and checks that a linear stage makes redundant. The measurement
-        ``e_prev + noise`` is finite (the guard bounds the residual, the noise is checked
-        per chunk); a non-finite command is reported with the controller's
-        ``FloatingPointError`` (at the guard that it trips, or at the end of the chunk).
-        Returns False (nothing done) when the chunk's noise or guard is too large for that.
-        """
-        sensor = self.sensor
-        noise = sensor.noise
-        m = d.shape[0]
-        if not (self.limit < _FUSED_BOUND and np.all(np.abs(noise[:m]) < _FUSED_BOUND)):
-            return False
-        ctrl = self.ctrl
-        taps, hist_c, products, sums = ctrl._recursion_state()
-        n, depth = self.n, taps.shape[0]
-        og = None if sensor.unit_gain else sensor.optical_gain
-        ring, ring_depth, k0, w0, frac = self.hist, self.depth, self.k0, self.w0, self.frac
-        out_m = self.out_m if self.out_m is not None else np.empty((m, n))
-        out_u = self.out_u if self.out_u is not None else np.empty((m, n))
-        out_y, out_e = self.out_y, self.out_e
-        compiled = _fused.kernel()
-        if compiled is not None:
-            self._compiled_frames(compiled, np.ascontiguousarray(r), offset, out_m, out_u)
-            return True
-        tmp = np.empty(n)
-        head, k, e, limit = ctrl._head, self.k, self.e_prev, self.limit_check
-        two = depth == 2
-        j = 0
-        try:
-            for j in range(m):
-                # The sensor (_LinearRun.read): og e + noise.
-                mj = out_m[j]
-                if og is None:
-                    np.add(e, noise[j], out=mj)
-                else:
-                    np.multiply(og, e, out=mj)
-                    mj += noise[j]
-                # IIRBank._step on a finite measurement.
-                head = (head - 1) % depth
-                hist_c[head, :n] = mj
-                hist_c[head + depth, :n] = mj
-                np.multiply(taps, hist_c[head : head + depth], out=products)
-                if two:
-                    np.add(products[0], products[1], out=sums)
-                else:
-                    np.add.reduce(products, axis=0, out=sums)
-                u = np.add(sums[:n], sums[n:], out=out_u[j])
-                hist_c[head, n:] = u
-                hist_c[head + depth, n:] = u
-                # The delay line and the DM (frame()).
-                ring[k % ring_depth] = u
-                y = out_y[j]
-                if frac:
-                    np.multiply(ring[(k - k0) % ring_depth], w0, out=y)
-                    y += np.multiply(frac, ring[(k - k0 - 1) % ring_depth], out=tmp)
-                else:
-                    y[...] = ring[(k - k0) % ring_depth]
-                if offset is not None:
-                    y += offset[j]
-                e = np.subtract(r[j], y, out=out_e[j])
-                if not e @ e < limit:
-                    self.k = k
-                    _finite_commands(out_u[: j + 1])
-                    self._diverged(k, np.abs(e))
-                k += 1
-            _finite_commands(out_u[:m])
-        finally:
-            ctrl._head = head
-            self.k, self.e_prev = k, e
-        ctrl._last_command = out_u[m - 1].copy()
-        return True
-
-    def _compiled_frames(
-        self,
-        compiled: Callable,
-        r: np.ndarray,
-        offset: np.ndarray | None,
-        out_m: np.ndarray,
-        out_u: np.ndarray,
-    ) -> None:
-        """:meth:`_fused_frames` through the compiled loop (:mod:`aocontrol.sim._fused`)."""
-        ctrl, sensor = self.ctrl, self.sensor
-        taps, hist_c, _, _ = ctrl._recursion_state()
-        m = r.shape[0]
-        # Writable C-contiguous float64 arrays only: one compiled signature (numba types
-        # read-only arrays apart).
-        r, taps, og, noise = (
-            _plain(x) for x in (r, taps, np.asarray(sensor.optical_gain, float), sensor.noise)
-        )
-        has_offset = offset is not None
-        off = _plain(offset) if has_offset else np.zeros((1, self.n))
-        k_start, head, first, e_prev = self.k, ctrl._head, 0, self.e_prev
-        try:
-            while True:
-                status, j, head = compiled(
-                    first, r, off, has_offset, noise, og, bool(sensor.unit_gain),
-                    _plain(e_prev), taps, hist_c, head, self.hist, k_start + first, self.k0,
-                    self.w0, self.frac, self.limit_check, out_m, out_u, self.out_y, self.out_e,
-                )  # fmt: skip
-                if status == _fused.DONE:
-                    self.k, self.e_prev = k_start + m, self.out_e[m - 1]
-                    break
-                self.k = k_start + j
-                if status == _fused.NOT_FINITE:
-                    _finite_commands(out_u[j : j + 1])
-                self._diverged(k_start + j, np.abs(self.out_e[j]))  # raises, or goes on
-                first, e_prev = j + 1, self.out_e[j]
-                if first == m:
-                    self.k, self.e_prev = k_start + m, self.out_e[m - 1]
-                    break
-        finally:
-            ctrl._head = head
-        ctrl._last_command = out_u[m - 1].copy()
 
     # -- one frame of the stage's rate --------------------------------------------------------
     def step(
@@ -593,22 +480,6 @@ def controller_counters(ctrl: Any) -> dict[str, int]:
         if value is not None:
             out[name] = int(np.sum(value))
     return out
-
-
-def _plain(x: np.ndarray) -> np.ndarray:
-    """``x`` as a writable C-contiguous float64 array (a copy only when it is not)."""
-    if x.flags.writeable and x.flags.c_contiguous and x.dtype == np.float64:
-        return x
-    return np.array(x, dtype=np.float64, order="C")
-
-
-def _finite_commands(u: np.ndarray) -> None:
-    """Raise the controller's ``FloatingPointError`` at the first non-finite command row."""
-    bad_rows = ~np.isfinite(u).all(axis=1)
-    if bad_rows.any():
-        row = u[int(np.flatnonzero(bad_rows)[0])]
-        bad = np.flatnonzero(~np.isfinite(row))[:10].tolist()
-        raise FloatingPointError(f"controller command is not finite for modes {bad}")
 
 
 def _sequential_sum(total: np.ndarray, rows: np.ndarray) -> np.ndarray:
