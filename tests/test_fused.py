@@ -103,3 +103,17 @@ def test_fused_loops_report_a_non_finite_command(path, monkeypatch):
     bank = IIRBank([1e308], [1.0, -1.0], FS, n_modes=3)
     with np.errstate(all="ignore"), pytest.raises(FloatingPointError, match="not finite for"):
         _run(path, monkeypatch, bank, latency=0.0, noise=5.0)
+
+
+def test_linear_stages_take_the_fused_loop():
+    # The comparisons above are meaningful only if the fused loop runs for a linear stage
+    # (and not for a controller with a command limit, which keeps the per-frame path).
+    def fusable(controller):
+        stage = Stage(controller, LinearModalSensor(1.0, 0.5), 0.5)
+        run = _runner._StageRun(
+            stage, n_frames=10, record=(), settle=0, rng=np.random.default_rng(0)
+        )
+        return run.fusable
+
+    assert fusable(Integrator(0.3, fs=FS, n_modes=3))
+    assert not fusable(Integrator(0.3, fs=FS, n_modes=3, command_limit=1.0))

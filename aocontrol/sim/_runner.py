@@ -51,7 +51,7 @@ from aocontrol.sim._result import TELEMETRY, LoopDivergedError, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate
 from aocontrol.sim._stage import Stage
 from aocontrol.sim.science import LongExposure
-from aocontrol.sim.wfs.sensors import _LinearRun
+from aocontrol.sim.wfs.sensors import LinearModalSensor
 
 __all__ = ["run_loop", "drive", "engine_blas_threads", "ENV_BLAS_THREADS"]
 
@@ -254,7 +254,7 @@ class _StageRun:
         # The frames of a chunk in one fused loop (run_frames): a linear sensor, no tracker,
         # no DM clip, a controller whose step is the plain IIR recursion.
         self.fusable = (
-            type(self.sensor) is _LinearRun
+            type(stage.sensor) is LinearModalSensor  # its run: og e_prev + noise per chunk
             and self.tracker is None
             and not self.clip
             and isinstance(self.ctrl, IIRBank)
