@@ -520,3 +520,39 @@ def test_extrusion_of_k_columns_at_once_equals_k_single_columns():
     assert np.array_equal(block, single)
     ext.extrude(single, 1.001 * white[:1], 3.0)  # the check can fail
     assert not np.array_equal(block, single)
+
+
+@pytest.mark.parametrize("dtype, rtol", [(np.float64, 1e-12), (np.float32, 2e-6)])
+def test_interpolation_products_equal_the_direct_weighted_sum(dtype, rtol):
+    # Oracle: each frame is, per layer, the sum over the taps (a, b) of wy[a] wx[b] times the
+    # screen's window at (floor(py) + a, floor(px) + b), computed here in float64 from the
+    # layer screens as they are after the block (the frames of one block need no further
+    # extrusion). The atmosphere forms them as dense products per sub-block of frames:
+    # float64 agrees to rounding; float32 to its rounding (~6e-8 per term, a few 1e-7 of the
+    # largest value after the sums; tolerance 2e-6).
+    pupil = Pupil(n_pix=16)
+    layers = [
+        Layer(0.0, 0.5, 10.0, 30.0),
+        Layer(5000.0, 0.3, 25.0, 200.0),
+        Layer(10000.0, 0.2, 4.0, 95.0),
+    ]
+    atm = Atmosphere(pupil, 0.15, layers, fs=3000.0, rng=9, dtype=dtype)
+    n = min(atm._block, 120)
+    got = atm.phase_vectors(n).astype(float)
+    frames = np.arange(n, dtype=float)
+    ref = np.zeros((n, pupil.n_valid))
+    size = pupil.n_pix
+    for st in atm._states:
+        py, px = st.positions(frames)
+        for f in range(n):
+            gy, gx = math.floor(py[f]), math.floor(px[f])
+            fy, fx = py[f] - gy, px[f] - gx
+            cy, cx = gy - st.oy, gx - st.ox
+            for a, wy in ((0, 1.0 - fy), (1, fy)):
+                for b, wx in ((0, 1.0 - fx), (1, fx)):
+                    win = st.screen[cy + a : cy + a + size, cx + b : cx + b + size]
+                    ref[f] += wy * wx * win[pupil.mask]
+    scale = np.max(np.abs(ref))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=rtol * scale)
+    # The check can fail: the frames are not the neighbouring frames.
+    assert np.max(np.abs(got[1:] - ref[:-1])) > 100 * rtol * scale

@@ -415,6 +415,33 @@ class IIRBank(ControllerBank):
                 self._history[[i - 1, i - 1 + depth], n:] = u[-i]
         self._last_command = u[-1].copy() if u.shape[0] else None
 
+    def _recursion_state(self) -> tuple | None:
+        """The state of the plain recursion, for the simulator's fused frame loop.
+
+        ``aocontrol.sim._runner`` runs the frames of a chunk of a linear stage in one loop
+        that performs, per frame, exactly the operations of :meth:`step` on a finite
+        measurement (same values bit for bit, tested), without the per-call checks it makes
+        redundant (its measurements are finite by construction; a non-finite command is
+        reported with the same ``FloatingPointError``). Only for this class's own
+        :meth:`step` and ``_step`` and no command limit.
+
+        Returns
+        -------
+        tuple or None
+            ``(taps, history, products, sums)`` (the layout of :meth:`reset`; the loop moves
+            ``_head`` and sets the held command when it ends), or ``None`` when the bank
+            is not the plain recursion (a command limit, or a subclass that changes
+            ``step`` or ``_step``).
+        """
+        cls = type(self)
+        if (
+            self._limit is not None
+            or cls._step is not IIRBank._step
+            or cls.step is not ControllerBank.step
+        ):
+            return None
+        return self._taps, self._history, self._products, self._sums
+
     def _step(self, m: np.ndarray) -> np.ndarray:
         n = self._n
         depth = self._taps.shape[0]

@@ -361,8 +361,7 @@ def run_cascade(
                 y1 = run1.step(j, d1_avg[j], resid1)
                 resid1.set(form1, phase[j * ratio : (j + 1) * ratio], y1)
         else:
-            for j in range(ns):
-                run1.step(j, d1_avg[j], resid1)
+            run1.run_frames(d1_avg, resid1)
         y1s = run1.chunk_dm  # the chunk's DM shapes, (ns, n1)
         run1.end_chunk(d1_avg, k // ratio)
         first_stat = max(settle - k, 0)
@@ -392,18 +391,20 @@ def run_cascade(
         d2_rec = d2 if dcao else r2
         run2.begin_chunk(d2_rec, m)
         j1_0 = k // ratio
-        step2 = run2.step
-        if dcao:
-            neg = np.repeat(-py1s, ratio, axis=0)  # dCAO offset of each fast frame
+        if not run2.needs_phase:
+            if dcao:  # the dCAO offset of each fast frame
+                run2.run_frames(d2, resid2, r2, np.repeat(-py1s, ratio, axis=0))
+            else:
+                run2.run_frames(r2, resid2)
+        else:  # a sensor that reads maps: its residual map of each frame
+            step2 = run2.step
+            neg = np.repeat(-py1s, ratio, axis=0) if dcao else None
             for j in range(m):
-                y2 = step2(j, d2[j], resid2, r2[j], neg[j])
-                if run2.needs_phase:
-                    resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
-        else:
-            for j in range(m):
-                y2 = step2(j, r2[j], resid2)
-                if run2.needs_phase:
-                    resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
+                if dcao:
+                    y2 = step2(j, d2[j], resid2, r2[j], neg[j])
+                else:
+                    y2 = step2(j, r2[j], resid2)
+                resid2.set(form2, phase[j], j1_0 + j // ratio, y1s[j // ratio], y2)
         y2s = run2.chunk_dm  # the chunk's DM shapes, (m, n2)
         run2.end_chunk(d2_rec, k)
 

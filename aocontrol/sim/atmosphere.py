@@ -64,7 +64,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse
 
 from aocontrol._validation import check_int, check_nonnegative, check_positive
 from aocontrol.sim._blas import blas_threads
@@ -82,6 +81,8 @@ logger = logging.getLogger(__name__)
 FRACTION_SUM_TOLERANCE = 1e-3
 #: Largest number of frames computed in one sparse product (bounds temporary memory).
 MAX_BLOCK_FRAMES = 256
+# Frames per dense product of the interpolation (Atmosphere._generate).
+_SUB_BLOCK = 16
 
 
 @dataclass(frozen=True)
@@ -490,16 +491,29 @@ class Atmosphere:
         return -x[:, 1] / dx, -x[:, 0] / dx
 
     def _generate(self, n_frames: int, store: Callable[[slice, np.ndarray], None]) -> None:
-        """Compute the next ``n_frames`` frames block by block, ``store(rows, values)``."""
+        """Compute the next ``n_frames`` frames block by block, ``store(rows, values)``.
+
+        Each frame is a weighted sum of ``T^2`` integer-shifted windows per layer (``T`` taps
+        per axis). Per block, the distinct windows of all layers are gathered once; then per
+        sub-block of ``_SUB_BLOCK`` frames, the frames are one dense product of their weights
+        on the sub-block's windows (a layer moves by well under a pixel per frame, so a
+        sub-block uses few more windows than one frame: ~1.4x the multiply-adds of the sparse
+        product at 10 layers, through the BLAS instead of scipy's scalar sparse loop, ~4x
+        faster). Sub-blocks are aligned on the block's start whatever the calls (a call that
+        covers part of one computes it whole), so the frames do not depend on how a run is
+        split into calls.
+        """
         n_valid = self._pupil.n_valid
         k0, k1 = self._frame, self._frame + n_frames
-        b = self._block
-        per_row = len(_TAPS[self._interp]) ** 2 * len(self._states)
+        b, sub = self._block, _SUB_BLOCK
         # Blocks are aligned on multiples of b frames whatever the calls: the extrusions, and
         # hence the frames, do not depend on how a run is split into calls.
         for j in range(k0 // b, (k1 - 1) // b + 1 if n_frames else k0 // b):
             start, stop = max(k0, j * b), min(k1, (j + 1) * b)
-            frames = np.arange(start, stop, dtype=float)
+            # The whole sub-blocks (aligned on the block's start) that hold [start, stop).
+            lo = j * b + (start - j * b) // sub * sub
+            hi = min((j + 1) * b, j * b + -(-(stop - j * b) // sub) * sub)
+            frames = np.arange(lo, hi, dtype=float)
             parts = []
             total = 0
             # Seeing drift: the phase of every layer scales as r0(t)^(-5/6).
@@ -523,11 +537,24 @@ class Atmosphere:
                     mode="clip",
                 )
                 row += origins.size
-            data = np.concatenate([p[0] for p in parts], axis=1).astype(self._dtype).ravel()
-            indices = np.concatenate([p[1] for p in parts], axis=1).ravel()
-            indptr = np.arange(0, (stop - start) * per_row + 1, per_row)
-            mat = scipy.sparse.csr_matrix((data, indices, indptr), shape=(stop - start, total))
-            store(slice(start - k0, stop - k0), mat @ windows)
+            # Weights and window numbers of each frame, (frames, layers T^2); a frame uses a
+            # window at most once (the windows of a layer are distinct, the layers' apart).
+            weights = np.concatenate([p[0] for p in parts], axis=1).astype(self._dtype)
+            numbers = np.concatenate([p[1] for p in parts], axis=1)
+            present = np.zeros(total, dtype=bool)
+            for s in range(lo, hi, sub):
+                e = min(s + sub, hi)
+                nums = numbers[s - lo : e - lo]
+                # The windows the sub-block uses, in order, and each one's column.
+                present[:] = False
+                present[nums] = True
+                used = np.flatnonzero(present)
+                column = np.cumsum(present) - 1
+                dense = np.zeros((e - s, used.size), dtype=self._dtype)
+                dense[np.arange(e - s)[:, None], column[nums]] = weights[s - lo : e - lo]
+                values = dense @ windows[used]
+                first, last = max(s, start), min(e, stop)
+                store(slice(first - k0, last - k0), values[first - s : last - s])
         self._frame = k1
 
     def _cover(self, st: _LayerState, first: int, stop: int) -> None:
@@ -588,9 +615,17 @@ class Atmosphere:
         ):
             raise RuntimeError("internal error: pupil window outside the layer's screen")
         t, n_frames = np.asarray(taps), len(frames)
-        # Window (cy + a, cx + b) for every pair of taps (a, b), weight wy[a] wx[b].
-        keys = (cy[:, None] + t)[:, :, None] * size + (cx[:, None] + t)[:, None, :]
-        keys = keys.reshape(n_frames, -1)
+        # Window (cy + a, cx + b) for every pair of taps (a, b), weight wy[a] wx[b]; the
+        # distinct windows in the order of their flat screen index, found on the small box
+        # of rows and columns the block covers (what numpy.unique gives, without a sort).
+        ys, xs = cy[:, None] + t, cx[:, None] + t
+        y0, x0 = int(ys.min()), int(xs.min())
+        hx = int(xs.max()) - x0 + 1
+        local = ((ys - y0)[:, :, None] * hx + (xs - x0)[:, None, :]).reshape(n_frames, -1)
+        present = np.zeros((int(ys.max()) - y0 + 1) * hx, dtype=bool)
+        present[local] = True
+        pos = np.flatnonzero(present)
+        origins = (pos // hx + y0) * size + (pos % hx + x0)
+        inverse = (np.cumsum(present) - 1)[local]
         w = (wy[:, :, None] * wx[:, None, :]).reshape(n_frames, -1)
-        origins, inverse = np.unique(keys, return_inverse=True)
-        return w, inverse.reshape(keys.shape), origins
+        return w, inverse, origins
