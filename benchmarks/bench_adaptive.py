@@ -294,12 +294,13 @@ def _options(text: str | None) -> dict:
     return out
 
 
-def _print_seed_summary(scenario: str, studies: list) -> str:
+def _print_seed_summary(scenario: str, studies: list, fixed_window: float | None) -> str:
     """The per-seed ratios of the adaptive loop and their mean and spread (text)."""
     from aocontrol.study.adapt import seed_summary
 
-    lines = [f"{scenario}: adaptive / fixed (same W) and adaptive / oracle over seeds"]
-    for r in seed_summary(studies):
+    ref = "same W" if fixed_window is None else f"W = {fixed_window:g} s"
+    lines = [f"{scenario}: adaptive / fixed ({ref}) and adaptive / oracle over seeds"]
+    for r in seed_summary(studies, fixed_window=fixed_window):
         per = " ".join(f"{a:.3f}/{b:.3f}" for a, b in zip(r["fixed"], r["oracle"], strict=True))
         lines.append(
             f"T {r['period']:g} W {r['window']:g}: /fixed {r['fixed_mean']:.3f} "
@@ -383,7 +384,10 @@ def study(args: argparse.Namespace) -> None:
                     )
             studies.append(whole)
         if len(seeds) > 1:
-            text = _print_seed_summary(scenario, studies)
+            # Every ratio to the fixed design of the first rule if it is a number of seconds.
+            first = rules[0].strip()
+            fixed_window = float(first) if first.replace(".", "", 1).isdigit() else None
+            text = _print_seed_summary(scenario, studies, fixed_window)
             with open(os.path.join(args.out, f"adapt_seeds_{scenario}.txt"), "w") as fh:
                 fh.write(text + "\n")
 

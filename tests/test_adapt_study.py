@@ -150,7 +150,10 @@ def test_window_rule_and_seed_summary():
     assert row["fixed"] == [0.8, 0.6] and row["oracle"] == [1.0, 1.2]
     assert row["fixed_mean"] == pytest.approx(0.7)
     assert row["oracle_std"] == pytest.approx(np.std([1.0, 1.2], ddof=1))
-    (one,) = seed_summary([study(3, 10.0, 8.0, 8.0)])
+    (common,) = seed_summary([study(0, 10.0, 8.0, 8.0)], fixed_window=2.0)
+    assert np.isnan(common["fixed_mean"])  # no fixed design at W = 2 s: no ratio
+    (one,) = seed_summary([study(3, 10.0, 8.0, 8.0)], fixed_window=1.0)
+    assert one["fixed"] == [0.8]
     assert np.isnan(one["fixed_std"])
 
 

@@ -499,7 +499,9 @@ def window_rule(spec: str, period: float) -> float:
     return float(w)
 
 
-def seed_summary(studies: Sequence[AdaptStudy], strategy: str = "adaptive") -> list[dict]:
+def seed_summary(
+    studies: Sequence[AdaptStudy], strategy: str = "adaptive", fixed_window: float | None = None
+) -> list[dict]:
     """Ratios of ``strategy`` to the fixed design and to the oracle over several seeds.
 
     Parameters
@@ -510,15 +512,19 @@ def seed_summary(studies: Sequence[AdaptStudy], strategy: str = "adaptive") -> l
         reference is NaN).
     strategy : str, default "adaptive"
         The strategy compared.
+    fixed_window : float, optional
+        The window [s] of the fixed design every ratio is taken to (``None``: each row's
+        own window). One fixed design is a single draw of a window's estimate: a common one
+        keeps the rows of different windows comparable.
 
     Returns
     -------
     list of dict
         One per (period, window) of ``strategy``, sorted: ``period``, ``window`` [s];
         ``seeds``; ``fixed`` and ``oracle``: the per-seed ratios (residual of ``strategy`` /
-        that of the fixed design at the same window, / that of the oracle at the same
-        period); ``fixed_mean``, ``fixed_std``, ``oracle_mean``, ``oracle_std``: their mean and
-        sample standard deviation over seeds (NaN std for one seed).
+        that of the fixed design at the same window or ``fixed_window``, / that of the oracle
+        at the same period); ``fixed_mean``, ``fixed_std``, ``oracle_mean``, ``oracle_std``:
+        their mean and sample standard deviation over seeds (NaN std for one seed).
     """
     by: dict = {}
     for study in studies:
@@ -529,7 +535,8 @@ def seed_summary(studies: Sequence[AdaptStudy], strategy: str = "adaptive") -> l
                 continue
             entry = by.setdefault((r.period, r.window), {"seeds": [], "fixed": [], "oracle": []})
             entry["seeds"].append(study.settings.get("seed"))
-            entry["fixed"].append(r.residual / fixed.get(r.window, float("nan")))
+            ref = r.window if fixed_window is None else fixed_window
+            entry["fixed"].append(r.residual / fixed.get(ref, float("nan")))
             entry["oracle"].append(r.residual / oracle.get(r.period, float("nan")))
     out = []
     for (period, window), entry in sorted(by.items()):
