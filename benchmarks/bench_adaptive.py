@@ -16,6 +16,13 @@
     certified; against the full warm redesign (time and residual) and the cold design. Goal
     <= 10 s on 2 cores (``--jobs 2``).
 
+The study (``--study``): every strategy at every period (``--periods``) and window rule
+(``--windows``: ``1``, ``T``, ``max(T,2)``) per scenario; ``--seeds 0,1,2`` repeats it per
+seed (turbulence, noise and the stochastic drift) and prints the adaptive loop's ratios per
+seed with their mean and spread; ``--strategies fixed,adaptive,oracle`` runs only those;
+``--measure-from 6`` averages every row's residual from the same time (rows of different
+windows comparable).
+
 Timings are wall-clock on a shared machine: compare the ratios measured in one run.
 """
 
