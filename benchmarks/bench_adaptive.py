@@ -16,6 +16,13 @@
     certified; against the full warm redesign (time and residual) and the cold design. Goal
     <= 10 s on 2 cores (``--jobs 2``).
 
+The study (``--study``): every strategy at every period (``--periods``) and window rule
+(``--windows``: ``1``, ``T``, ``max(T,2)``) per scenario; ``--seeds 0,1,2`` repeats it per
+seed (turbulence, noise and the stochastic drift) and prints the adaptive loop's ratios per
+seed with their mean and spread; ``--strategies fixed,adaptive,oracle`` runs only those;
+``--measure-from 6`` averages every row's residual from the same time (rows of different
+windows comparable).
+
 Timings are wall-clock on a shared machine: compare the ratios measured in one run.
 """
 
@@ -24,6 +31,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import time
 import warnings
 
@@ -280,53 +288,115 @@ def part_c(args: argparse.Namespace) -> None:
         )
 
 
+def _options(text: str | None) -> dict:
+    """``key=value,...`` as a dict of numbers (``None``, ``none``: None)."""
+    out: dict = {}
+    for item in filter(None, (text or "").split(",")):
+        key, _, value = item.partition("=")
+        value = value.strip()
+        if value.lower() == "none":
+            out[key.strip()] = None
+        else:
+            out[key.strip()] = float(value) if any(c in value for c in ".eE") else int(value)
+    return out
+
+
+def _print_seed_summary(scenario: str, studies: list, fixed_window: float | None) -> str:
+    """The per-seed ratios of the adaptive loop and their mean and spread (text)."""
+    from aocontrol.study.adapt import seed_summary
+
+    ref = "same W" if fixed_window is None else f"W = {fixed_window:g} s"
+    lines = [f"{scenario}: adaptive / fixed ({ref}) and adaptive / oracle over seeds"]
+    for r in seed_summary(studies, fixed_window=fixed_window):
+        per = " ".join(f"{a:.3f}/{b:.3f}" for a, b in zip(r["fixed"], r["oracle"], strict=True))
+        lines.append(
+            f"T {r['period']:g} W {r['window']:g}: /fixed {r['fixed_mean']:.3f} "
+            f"+- {r['fixed_std']:.3f} [{min(r['fixed']):.3f}, {max(r['fixed']):.3f}], "
+            f"/oracle {r['oracle_mean']:.3f} +- {r['oracle_std']:.3f} "
+            f"[{min(r['oracle']):.3f}, {max(r['oracle']):.3f}]; per seed "
+            f"{r['seeds']}: {per}"
+        )
+    text = "\n".join(lines)
+    print(text, flush=True)
+    return text
+
+
 def study(args: argparse.Namespace) -> None:
-    """The study (issue 17, part 3): every strategy at every period, per scenario, one
-    period at a time (longest first) so that a partial run still gives whole rows; the
-    rows of each scenario as HDF5 (:meth:`AdaptStudy.save`) and one plot."""
+    """The study (issue 17, part 3): the strategies at every period, per scenario and seed,
+    one period at a time (longest first) so that a partial run still gives whole rows; the
+    rows of each scenario (and seed, unless the only seed is 0) as HDF5
+    (:meth:`AdaptStudy.save`) and one plot. With several ``--seeds`` (drift realisation,
+    turbulence and noise), the adaptive loop's ratios per seed and their mean and spread.
+    ``--windows`` are rules (:func:`aocontrol.study.adapt.window_rule`: ``1``, ``T``,
+    ``max(T,2)``); the fixed design is run once per window."""
     import dataclasses
     import os
 
-    from aocontrol.study.adapt import AdaptStudy
+    from aocontrol.study.adapt import AdaptStudy, window_rule
     from aocontrol.study.plot import plot_adapt, use_file_backend
 
     os.makedirs(args.out, exist_ok=True)
-    opts = _quick_options(args)
+    opts = {**_quick_options(args), **_options(args.design_options)}
     periods = sorted((float(x) for x in args.periods.split(",")), reverse=True)
-    windows = tuple(float(x) for x in args.windows.split(","))
+    rules = [x for x in re.split(r",(?![^(]*\))", args.windows) if x.strip()]
+    seeds = [int(x) for x in args.seeds.split(",")]
+    chosen = tuple(x.strip() for x in args.strategies.split(","))
     tables = {}
     use_file_backend()
     for scenario in args.scenarios.split(","):
-        rows: list = []
-        for i, period in enumerate(periods):
-            strategies = ("adaptive", "oracle", "modal-gain", "lqg")
-            part = run_adapt(
-                "bright1-best",
-                scenario=scenario,
-                periods=(period,),
-                windows=windows,
-                duration=args.seconds,
-                strategies=(("fixed",) if i == 0 else ()) + strategies,
-                latency=args.latency,
-                order=2 if args.quick else 5,
-                quick=args.quick,
-                n_jobs=args.jobs,
-                design_options=opts,
-                adaptive_options={"select": args.select} if args.select else {},
-            )
-            rows.extend(part.rows)
-            whole = AdaptStudy(part.case, scenario, part.duration, tuple(rows), part.settings)
-            stem = os.path.join(args.out, f"adapt_{part.case}_{scenario}")
-            whole.save(stem + ".h5")
-            with open(stem + ".txt", "w") as fh:
-                fh.write(whole.table() + "\n")
-            print(whole.table().splitlines()[-len(part.rows) :], flush=True)
-            tables[scenario] = [dataclasses.asdict(r) for r in rows]
-            plot_adapt(
-                tables,
-                title=f"{part.case}, {args.seconds:g} s",
-                path=os.path.join(args.out, f"adapt_{part.case}.png"),
-            )
+        studies = []
+        for seed in seeds:
+            rows: list = []
+            fixed_done: set = set()
+            tag = "" if seeds == [0] else f"_seed{seed}"
+            for period in periods:
+                windows = tuple(dict.fromkeys(window_rule(r, period) for r in rules))
+                new = [w for w in windows if w not in fixed_done] if "fixed" in chosen else []
+                fixed_done.update(new)
+                others = tuple(s for s in chosen if s != "fixed")
+                calls = [(others, windows)] if others else []
+                if new:  # first: the same order of rows as one call with both
+                    calls.insert(0, (("fixed",), tuple(new)))
+                for strategies, ws in calls:
+                    part = run_adapt(
+                        "bright1-best",
+                        scenario=scenario,
+                        periods=(period,),
+                        windows=ws,
+                        duration=args.seconds,
+                        strategies=strategies,
+                        latency=args.latency,
+                        order=2 if args.quick else 5,
+                        quick=args.quick,
+                        seed=seed,
+                        n_jobs=args.jobs,
+                        design_options=opts,
+                        adaptive_options={"select": args.select} if args.select else {},
+                        measure_from=args.measure_from,
+                    )
+                    rows.extend(part.rows)
+                    whole = AdaptStudy(
+                        part.case, scenario, part.duration, tuple(rows), part.settings
+                    )
+                    stem = os.path.join(args.out, f"adapt_{part.case}_{scenario}{tag}")
+                    whole.save(stem + ".h5")
+                    with open(stem + ".txt", "w") as fh:
+                        fh.write(whole.table() + "\n")
+                    print(whole.table().splitlines()[-len(part.rows) :], flush=True)
+                    tables[scenario + tag] = [dataclasses.asdict(r) for r in rows]
+                    plot_adapt(
+                        tables,
+                        title=f"{part.case}, {args.seconds:g} s",
+                        path=os.path.join(args.out, f"adapt_{part.case}.png"),
+                    )
+            studies.append(whole)
+        if len(seeds) > 1:
+            # Every ratio to the fixed design of the first rule if it is a number of seconds.
+            first = rules[0].strip()
+            fixed_window = float(first) if first.replace(".", "", 1).isdigit() else None
+            text = _print_seed_summary(scenario, studies, fixed_window)
+            with open(os.path.join(args.out, f"adapt_seeds_{scenario}.txt"), "w") as fh:
+                fh.write(text + "\n")
 
 
 def main() -> None:
@@ -359,7 +429,26 @@ def main() -> None:
     parser.add_argument("--parts", default="abc", help="parts to run, e.g. 'ac'")
     parser.add_argument("--study", action="store_true", help="run the study instead of parts")
     parser.add_argument("--periods", default="1,2,5,10,30,60", help="study: periods T [s]")
-    parser.add_argument("--windows", default="1", help="study: windows W [s]")
+    parser.add_argument(
+        "--windows", default="1", help="study: window rules W [s], e.g. '1,2,T,max(T,2)'"
+    )
+    parser.add_argument("--seeds", default="0", help="study: seeds, e.g. '0,1,2'")
+    parser.add_argument(
+        "--strategies",
+        default="fixed,adaptive,oracle,modal-gain,lqg",
+        help="study: strategies, e.g. 'fixed,adaptive,oracle'",
+    )
+    parser.add_argument(
+        "--measure-from",
+        type=float,
+        default=None,
+        help="study: residual averaged from this time [s] for every row (default: own window)",
+    )
+    parser.add_argument(
+        "--design-options",
+        default=None,
+        help="study: more datadriven_designer options, e.g. 'warm_max_iter=32,warm_n_grid=48'",
+    )
     parser.add_argument(
         "--scenarios", default="wind-doubles,seeing-worsens", help="study: scenarios"
     )

@@ -124,3 +124,39 @@ def test_bad_cascade_study_arguments():
         run_adapt_cascade("bright1-best", scheme="serial")
     with pytest.raises(ValueError, match=r"latency=0.5 s and period=0.5 s"):
         run_adapt_cascade("bright1-best", periods=(0.5,), latency=0.5)
+
+
+def test_window_rule_and_seed_summary():
+    # The window rules of the study and the adaptive loop's ratios over seeds (mean and
+    # sample spread), on hand-made rows: no loop is run.
+    from aocontrol.study.adapt import AdaptRow, AdaptStudy, seed_summary, window_rule
+
+    assert [window_rule(r, 1.0) for r in ("1.5", "T", "max(T, 2)")] == [1.5, 1.0, 2.0]
+    assert window_rule("max(T,2)", 5.0) == 5.0
+    for bad in ("min(T,2)", "-1", "W"):
+        with pytest.raises(ValueError, match="window rule must be"):
+            window_rule(bad, 1.0)
+
+    def study(seed, fixed, adaptive, oracle):
+        rows = [
+            AdaptRow("fixed", 1.0, 1.0, fixed, 0.0, 1, 0, 0, 0.0),
+            AdaptRow("adaptive", 2.0, 1.0, adaptive, 0.0, 1, 0, 0, 0.0),
+            AdaptRow("oracle", 2.0, 1.0, oracle, 0.0, 1, 0, 0, 0.0),
+        ]
+        return AdaptStudy("c", "wind-doubles", 60.0, tuple(rows), {"seed": seed})
+
+    (row,) = seed_summary([study(0, 10.0, 8.0, 8.0), study(1, 20.0, 12.0, 10.0)])
+    assert (row["period"], row["window"], row["seeds"]) == (2.0, 1.0, [0, 1])
+    assert row["fixed"] == [0.8, 0.6] and row["oracle"] == [1.0, 1.2]
+    assert row["fixed_mean"] == pytest.approx(0.7)
+    assert row["oracle_std"] == pytest.approx(np.std([1.0, 1.2], ddof=1))
+    (common,) = seed_summary([study(0, 10.0, 8.0, 8.0)], fixed_window=2.0)
+    assert np.isnan(common["fixed_mean"])  # no fixed design at W = 2 s: no ratio
+    (one,) = seed_summary([study(3, 10.0, 8.0, 8.0)], fixed_window=1.0)
+    assert one["fixed"] == [0.8]
+    assert np.isnan(one["fixed_std"])
+
+
+def test_measure_from_is_checked():
+    with pytest.raises(ValueError, match=r"measure_from must be in \[0, duration=2\) s"):
+        run_adapt("bright1-best", windows=(1.0,), duration=2.0, measure_from=2.0, quick=True)

@@ -41,6 +41,7 @@ import dataclasses
 import json
 import logging
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -75,6 +76,8 @@ __all__ = [
     "run_adapt",
     "run_adapt_cascade",
     "scenario_drift",
+    "seed_summary",
+    "window_rule",
 ]
 
 logger = logging.getLogger(__name__)
@@ -180,7 +183,8 @@ class AdaptRow:
     period, window : float
         [s].
     residual : float
-        Residual variance summed over modes after the first window [nm^2].
+        Residual variance summed over modes after the first window (or from the study's
+        ``measure_from``) [nm^2].
     residual_late : float
         The same over the last 30 % of the run (after the drift settled) [nm^2].
     n_switches, n_rejected_modes, n_rejected_banks : int
@@ -305,6 +309,7 @@ def run_adapt(
     overrides: dict | None = None,
     design_options: dict | None = None,
     adaptive_options: dict | None = None,
+    measure_from: float | None = None,
 ) -> AdaptStudy:
     """Run the strategies on one drifting scenario for every (period, window).
 
@@ -341,6 +346,10 @@ def run_adapt(
     adaptive_options : dict, optional
         Other keyword arguments of :class:`~aocontrol.adaptive.AdaptiveController` (e.g.
         ``select``).
+    measure_from : float, optional
+        Time [s] from which ``residual`` is averaged, the same for every row (``None``: each
+        row's own window, after which its first design can be running). Runs at different
+        windows are compared on a common span with it.
 
     Returns
     -------
@@ -350,7 +359,8 @@ def run_adapt(
     ------
     ValueError
         Unknown scenario or strategy, a window not shorter than the run, a period (or, with
-        ``fixed``, a window) not longer than the latency: all before any run.
+        ``fixed``, a window) not longer than the latency, ``measure_from`` outside
+        ``[0, duration)``: all before any run.
     """
     bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS]
     if bad:
@@ -360,6 +370,10 @@ def run_adapt(
     for w in windows:
         if not 0 < w < duration:
             raise ValueError(f"window must be in (0, duration={duration:g}) s, got {w!r} s")
+    if measure_from is not None and not 0 <= measure_from < duration:
+        raise ValueError(
+            f"measure_from must be in [0, duration={duration:g}) s, got {measure_from!r} s"
+        )
     # Checked before any run: ``fixed`` designs once, a window in (its period is the window).
     delayed = set(strategies) - {"adaptive-nolatency", "oracle-prophet"}
     served = [("period", p) for p in periods if delayed - {"fixed"}]
@@ -428,7 +442,7 @@ def run_adapt(
             )
             run: AdaptiveRun = ctrl.last_run
             e = res.telemetry["residuals"]
-            first = round(window * st.fs)
+            first = round((window if measure_from is None else measure_from) * st.fs)
             secs = [r.design_seconds for r in run.redesigns]
             sat = res.actuator_saturation
             rows.append(
@@ -449,4 +463,87 @@ def run_adapt(
     settings = _settings(
         st, latency, order, modulus_margin, quick, seed, design_options, adaptive_options
     )
+    settings["measure_from"] = measure_from
     return AdaptStudy(c.name, scenario, float(duration), tuple(rows), settings)
+
+
+_RULE = re.compile(r"^max\(\s*T\s*,\s*([0-9.eE+-]+)\s*\)$")
+
+
+def window_rule(spec: str, period: float) -> float:
+    """The window [s] a rule gives at ``period`` ``T`` [s].
+
+    Parameters
+    ----------
+    spec : str
+        A number of seconds (``"1"``), ``"T"`` (the window is the period) or ``"max(T, x)"``
+        (the period, at least ``x`` seconds).
+    period : float
+        Update period [s].
+
+    Raises
+    ------
+    ValueError
+        A rule of none of these forms, or a window that is not positive.
+    """
+    text = spec.strip()
+    m = _RULE.match(text)
+    try:
+        w = period if text == "T" else max(period, float(m.group(1))) if m else float(text)
+    except ValueError:
+        w = float("nan")
+    if not w > 0:
+        raise ValueError(
+            f"window rule must be a positive number of seconds, 'T' or 'max(T, x)', got {spec!r}"
+        )
+    return float(w)
+
+
+def seed_summary(
+    studies: Sequence[AdaptStudy], strategy: str = "adaptive", fixed_window: float | None = None
+) -> list[dict]:
+    """Ratios of ``strategy`` to the fixed design and to the oracle over several seeds.
+
+    Parameters
+    ----------
+    studies : sequence of AdaptStudy
+        One study per seed (``settings["seed"]``), same scenario; each with the ``fixed``
+        rows of its windows and the ``oracle`` rows of its periods (a ratio without its
+        reference is NaN).
+    strategy : str, default "adaptive"
+        The strategy compared.
+    fixed_window : float, optional
+        The window [s] of the fixed design every ratio is taken to (``None``: each row's
+        own window). One fixed design is a single draw of a window's estimate: a common one
+        keeps the rows of different windows comparable.
+
+    Returns
+    -------
+    list of dict
+        One per (period, window) of ``strategy``, sorted: ``period``, ``window`` [s];
+        ``seeds``; ``fixed`` and ``oracle``: the per-seed ratios (residual of ``strategy`` /
+        that of the fixed design at the same window or ``fixed_window``, / that of the oracle
+        at the same period); ``fixed_mean``, ``fixed_std``, ``oracle_mean``, ``oracle_std``:
+        their mean and sample standard deviation over seeds (NaN std for one seed).
+    """
+    by: dict = {}
+    for study in studies:
+        fixed = {r.window: r.residual for r in study.rows if r.strategy == "fixed"}
+        oracle = {r.period: r.residual for r in study.rows if r.strategy == "oracle"}
+        for r in study.rows:
+            if r.strategy != strategy:
+                continue
+            entry = by.setdefault((r.period, r.window), {"seeds": [], "fixed": [], "oracle": []})
+            entry["seeds"].append(study.settings.get("seed"))
+            ref = r.window if fixed_window is None else fixed_window
+            entry["fixed"].append(r.residual / fixed.get(ref, float("nan")))
+            entry["oracle"].append(r.residual / oracle.get(r.period, float("nan")))
+    out = []
+    for (period, window), entry in sorted(by.items()):
+        row = {"period": period, "window": window, **entry}
+        for ref in ("fixed", "oracle"):
+            x = np.asarray(entry[ref], dtype=float)
+            row[f"{ref}_mean"] = float(np.mean(x))
+            row[f"{ref}_std"] = float(np.std(x, ddof=1)) if x.size > 1 else float("nan")
+        out.append(row)
+    return out
