@@ -15,8 +15,11 @@ from scipy import signal
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import Integrator
 from aocontrol.plant import loop_plant
-from aocontrol.synthesis import disturbance_from_telemetry
-from aocontrol.synthesis._sensor_error import sensor_error_psd, split_sensor_error
+from aocontrol.synthesis import (
+    disturbance_from_telemetry,
+    sensor_error_psd,
+    split_sensor_error,
+)
 
 FS, N, MODES = 1000.0, 2**14, 3
 # v = white noise through a one-pole low-pass of pole A_V, coloured like an aliased turbulence (an ~8 Hz corner), most of its variance where |T| ~ 1.

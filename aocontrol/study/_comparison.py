@@ -12,9 +12,10 @@ import numpy as np
 
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import ControllerBank
-from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry
-from aocontrol.synthesis._sensor_error import (
+from aocontrol.synthesis import (
     SensorErrorPSD,
+    TelemetryPSD,
+    disturbance_from_telemetry,
     sensor_error_psd,
     split_sensor_error,
 )
