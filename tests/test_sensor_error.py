@@ -22,7 +22,8 @@ from aocontrol.synthesis import (
 )
 
 FS, N, MODES = 1000.0, 2**14, 3
-# v = white noise through a one-pole low-pass of pole A_V, coloured like an aliased turbulence (an ~8 Hz corner), most of its variance where |T| ~ 1.
+# v = white noise through a one-pole low-pass of pole A_V, coloured like an aliased
+# turbulence (an ~8 Hz corner), most of its variance where |T| ~ 1.
 A_V = 0.95
 SIGMA_V = np.array([1.0, 2.0, 0.5])
 # Disturbance: white noise through a pole at 0.995 (a ~0.8 Hz corner), RMS ~ 10 sigma_v.

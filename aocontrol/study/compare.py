@@ -91,6 +91,7 @@ __all__ = [
     "Cell",
     "ControllerSpec",
     "DesignInputs",
+    "ResidualModel",
     "RunOutcome",
     "compare_case",
     "register_controller",

@@ -162,9 +162,7 @@ def sensor_error_psd(
     return SensorErrorPSD(freqs=est.freqs, psd=psd, variance=v.var(axis=0), fs=fs_)
 
 
-def split_sensor_error(
-    tel: TelemetryPSD, error: SensorErrorPSD
-) -> tuple[np.ndarray, np.ndarray]:
+def split_sensor_error(tel: TelemetryPSD, error: SensorErrorPSD) -> tuple[np.ndarray, np.ndarray]:
     """Disturbance and coloured noise PSDs of a telemetry estimate, the sensor's error apart.
 
     The telemetry's pseudo-open loop holds ``z^-1 d + v`` (``P_pol = tel.psd +
