@@ -36,7 +36,8 @@ class Cell:
         Stage-2 modal residual RMS [nm] (measured).
     predicted_rms_nm : float
         Residual RMS predicted from the design PSDs (``residual_variance`` of the controller
-        on the calibration telemetry) [nm]; NaN when not available.
+        on the calibration telemetry) [nm], for a diffractive stage 2 from the scheme's
+        :class:`ResidualModel` (the sensor's error apart); NaN when not available.
     radii_ld, contrast_profile : ndarray
         Radial contrast curve (radius [lambda/D], contrast).
     settings : dict
