@@ -33,6 +33,7 @@ def residual_psd(
     noise_psd: object = 0.0,
     *,
     fs: float | None = None,
+    loop_gain: object = None,
 ) -> np.ndarray:
     """One-sided residual PSD ``|S|^2 psd + |T|^2 noise_psd`` [units^2/Hz] on ``freqs``.
 
@@ -53,6 +54,12 @@ def residual_psd(
         White noise of per-frame variance ``s2`` has ``noise_psd = 2 s2 / fs``.
     fs : float, optional
         Loop rate [Hz] if the plant lost its ``dt``.
+    loop_gain : float or array_like of shape (n_modes,), optional
+        A gain the loop has beyond ``plant`` and ``controller`` (default 1), per mode for a
+        bank: the loop is ``loop_gain G K``, e.g. the optical gains of a sensor read by its
+        raw reconstructor (``S = 1 / (1 + og G K)``, the PSDs then referred to the
+        residual). ``S`` is rescaled as ``S / (S + g (1 - S))``, exact where ``L = G K`` is
+        infinite (an integrator at 0 Hz).
 
     Returns
     -------
@@ -76,8 +83,27 @@ def residual_psd(
             check_broadcast("psd", np.asarray(psd), r.sensitivity.shape, expected)
         if noise_b.shape[0] not in (1, n_ctrl):
             check_broadcast("noise_psd", np.asarray(noise_psd), r.sensitivity.shape, expected)
-    out = np.abs(r.sensitivity) ** 2 * psd_b + np.abs(r.complementary) ** 2 * noise_b
-    return out[0] if single and r.sensitivity.ndim == 1 else out
+    sens, comp = r.sensitivity, r.complementary
+    if loop_gain is not None:
+        lg = _loop_gain(loop_gain, sens.shape[0] if sens.ndim == 2 else 1)
+        lg = lg[:, None] if sens.ndim == 2 else lg[0]
+        sens = sens / (sens + lg * (1.0 - sens))
+        comp = 1.0 - sens
+    out = np.abs(sens) ** 2 * psd_b + np.abs(comp) ** 2 * noise_b
+    return out[0] if single and sens.ndim == 1 else out
+
+
+def _loop_gain(loop_gain: object, n_modes: int) -> np.ndarray:
+    """``loop_gain`` as ``(n_modes,)`` values > 0 (a scalar broadcast)."""
+    lg = np.atleast_1d(np.asarray(loop_gain, dtype=float))
+    if lg.size == 1:
+        lg = np.full(n_modes, float(lg[0]))
+    if lg.shape != (n_modes,) or not np.all(np.isfinite(lg)) or np.any(lg <= 0):
+        raise ValueError(
+            f"loop_gain must be a finite value > 0 or {n_modes} of them (one per mode), got "
+            f"shape {np.shape(loop_gain)} with values {np.asarray(loop_gain).ravel()[:4]!r}"
+        )
+    return lg
 
 
 def residual_variance(
@@ -89,6 +115,7 @@ def residual_variance(
     *,
     fs: float | None = None,
     check_stability: bool = True,
+    loop_gain: object = None,
 ) -> float | np.ndarray:
     """Residual variance ``int_0^{fs/2} (|S|^2 psd + |T|^2 noise_psd) df`` [units^2].
 
@@ -98,8 +125,8 @@ def residual_variance(
 
     Parameters
     ----------
-    plant, controller, freqs, psd, noise_psd, fs
-        As in :func:`residual_psd`.
+    plant, controller, freqs, psd, noise_psd, fs, loop_gain
+        As in :func:`residual_psd` (stability is certified for the loop ``loop_gain G K``).
     check_stability : bool, default True
         Return ``inf`` for an unstable closed loop (closed-loop poles, or the winding number
         for an FRD plant, which must then cover [0, fs/2]). Needs a controller with a
@@ -138,18 +165,27 @@ def residual_variance(
             "integrate the residual without a stability verdict"
         )
     res = _integrate(
-        residual_psd(plant, controller, freqs, psd, noise_psd, fs=fs_),
+        residual_psd(plant, controller, freqs, psd, noise_psd, fs=fs_, loop_gain=loop_gain),
         np.asarray(freqs, dtype=float),
     )
     if check_stability:
         if isinstance(controller, ControllerBank):
+            n = controller.n_modes
+            lg = np.ones(n) if loop_gain is None else _loop_gain(loop_gain, n)
             stable = np.array(
-                [is_stable(plant, controller, fs=fs_, mode=i) for i in range(controller.n_modes)]
+                [
+                    is_stable(plant if lg[i] == 1 else plant * lg[i], controller, fs=fs_, mode=i)
+                    for i in range(n)
+                ]
             )
             if res.ndim == 0:
                 res = np.full(controller.n_modes, float(res))
             res = np.where(stable, res, np.inf)
-        elif not is_stable(plant, controller, fs=fs_):
+        elif not is_stable(
+            plant if loop_gain is None else plant * float(_loop_gain(loop_gain, 1)[0]),
+            controller,
+            fs=fs_,
+        ):
             res = np.full_like(res, np.inf)
         if np.any(np.isinf(res)):
             logger.warning("unstable closed loop: residual variance is infinite")

@@ -10,7 +10,15 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol.analysis import residual_variance
 from aocontrol.controllers import ControllerBank
+from aocontrol.synthesis import (
+    SensorErrorPSD,
+    TelemetryPSD,
+    disturbance_from_telemetry,
+    sensor_error_psd,
+    split_sensor_error,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,7 +36,8 @@ class Cell:
         Stage-2 modal residual RMS [nm] (measured).
     predicted_rms_nm : float
         Residual RMS predicted from the design PSDs (``residual_variance`` of the controller
-        on the calibration telemetry) [nm]; NaN when not available.
+        on the calibration telemetry) [nm], for a diffractive stage 2 from the scheme's
+        :class:`ResidualModel` (the sensor's error apart); NaN when not available.
     radii_ld, contrast_profile : ndarray
         Radial contrast curve (radius [lambda/D], contrast).
     settings : dict
@@ -76,6 +85,9 @@ class CaseComparison:
     designs : dict
         ``{scheme: DesignInputs}``: the stage-2 plant and the calibration telemetry's PSDs
         each scheme's controllers were designed from (margins and rejection of the report).
+    residual_models : dict
+        ``{scheme: ResidualModel}`` for a diffractive stage 2: what the cells'
+        ``predicted_rms_nm`` used instead of the design PSDs (the sensor's error apart).
     """
 
     case: str
@@ -85,6 +97,7 @@ class CaseComparison:
     vibration: dict | None = None
     seconds: dict = field(default_factory=dict)
     designs: dict = field(default_factory=dict, repr=False)
+    residual_models: dict = field(default_factory=dict, repr=False)
 
     def cell(self, controller: str, scheme: str) -> Cell:
         """The cell of ``controller`` in ``scheme``."""
@@ -101,6 +114,67 @@ class CaseComparison:
     def contrast_curves(self) -> dict:
         """``{(scheme, controller): (radii_ld, contrast)}`` for the radial contrast plot."""
         return {(c.scheme, c.controller): (c.radii_ld, c.contrast_profile) for c in self.cells}
+
+
+@dataclass(frozen=True, eq=False)
+class ResidualModel:
+    """What the stage-2 residual is predicted from when the sensor is diffractive.
+
+    The calibration telemetry's pseudo-open loop ``m / og + G u = z^-1 d + v / og`` with the
+    sensor's error ``v`` (aliasing, non-linearity, noise: coloured) moved from the disturbance
+    to the noise, through ``T`` (:mod:`aocontrol.synthesis._sensor_error`), and the loop's
+    own gain ``og G K`` where the reconstructor leaves the optical gains uncompensated.
+
+    Parameters
+    ----------
+    freqs : ndarray, shape (n_f,)
+        Frequencies [Hz].
+    psd, noise_psd : ndarray, shape (n_modes, n_f)
+        Disturbance and sensor-error PSDs, one-sided [nm^2/Hz].
+    loop_gain : ndarray, shape (n_modes,) or None
+        Optical gains the loop does not compensate (``"none"``: the calibrated ones), or
+        ``None`` (compensated).
+    error : SensorErrorPSD
+        The sensor's error, from the calibration run (the sensor's output and the modal
+        residual it looked at).
+    """
+
+    freqs: np.ndarray
+    psd: np.ndarray
+    noise_psd: np.ndarray
+    loop_gain: np.ndarray | None
+    error: SensorErrorPSD
+
+    @classmethod
+    def from_calibration(
+        cls,
+        measurements: np.ndarray,
+        commands: np.ndarray,
+        residuals: np.ndarray,
+        plant: Any,
+        fs: float,
+        *,
+        optical_gain: np.ndarray | None = None,
+        estimator: str = "prewhitened",
+    ) -> ResidualModel:
+        """From a calibration run's stage-2 records ``(n_frames, n_modes)`` [nm].
+
+        ``optical_gain``: gains ``m`` carries uncompensated (``None``: compensated).
+        """
+        tel: TelemetryPSD = disturbance_from_telemetry(
+            measurements, commands, plant, fs=fs, method=estimator, optical_gain=optical_gain
+        )
+        err = sensor_error_psd(measurements, residuals, plant, fs=fs, optical_gain=optical_gain)
+        psd, noise = split_sensor_error(tel, err)
+        og = None if optical_gain is None else np.asarray(optical_gain, dtype=float)
+        return cls(tel.freqs, psd, noise, og, err)
+
+    def predicted_rms(self, plant: Any, controller: ControllerBank) -> float:
+        """Stage-2 modal residual RMS [nm] of ``controller`` in this loop."""
+        var = residual_variance(
+            plant, controller, self.freqs, self.psd, self.noise_psd, loop_gain=self.loop_gain
+        )
+        return float(np.sqrt(np.sum(var)))
 
 
 def format_table(case: str, cells: Sequence[Any]) -> str:
@@ -165,4 +239,4 @@ def table_from_files(paths: Sequence[str | os.PathLike]) -> str:
 
 
 # Shown, documented and pickled under the module that exports them.
-Cell.__module__ = CaseComparison.__module__ = "aocontrol.study.compare"
+Cell.__module__ = CaseComparison.__module__ = ResidualModel.__module__ = "aocontrol.study.compare"

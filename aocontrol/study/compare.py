@@ -60,7 +60,7 @@ from aocontrol.sim.loop import (
     run_cascade,
     run_loop,
 )
-from aocontrol.study._comparison import CaseComparison, Cell, table_from_files
+from aocontrol.study._comparison import CaseComparison, Cell, ResidualModel, table_from_files
 from aocontrol.study._registry import (
     CONTROLLER_ALIASES,
     CONTROLLERS,
@@ -91,6 +91,7 @@ __all__ = [
     "Cell",
     "ControllerSpec",
     "DesignInputs",
+    "ResidualModel",
     "RunOutcome",
     "compare_case",
     "register_controller",
@@ -380,10 +381,13 @@ def design_inputs(
     tracker's running estimate for ``"tracked"``), so the pseudo-open loop ``m + G u`` is
     already rebuilt with the gains the loop applied (``optical_gain=`` of
     :func:`aocontrol.synthesis.disturbance_from_telemetry` stays 1), as an instrument would
-    do. What it cannot see is the sensor's error beyond ``og e`` (aliasing, non-linearity):
-    measured on quick scenes (issue 15), it is what keeps the diffractive prediction at
-    0.41-0.83 of the measured residual. ``"none"`` (raw reconstructor): the designs see the
-    unit-gain plant, not the loop's ``og G`` (not wired: one plant for all modes).
+    do. ``"none"`` (raw reconstructor): the designs see the unit-gain plant, not the loop's
+    ``og G`` (not wired: one plant for all modes). What the pseudo-open loop cannot
+    separate from the disturbance is the sensor's error beyond ``og e`` (aliasing of the
+    fitting error, non-linearity; coloured, re-injected through ``T``): the designs are
+    made on it as disturbance. The predicted residual of a diffractive stage 2 is not
+    (:class:`ResidualModel`, from :func:`_calibrate`): the error's PSD from the calibration
+    run's sensor output and modal residual, the loop's ``og`` for ``"none"``.
 
     Parameters
     ----------
@@ -408,6 +412,31 @@ def design_inputs(
     -------
     DesignInputs
     """
+    return _calibrate(
+        scene, scheme, gain, seconds=seconds, seed=seed, estimator=estimator, upstream=upstream
+    )[0]
+
+
+def _calibrate(
+    scene: Scene,
+    scheme: str,
+    gain: float,
+    *,
+    seconds: float,
+    seed: int,
+    estimator: str = "prewhitened",
+    upstream: UpstreamRecord | None = None,
+) -> tuple[DesignInputs, ResidualModel | None]:
+    """:func:`design_inputs` and, for a diffractive stage 2, the :class:`ResidualModel` of
+    the predicted residual (``None`` for a linear one: its error is the white noise the
+    estimator's floor already holds).
+
+    Predicted / measured stage-2 residual of the reference integrator, in the same run
+    (quick scenes, one run each, ``benchmarks/bench_telemetry_design.py own --sensor
+    diffractive``): 0.42-0.89 from the design PSDs, where ``v`` counts as disturbance
+    through ``|S|^2``; 0.99-1.01 with the error apart (red 5 best standalone, calibrated /
+    tracked / none; the other cells in the benchmark).
+    """
     st = scene.stage2
     ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
     res = simulate_scene(
@@ -418,7 +447,15 @@ def design_inputs(
     m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
     u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
     tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=estimator)
-    return DesignInputs(
+    model = None
+    if st.spec.sensor == "diffractive":
+        e = np.asarray(r2.telemetry["residuals"][k:], dtype=float)
+        raw = st.spec.optical_gain == "none"
+        model = ResidualModel.from_calibration(
+            m, u, e, st.plant, st.fs, optical_gain=st.optical_gain if raw else None,
+            estimator=estimator,
+        )  # fmt: skip
+    design = DesignInputs(
         plant=st.plant,
         freqs=tel.freqs,
         psd=tel.psd,
@@ -429,6 +466,7 @@ def design_inputs(
         telemetry=tel,
         command_limit=st.modal_dm().command_bound,
     )
+    return design, model
 
 
 def run_configuration(
@@ -568,7 +606,11 @@ def _scan_grid(scene: Scene, quick: bool, grid: Sequence[float] | None) -> list[
     return keep
 
 
-def _predicted_rms(ctrl: ControllerBank, design: DesignInputs) -> float:
+def _predicted_rms(
+    ctrl: ControllerBank, design: DesignInputs, model: ResidualModel | None = None
+) -> float:
+    if model is not None:
+        return model.predicted_rms(design.plant, ctrl)
     if design.freqs.size == 0:
         return math.nan
     var = residual_variance(design.plant, ctrl, design.freqs, design.psd, design.noise_psd)
@@ -654,6 +696,7 @@ def compare_case(
     # Wall time per part [s]; "design" is the part of "runs" spent designing controllers.
     timing = {"scan": 0.0, "calibration": 0.0, "runs": 0.0, "design": 0.0}
     designs: dict[str, DesignInputs] = {}
+    models: dict[str, ResidualModel] = {}
     ctrls: dict[tuple[str, str], ControllerBank] = {}
     results: dict[tuple[str, str], Any] = {}
     rd = None if results_dir is None else os.fspath(results_dir)
@@ -678,7 +721,7 @@ def compare_case(
         timing["scan"] += time.perf_counter() - t0
         logger.info("%s %s: reference gain %.2f (scan %s)", c.name, scheme, best, scan)
         t0 = time.perf_counter()
-        design = design_inputs(
+        design, model = _calibrate(
             scene,
             scheme,
             best,
@@ -688,6 +731,8 @@ def compare_case(
             upstream=upstream.get(scheme, "calibration", cal_s),
         )
         designs[scheme] = design
+        if model is not None:
+            models[scheme] = model
         timing["calibration"] += time.perf_counter() - t0
         for name in controllers:
             t0 = time.perf_counter()
@@ -716,7 +761,7 @@ def compare_case(
                     strehl=out.summary["strehl"],
                     mean_contrast_4_6=out.summary["mean_contrast_4_6"],
                     residual_rms_nm=out.summary["residual_rms_nm"],
-                    predicted_rms_nm=_predicted_rms(out.controller, design),
+                    predicted_rms_nm=_predicted_rms(out.controller, design, model),
                     radii_ld=np.asarray(sci.radii_ld),
                     contrast_profile=np.asarray(sci.contrast_profile),
                     settings=out.settings,
@@ -730,7 +775,7 @@ def compare_case(
     vib = None
     if c.vibration is not None:
         vib = _vibration_report(scene, schemes[0], controllers, designs, ctrls, results)
-    return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing, designs)
+    return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing, designs, models)
 
 
 def _vibration_report(

@@ -35,6 +35,11 @@ from aocontrol.synthesis._registry import (
     get_controller,
     register_controller,
 )
+from aocontrol.synthesis._sensor_error import (
+    SensorErrorPSD,
+    sensor_error_psd,
+    split_sensor_error,
+)
 from aocontrol.synthesis._telemetry import (
     ESTIMATORS,
     LoopTelemetry,
@@ -53,6 +58,9 @@ __all__ = [
     "ControllerSpec",
     "DesignInputs",
     "ESTIMATORS",
+    "SensorErrorPSD",
+    "sensor_error_psd",
+    "split_sensor_error",
     "LoopTelemetry",
     "MODULUS_MARGIN",
     "MPC_HORIZON",
