@@ -55,7 +55,8 @@ res = run_loop(
     science_every=10,
 )
 np.save(sys.argv[2], basis.modes)
-print(json.dumps({"strehl": float(res.science.strehl), "residual": float(res.residual_variance.sum())}))
+fig = {"strehl": res.science.strehl, "residual": res.residual_variance.sum()}
+print(json.dumps({k: float(v) for k, v in fig.items()}))
 """
 
 

@@ -36,8 +36,10 @@ traceback) instead of a result, and the other runs go on. The runs of a case who
 calibrations are not yet on disk go to one worker where possible (each worker process caches
 the scenes it builds in memory; their calibrations are also cached on disk,
 :mod:`aocontrol.study._cache`, so that a scene built by one worker or an earlier sweep is read,
-not built again); the runs of cases on disk are balanced over the workers, each preferably on a
-worker that holds its scene in memory. Start one sweep per folder at a time:
+not built again); the runs of cases on disk are balanced over the workers by their expected
+work (fast frames of the run, a scene loaded from disk; :mod:`aocontrol.study._sweep_place`),
+each preferably on a worker that holds its scene in memory. :attr:`SweepReport.timings` gives
+each run's worker, wall and CPU time. Start one sweep per folder at a time:
 a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
 The sweep's table (:func:`sweep_table`, one row per file, also written to
