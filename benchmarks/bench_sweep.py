@@ -73,13 +73,101 @@ def _spec(cases, controllers, schemes, seeds, seconds, quick):
     )
 
 
-def _serial(runner, runs, out: pathlib.Path) -> float:
-    """Every run one after the other in this process [s]."""
+def _serial(runner, runs, out: pathlib.Path, cpu: list | None = None) -> float:
+    """Every run one after the other in this process [s]; each run's CPU [s] into ``cpu``."""
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     for r in runs:
+        c0 = time.process_time()
         runner.run(dict(r.settings), out / f"{r.hash}.h5")
+        if cpu is not None:
+            cpu.append(time.process_time() - c0)
     return time.perf_counter() - t0
+
+
+def _breakdown(label: str, report, wall: float, serial_cpu: list) -> None:
+    """Per worker: runs, busy wall and CPU; against the one process's CPU per run."""
+    per: dict = {}
+    for t in report.timings:
+        w = per.setdefault(t["worker"], {"runs": 0, "wall": 0.0, "cpu": 0.0})
+        w["runs"] += 1
+        w["wall"] += t["seconds"]
+        w["cpu"] += t["cpu_s"]
+    for i, (_, w) in enumerate(sorted(per.items())):
+        print(
+            f"  {label} worker {i}: {w['runs']} runs, busy {w['wall']:.1f} s wall, "
+            f"{w['cpu']:.1f} s CPU ({w['cpu'] / max(w['runs'], 1):.2f} s CPU/run); "
+            f"idle {wall - w['wall']:.1f} s of the sweep's {wall:.1f} s",
+            flush=True,
+        )
+    cpu_cluster = sum(w["cpu"] for w in per.values())
+    if serial_cpu:
+        print(
+            f"  {label}: CPU per run, cluster {cpu_cluster / max(len(report.timings), 1):.2f} s,"
+            f" one process {sum(serial_cpu) / len(serial_cpu):.2f} s; slowest worker "
+            f"{max((w['wall'] for w in per.values()), default=0.0):.1f} s busy of "
+            f"{wall:.1f} s wall",
+            flush=True,
+        )
+
+
+def _warm_only(args, cases, seeds) -> int:
+    """Warm sweeps only: cluster vs one process on calibrations already in memory."""
+    import logging
+
+    from aocontrol.study.scene import build_scene
+    from aocontrol.study.sweep import default_runner, local_cluster, run_sweep, sweep_table
+
+    logging.basicConfig(level=logging.WARNING)
+    runner = default_runner()
+    print(
+        f"warm only: cases={list(cases)}, controllers={args.controllers}, "
+        f"schemes={args.schemes}, seeds={seeds}, seconds={args.seconds}, quick=True, "
+        f"workers={args.workers}; calibrations from {os.environ.get('AOCONTROL_CACHE')}",
+        flush=True,
+    )
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-sweep-") as tmp,
+        local_cluster(args.workers) as cluster,
+    ):
+        tmp = pathlib.Path(tmp)
+        # untimed: every scene built (or read from disk) in some worker and in this process
+        prime = _spec(cases, args.controllers, args.schemes, range(seeds), 0.05, True)
+        run_sweep(prime, out=tmp / "prime", scheduler=cluster.scheduler_address, runner=runner)
+        for case in cases:
+            build_scene(case, quick=True)
+        ratios = []
+        for i in range(args.repeat):
+            base = seeds * (i + 1)
+            spec = _spec(
+                cases, args.controllers, args.schemes, range(base, base + seeds), args.seconds, True
+            )
+            cpu: list = []
+            parts = []
+            for part in ("serial", "cluster") if i % 2 else ("cluster", "serial"):
+                if part == "serial":
+                    t_serial = _serial(runner, spec.runs(), tmp / f"serial{i}", cpu)
+                    parts.append(f"one process {t_serial:.1f} s")
+                else:
+                    rep = run_sweep(
+                        spec,
+                        out=tmp / f"cluster{i}",
+                        scheduler=cluster.scheduler_address,
+                        runner=runner,
+                    )
+                    parts.append(f"cluster {rep.wall_s:.1f} s")
+            serial_rows = {r["hash"]: r for r in sweep_table(tmp / f"serial{i}", runner=runner)}
+            diff = max(
+                abs(serial_rows[row["hash"]][k] - row[k]) / abs(row[k])
+                for row in rep.table
+                for k in ("strehl", "mean_contrast_4_6", "residual_rms_nm")
+            )
+            print(f"warm {i}: cluster vs one process, largest relative difference {diff:.1e}")
+            ratios.append(t_serial / rep.wall_s)
+            print(f"warm {i}: {', '.join(parts)}: {ratios[-1]:.2f}x", flush=True)
+            _breakdown(f"warm {i}", rep, rep.wall_s, cpu)
+        print(f"warm ratios one process / cluster: {', '.join(f'{r:.2f}x' for r in ratios)}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -99,12 +187,22 @@ def main(argv: list[str] | None = None) -> int:
         help="time the one-process runs before the cluster's (default after): run both orders "
         "on a busy machine, whose load drifts between the two parts",
     )
+    parser.add_argument(
+        "--warm-only",
+        action="store_true",
+        help="only the warm comparison, on the calibrations in $AOCONTROL_CACHE (built by an "
+        "untimed first sweep if missing), --repeat times, the two orders alternating",
+    )
+    parser.add_argument("--repeat", type=int, default=1, help="warm comparisons (--warm-only)")
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     if args.quick:
         cases, seeds, n_trivial = CASES[:2], 1, min(args.trivial, 12)
     else:
         cases, seeds, n_trivial = CASES, args.seeds, args.trivial
+
+    if args.warm_only:
+        return _warm_only(args, cases, seeds)
 
     import logging
 
@@ -173,8 +271,10 @@ def main(argv: list[str] | None = None) -> int:
             runner = default_runner()
             spec = _spec(cases, args.controllers, args.schemes, range(seeds), args.seconds, True)
             runs = spec.runs()
+            cpu_cold: list = []
+            cpu_warm: list = []
             if args.serial_first:
-                t_serial = _serial(runner, runs, tmp / "cases-serial")
+                t_serial = _serial(runner, runs, tmp / "cases-serial", cpu_cold)
                 print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
             t_par = run_sweep(
                 spec,
@@ -188,21 +288,37 @@ def main(argv: list[str] | None = None) -> int:
             t_cluster = t_par.wall_s
             print(f"cluster: {len(runs)} runs in {t_cluster:.1f} s", flush=True)
             if not args.serial_first:
-                t_serial = _serial(runner, runs, tmp / "cases-serial")
+                t_serial = _serial(runner, runs, tmp / "cases-serial", cpu_cold)
                 print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
+            _breakdown("cold", t_par, t_cluster, cpu_cold)
             # warm: new seeds, every calibration on disk and in the processes' memory
             spec_w = _spec(
                 cases, args.controllers, args.schemes, range(seeds, 2 * seeds), args.seconds, True
             )
-            t_cluster_warm = run_sweep(
+            warm = run_sweep(
                 spec_w,
                 out=tmp / "warm-cluster",
                 scheduler=cluster.scheduler_address,
                 runner=runner,
-            ).wall_s
-            t_serial_warm = _serial(runner, spec_w.runs(), tmp / "warm-serial")
+            )
+            t_cluster_warm = warm.wall_s
+            t_serial_warm = _serial(runner, spec_w.runs(), tmp / "warm-serial", cpu_warm)
             print(
                 f"warm caches: cluster {t_cluster_warm:.1f} s, one process {t_serial_warm:.1f} s",
+                flush=True,
+            )
+            _breakdown("warm", warm, t_cluster_warm, cpu_warm)
+            # a scene's calibrations read from the disk cache (what a worker pays for a case
+            # it does not hold in memory), against a warm run
+            clear_scene_cache()
+            from aocontrol.study.scene import build_scene
+
+            c0 = time.process_time()
+            build_scene(cases[0], quick=True)
+            print(
+                f"scene {cases[0]} loaded from the disk cache: "
+                f"{time.process_time() - c0:.2f} s CPU (a warm run: "
+                f"{sum(cpu_warm) / len(cpu_warm):.2f} s CPU)",
                 flush=True,
             )
         finally:

@@ -8,6 +8,15 @@ the linear single-stage runs (a modal disturbance, no product whose rounding can
 bit for bit; the runs that project phase screens on modes (science, diffractive, cascades)
 to :data:`GOLDEN_RTOL` (see there why), with their integer counts exact.
 
+The runs on KL bases (science, diffractive, both cascades) were re-recorded with today's
+engine when :func:`aocontrol.sim.modes.kl_basis` got its canonical orientation of degenerate
+modes and signs (issue 19: the modes had depended on the BLAS threads): the same engine that
+matched the legacy arrays to ``GOLDEN_RTOL``, on the canonical modes (per-mode telemetry
+changed by the orientation, the Strehl ratios by at most 5e-4 relative); the linear runs
+(no basis) are the legacy arrays, unchanged bit for bit. The diffractive run was recorded
+with the pyramid's former FFT propagation (``tests/_pyramid_reference.FFTPyramid``), as
+its test runs it.
+
 Regenerate (only when a change of the loop's numbers is intended, and say so in the commit)::
 
     PYTHONPATH=. python tests/_golden_loop.py

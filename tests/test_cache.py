@@ -233,9 +233,9 @@ def test_sweep_pins_only_cases_whose_calibrations_are_not_on_disk(cache_dir, mon
 
 
 def test_sweep_places_calibrated_runs_where_their_scene_is_in_memory(cache_dir):
-    # Cases on disk: their runs are balanced over the workers, each preferably where its scene
-    # is in memory (a worker without it loads it: half a run of work); a case still to build
-    # keeps one worker.
+    # Cases on disk: their runs are balanced over the workers by expected work, each
+    # preferably where its scene is in memory (a worker without it loads it from disk); a case
+    # still to build keeps one worker.
     from aocontrol.study._sweep_place import _run_placement, _scene_key
     from aocontrol.study.sweep import SweepSpec
 
@@ -260,12 +260,31 @@ def test_sweep_places_calibrated_runs_where_their_scene_is_in_memory(cache_dir):
     cached(keys["red5-best"], Counter())
     where = _run_placement(_Client(), runs)
     assert set(where) == {r.hash for r in runs}
-    counts = [sum(w == a for w in where.values()) for a in held]
-    assert counts == [5, 5]  # ten equal runs: five each
     loads = {(where[r.hash], r.settings["case"]) for r in runs} - {
         (w, n) for w, cases in held.items() for n in cases
     }
-    assert len(loads) <= 2  # the balance costs at most two loads (free placement: about five)
+    assert len(loads) <= 3  # the balance costs at most three loads (free placement: about five)
+    # Balanced by expected work, not by run count: a 300-Hz case's run costs about a fifth of
+    # a 3-kHz case's (measured 0.5 s vs 1.9 s of CPU). Oracle: every assignment of the ten
+    # runs to the two workers, tried; the placement's busiest worker (runs + loads of scenes
+    # it does not hold) within 5 % of the best possible.
+    import itertools
+
+    from aocontrol.study._sweep_place import _LOAD_FRAMES, _run_cost
+
+    cost = {r.hash: _run_cost(r.settings) for r in runs}
+    assert cost[runs[-1].hash] < 0.5 * cost[runs[0].hash]  # red5-best vs bright1-best
+
+    def makespan(assign):
+        work = []
+        for w, cases in held.items():
+            mine = [r for r, a in zip(runs, assign, strict=True) if a == w]
+            new = {r.settings["case"] for r in mine} - set(cases)
+            work.append(sum(cost[r.hash] for r in mine) + _LOAD_FRAMES * len(new))
+        return max(work)
+
+    best = min(makespan(a) for a in itertools.product(list(held), repeat=len(runs)))
+    assert makespan([where[r.hash] for r in runs]) <= 1.05 * best
 
     class _Blind(_Client):
         def run(self, func):

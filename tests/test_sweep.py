@@ -203,6 +203,10 @@ def test_killed_sweep_resumes_without_losing_or_duplicating(tmp_path, scheduler_
     assert sorted(report.skipped) == sorted(done_before)
     assert sorted(report.ran) == sorted(set(expected) - done_before)
     assert report.failed == ()
+    # each run executed now has its timing: the process that ran it, its wall and CPU time
+    assert sorted(t["hash"] for t in report.timings) == sorted(report.ran)
+    for t in report.timings:
+        assert t["seconds"] >= 0.05 and t["cpu_s"] >= 0.0 and ":" in t["worker"], t
     # the resumed sweep ran only the missing ones, each once
     new = sorted(m.split(".")[0] for m in set(_markers(markers)) - markers_before)
     assert new == sorted(set(expected) - done_before)

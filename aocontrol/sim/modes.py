@@ -24,6 +24,17 @@ optique adaptative") and Dessenne (1998), the "double diagonalisation":
 4. Turbulent step. In the remaining space diagonalise the von Kármán covariance of the modal
    coefficients, ``C = B C_phi B^T / n_valid^2``; eigenvectors sorted by decreasing eigenvalue
    (the turbulent variance of each mode) give the other modes.
+5. Canonical orientation. The pupil's symmetry makes many KL variances degenerate (pairs of
+   modes, as Zernike's cos/sin pairs), and an eigensolver returns any orthonormal basis of a
+   degenerate eigenspace (LAPACK's depends on the BLAS threads and code path, so two processes
+   built different modes from the same settings). Eigenvalues whose consecutive gaps are at
+   most ``_DEGENERATE_RTOL`` (1e-8) of the largest form one eigenspace; it is rotated to the
+   Gram-Schmidt basis of the projections of fixed references (alternately the x-even and
+   x-odd parts of fixed pseudo-random maps, so on a pupil symmetric under ``x -> -x`` the
+   modes of a pair are one even, one odd in x), and its modes get the eigenspace's mean
+   variance. Then every mode from mode 2 is signed to a positive overlap with a fixed
+   pseudo-random map. The basis is the same in every process to rounding (tested with 1 and
+   2 BLAS threads).
 
 ``C_phi`` is never formed: for piston-free vectors the phase covariance acts as the
 convolution with ``-D(r)/2`` (``D`` the structure function; the huge von Kármán piston term
@@ -60,6 +71,17 @@ logger = logging.getLogger(__name__)
 _GEOMETRIC_RCOND = 1e-10
 # Number of maps per batch in the FFT covariance operator (memory ~ batch * (2 n_pix)^2).
 _FFT_BATCH = 64
+# Canonical orientation of the KL modes (see kl_basis, Notes): eigenvalues whose gap is at
+# most this fraction of the largest turbulent eigenvalue form one degenerate eigenspace
+# (rounding splits an exact pair by at most 4e-14 of it, measured from 6 to 1200 modes; true
+# gaps below it are lumped, an off-diagonal covariance of at most this fraction, and a gap
+# just above it is rotated by rounding at most ~4e-14 / 1e-8); the fixed references' seed;
+# a reference whose projection keeps less than this fraction of its norm once the previous
+# ones are removed is skipped.
+_DEGENERATE_RTOL = 1e-8
+_REFERENCE_SEED = 0x4B4C  # "KL"
+_SIGN_STREAM = 1_000_000  # the references' stream of the sign map (far from theirs)
+_REFERENCE_RCOND = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -274,12 +296,62 @@ def _orthonormal_complement(vectors: np.ndarray) -> np.ndarray:
     return q[:, vectors.shape[1] :]
 
 
-def _fix_signs(coeff_vectors: np.ndarray) -> np.ndarray:
-    """Make each column's largest-magnitude entry positive (deterministic eigenvectors)."""
-    idx = np.argmax(np.abs(coeff_vectors), axis=0)
-    signs = np.sign(coeff_vectors[idx, np.arange(coeff_vectors.shape[1])])
-    signs[signs == 0] = 1.0
-    return coeff_vectors * signs
+def _reference_maps(pupil: Pupil, count: int) -> np.ndarray:
+    """The fixed reference vectors of the canonical orientation, shape ``(count, n_valid)``.
+
+    Reference ``2j`` is the x-even part, ``2j + 1`` the x-odd part (under ``x -> -x``, a flip
+    of the pupil grid's columns) of the fixed pseudo-random map ``j`` (standard normal pixels,
+    PCG64 seeded with ``(_REFERENCE_SEED, j)``): deterministic, the same in every process,
+    and almost surely not orthogonal to any mode.
+    """
+    out = np.empty((count, pupil.n_valid))
+    for j in range((count + 1) // 2):
+        g = np.random.default_rng([_REFERENCE_SEED, j]).standard_normal((pupil.n_pix,) * 2)
+        flipped = g[:, ::-1]
+        pair = pupil.to_vector(np.stack([g + flipped, g - flipped]) / 2)
+        out[2 * j : 2 * j + 2] = pair[: count - 2 * j]
+    return out
+
+
+def _sign_reference(pupil: Pupil) -> np.ndarray:
+    """The fixed vector ``(n_valid,)`` every mode's sign is taken against (see kl_basis)."""
+    g = np.random.default_rng([_REFERENCE_SEED, _SIGN_STREAM]).standard_normal((pupil.n_pix,) * 2)
+    return pupil.to_vector(g)
+
+
+def _clusters(s: np.ndarray, tol: float) -> list[np.ndarray]:
+    """Runs of sorted (decreasing) eigenvalues whose consecutive gaps are <= ``tol``."""
+    breaks = np.flatnonzero(-np.diff(s) > tol) + 1
+    return [c for c in np.split(np.arange(s.size), breaks) if c.size > 1]
+
+
+def _canonical_rotation(coords: np.ndarray) -> np.ndarray:
+    """Orthogonal ``(k, k)`` rotation of a degenerate cluster to its canonical basis.
+
+    ``coords`` ``(k, n_ref)``: the references' coordinates on the cluster's current
+    orthonormal modes. The canonical modes are the Gram-Schmidt orthonormalisation of the
+    references' projections on the cluster, in the references' order, skipping a reference
+    whose projection is (to ``_REFERENCE_RCOND``) in the span of the previous ones; each
+    canonical mode has a positive overlap with its reference. The projections do not depend
+    on which orthonormal basis of the cluster ``coords`` was computed in, so neither does the
+    result.
+    """
+    k = coords.shape[0]
+    q = np.zeros((k, k))
+    found = 0
+    for j in range(coords.shape[1]):
+        r = coords[:, j]
+        scale = np.linalg.norm(r)
+        r = r - q[:, :found] @ (q[:, :found].T @ r)
+        r = r - q[:, :found] @ (q[:, :found].T @ r)  # re-orthogonalise (twice is enough)
+        norm = np.linalg.norm(r)
+        if scale == 0 or norm <= _REFERENCE_RCOND * scale:
+            continue
+        q[:, found] = r / norm
+        found += 1
+        if found == k:
+            return q
+    raise RuntimeError(f"kl_basis: {coords.shape[1]} references do not span a cluster of {k}")
 
 
 def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1, L0: float = 25.0) -> ModalBasis:
@@ -314,8 +386,10 @@ def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1, L0: float = 25
 
     Notes
     -----
-    See the module docstring for the algorithm (Gendron 1995 double diagonalisation) and
-    timings; the build time is logged at INFO level. The modes do not depend on ``r0``.
+    See the module docstring for the algorithm (Gendron 1995 double diagonalisation), the
+    canonical orientation of degenerate modes and signs (step 5: the same modes in every
+    process, whatever its BLAS threads) and timings; the build time is logged at INFO level
+    (the degenerate eigenspaces at DEBUG). The modes do not depend on ``r0``.
 
     Examples
     --------
@@ -385,7 +459,31 @@ def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1, L0: float = 25
     c_rest = rest.T @ c2 @ rest
     s, v = np.linalg.eigh(0.5 * (c_rest + c_rest.T))
     order = np.argsort(s)[::-1]
-    s, v = s[order], _fix_signs(v[:, order])
+    s, v = s[order], v[:, order]
+    # Canonical orientation of the degenerate eigenspaces (the pupil's symmetry makes KL modes
+    # come in pairs; LAPACK returns any orthonormal basis of each, which depends on the BLAS
+    # threads): rotate each to the Gram-Schmidt basis of the fixed references' projections.
+    clusters = _clusters(s, _DEGENERATE_RTOL * max(float(s[0]), 0.0)) if s.size else []
+    if logger.isEnabledFor(logging.DEBUG) and s.size > 1:
+        gaps = -np.diff(s) / s[0]
+        split = gaps > _DEGENERATE_RTOL
+        logger.debug(
+            "kl_basis: %d degenerate eigenspaces (sizes %s); relative gaps: largest inside "
+            "one %.1e, smallest between two %.1e (tolerance %.0e)",
+            len(clusters),
+            sorted({c.size for c in clusters}),
+            float(gaps[~split].max()) if np.any(~split) else 0.0,
+            float(gaps[split].min()) if np.any(split) else float("inf"),
+            _DEGENERATE_RTOL,
+        )
+    if clusters:
+        size = max(c.size for c in clusters)
+        refs = _reference_maps(pupil, 2 * size + 4)
+        ref_coords = (m2 @ rest).T @ (f_p @ refs.T) / n  # (n_rest, n_ref): <B_i, r_j>
+        for c in clusters:
+            rot = _canonical_rotation(v[:, c].T @ ref_coords)
+            v[:, c] = v[:, c] @ rot
+            s[c] = s[c].mean()  # equal to the cluster's spread (<= the tolerance)
     transform = np.concatenate([tt, rest @ v], axis=1)[:, :n_modes]
     variances = np.concatenate([np.diag(tt.T @ c2 @ tt), s])[:n_modes]
 
@@ -402,6 +500,12 @@ def kl_basis(dm: DeformableMirror, n_modes: int, r0: float = 0.1, L0: float = 25
     polish = (gv / np.sqrt(gw)) @ gv.T
     modes = polish @ modes
     m2c = m2c @ polish
+    # Canonical signs: every KL mode (from mode 2; tip and tilt are +x and +y) has a positive
+    # overlap with the fixed sign reference.
+    signs = np.ones(n_modes)
+    signs[2:] = np.where(modes[2:] @ _sign_reference(pupil) < 0, -1.0, 1.0)
+    modes *= signs[:, None]
+    m2c = m2c * signs
     logger.info(
         "kl_basis: %d modes of %d valid actuators (n_pix=%d, %d valid pixels) in %.2f s",
         n_modes,

@@ -36,8 +36,10 @@ traceback) instead of a result, and the other runs go on. The runs of a case who
 calibrations are not yet on disk go to one worker where possible (each worker process caches
 the scenes it builds in memory; their calibrations are also cached on disk,
 :mod:`aocontrol.study._cache`, so that a scene built by one worker or an earlier sweep is read,
-not built again); the runs of cases on disk are balanced over the workers, each preferably on a
-worker that holds its scene in memory. Start one sweep per folder at a time:
+not built again); the runs of cases on disk are balanced over the workers by their expected
+work (fast frames of the run, a scene loaded from disk; :mod:`aocontrol.study._sweep_place`),
+each preferably on a worker that holds its scene in memory. :attr:`SweepReport.timings` gives
+each run's worker, wall and CPU time. Start one sweep per folder at a time:
 a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
 The sweep's table (:func:`sweep_table`, one row per file, also written to
@@ -56,6 +58,7 @@ import logging
 import os
 import pathlib
 import shutil
+import socket
 import sys
 import time
 import traceback
@@ -306,7 +309,7 @@ def _execute(
     partial.mkdir(parents=True, exist_ok=True)
     tmp = partial / f"{hash_}.{uuid.uuid4().hex}.h5"
     error_file = out_dir / f"{hash_}.error.json"
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         run(dict(settings), tmp)
         if not tmp.is_file():
@@ -317,7 +320,14 @@ def _execute(
         _write_json_atomic(error_file, _error_record(settings, hash_, exc, "worker"))
         return {"hash": hash_, "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
     error_file.unlink(missing_ok=True)
-    return {"hash": hash_, "status": "done", "seconds": time.perf_counter() - t0}
+    return {
+        "hash": hash_,
+        "status": "done",
+        "seconds": time.perf_counter() - t0,
+        # CPU of the worker process over the run (its every thread), and which process ran it
+        "cpu_s": time.process_time() - c0,
+        "worker": f"{socket.gethostname()}:{os.getpid()}",
+    }
 
 
 @dataclass(frozen=True)
@@ -336,6 +346,10 @@ class SweepReport:
         :func:`sweep_table` of the folder after the sweep.
     wall_s : float
         Wall-clock time of the sweep [s], cluster start-up included.
+    timings : tuple of dict
+        Per run executed now, in completion order: ``hash``, ``worker`` (``host:pid`` of the
+        process that ran it), ``seconds`` (wall) and ``cpu_s`` (that process's CPU over the
+        run, every thread) [s]: the load balance of the sweep (``bench_sweep`` prints it).
     """
 
     out: pathlib.Path
@@ -344,7 +358,11 @@ class SweepReport:
     failed: tuple[tuple[str, str], ...]
     table: tuple[dict, ...]
     wall_s: float
+    timings: tuple[dict, ...] = ()
 
+
+#: What :attr:`SweepReport.timings` keeps of a worker's status of a completed run.
+_TIMING_KEYS = ("hash", "worker", "seconds", "cpu_s")
 
 #: Loggers of the Dask machinery kept quiet around a sweep's own local cluster.
 _DASK_LOGGERS = ("distributed", "tornado", "asyncio")
@@ -558,6 +576,7 @@ def run_sweep(
     )
     ran: list[str] = []
     failed: list[tuple[str, str]] = []
+    timings: list[dict] = []
     if todo:
         from contextlib import ExitStack
 
@@ -603,6 +622,7 @@ def run_sweep(
                     skipped.append(r.hash)
                 else:
                     ran.append(r.hash)
+                    timings.append({k: status.get(k) for k in _TIMING_KEYS})
                     logger.info("run %s done in %.1f s", r.hash, status["seconds"])
                 if bar is not None:
                     bar.update(1)
@@ -617,6 +637,7 @@ def run_sweep(
         failed=tuple(failed),
         table=tuple(table),
         wall_s=time.perf_counter() - t0,
+        timings=tuple(timings),
     )
 
 
