@@ -41,6 +41,7 @@ class Entry(NamedTuple):
 #: name -> the README's command and its smoke version, in the README table's order.
 BENCHMARKS: dict[str, Entry] = {
     "pyramid": Entry("bench_pyramid.py", ("--repeats", "3")),
+    "pyramid-flops": Entry("bench_pyramid.py", ("--flops",), ("--flops", "--quick")),
     "sweep": Entry("bench_sweep.py", ("--seconds", "2")),
     "synthesis": Entry("bench_synthesis.py", (), covers=("--resonant-only",)),
     "holdout": Entry("bench_certified_holdout.py", ()),
@@ -82,6 +83,17 @@ BENCHMARKS: dict[str, Entry] = {
     ),
     "adaptive-study": Entry(
         "bench_adaptive.py", ("--study", "--quick", "--select", "0.9", "--jobs", "1")
+    ),
+    "adaptive-seeds": Entry(
+        "bench_adaptive.py",
+        tuple(
+            "--study --quick --jobs 1 --scenarios wind-doubles --strategies "
+            "fixed,adaptive,oracle --measure-from 6 --seeds 0,1,2 --periods 2".split()
+        ),
+        tuple(
+            "--study --quick --jobs 1 --scenarios wind-doubles --strategies fixed,adaptive "
+            "--seconds 6 --periods 2".split()
+        ),
     ),
     "warm-redesign": Entry(
         "bench_adaptive.py",
