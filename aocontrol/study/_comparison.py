@@ -3,15 +3,17 @@ comparison and the table beside the paper (also rebuilt from results files)."""
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import ControllerBank
+from aocontrol.sim.loop import LoopResult
 from aocontrol.synthesis import (
     SensorErrorPSD,
     TelemetryPSD,
@@ -19,6 +21,9 @@ from aocontrol.synthesis import (
     sensor_error_psd,
     split_sensor_error,
 )
+
+if TYPE_CHECKING:
+    from aocontrol.study.scene import Scene
 
 
 @dataclass(frozen=True, eq=False)
@@ -240,3 +245,46 @@ def table_from_files(paths: Sequence[str | os.PathLike]) -> str:
 
 # Shown, documented and pickled under the module that exports them.
 Cell.__module__ = CaseComparison.__module__ = ResidualModel.__module__ = "aocontrol.study.compare"
+
+
+def _stage2_result(result: Any) -> LoopResult:
+    """Stage 2's result of a run (the run itself for stage 2 alone)."""
+    return result if isinstance(result, LoopResult) else result.stages[1]
+
+
+def _vibration_report(
+    scene: Scene,
+    scheme: str,
+    controllers: Sequence[str],
+    designs: dict,
+    ctrls: dict,
+    results: dict,
+) -> dict:
+    """Tilt residual RMS, residual PSDs and sensitivity functions (paper's vibration plots)."""
+    from aocontrol.plant import frequency_response
+
+    mode = scene.case.vibration.modes[0]
+    design = designs[scheme]
+    out: dict[str, Any] = {"mode": mode, "scheme": scheme, "tilt_rms_nm": {}, "psd": {}}
+    f = design.freqs
+    g = frequency_response(design.plant, f, fs=design.fs)
+    out["freqs"] = f
+    out["disturbance_psd"] = design.psd[mode]
+    out["sensitivity2"] = {}
+    for name in controllers:
+        r2 = _stage2_result(results[(scheme, name)])
+        out["tilt_rms_nm"][name] = float(math.sqrt(r2.residual_variance[mode]))
+        fr, p = r2.psd("residuals")
+        out["psd"][name] = (fr, p[mode])
+        try:
+            tf = ctrls[(scheme, name)].transfer_function(mode)
+        except (NotImplementedError, ValueError, TypeError):  # e.g. a constrained MPC
+            continue
+        with np.errstate(divide="ignore", invalid="ignore"):
+            k = frequency_response(tf, f, fs=design.fs)
+            s2 = np.abs(1.0 / (1.0 + g * k)) ** 2
+        out["sensitivity2"][name] = np.where(np.isfinite(k), s2, 0.0)  # pole of K on |z|=1
+    if "reference" in out["tilt_rms_nm"] and "datadriven" in out["tilt_rms_nm"]:
+        a, b = out["tilt_rms_nm"]["reference"], out["tilt_rms_nm"]["datadriven"]
+        out["relative_gain"] = (a - b) / a
+    return out

@@ -52,7 +52,6 @@ from aocontrol.analysis import residual_variance
 from aocontrol.controllers import ControllerBank, Integrator
 from aocontrol.sim.loop import (
     LinearModalSensor,
-    LoopResult,
     PhaseSource,
     Stage,
     TurbulenceSource,
@@ -60,7 +59,14 @@ from aocontrol.sim.loop import (
     run_cascade,
     run_loop,
 )
-from aocontrol.study._comparison import CaseComparison, Cell, ResidualModel, table_from_files
+from aocontrol.study._comparison import (
+    CaseComparison,
+    Cell,
+    ResidualModel,
+    _stage2_result,
+    _vibration_report,
+    table_from_files,
+)
 from aocontrol.study._registry import (
     CONTROLLER_ALIASES,
     CONTROLLERS,
@@ -298,10 +304,6 @@ class _UpstreamRecords:
         if not self.enabled or scheme == "single":
             return None
         return self.records.setdefault((purpose, float(seconds)), UpstreamRecord())
-
-
-def _stage2_result(result: Any) -> LoopResult:
-    return result if isinstance(result, LoopResult) else result.stages[1]
 
 
 def _summary(result: Any) -> dict:
@@ -776,41 +778,3 @@ def compare_case(
     if c.vibration is not None:
         vib = _vibration_report(scene, schemes[0], controllers, designs, ctrls, results)
     return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing, designs, models)
-
-
-def _vibration_report(
-    scene: Scene,
-    scheme: str,
-    controllers: Sequence[str],
-    designs: dict,
-    ctrls: dict,
-    results: dict,
-) -> dict:
-    """Tilt residual RMS, residual PSDs and sensitivity functions (paper's vibration plots)."""
-    from aocontrol.plant import frequency_response
-
-    mode = scene.case.vibration.modes[0]
-    design = designs[scheme]
-    out: dict[str, Any] = {"mode": mode, "scheme": scheme, "tilt_rms_nm": {}, "psd": {}}
-    f = design.freqs
-    g = frequency_response(design.plant, f, fs=design.fs)
-    out["freqs"] = f
-    out["disturbance_psd"] = design.psd[mode]
-    out["sensitivity2"] = {}
-    for name in controllers:
-        r2 = _stage2_result(results[(scheme, name)])
-        out["tilt_rms_nm"][name] = float(math.sqrt(r2.residual_variance[mode]))
-        fr, p = r2.psd("residuals")
-        out["psd"][name] = (fr, p[mode])
-        try:
-            tf = ctrls[(scheme, name)].transfer_function(mode)
-        except (NotImplementedError, ValueError, TypeError):  # e.g. a constrained MPC
-            continue
-        with np.errstate(divide="ignore", invalid="ignore"):
-            k = frequency_response(tf, f, fs=design.fs)
-            s2 = np.abs(1.0 / (1.0 + g * k)) ** 2
-        out["sensitivity2"][name] = np.where(np.isfinite(k), s2, 0.0)  # pole of K on |z|=1
-    if "reference" in out["tilt_rms_nm"] and "datadriven" in out["tilt_rms_nm"]:
-        a, b = out["tilt_rms_nm"]["reference"], out["tilt_rms_nm"]["datadriven"]
-        out["relative_gain"] = (a - b) / a
-    return out
