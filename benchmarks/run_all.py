@@ -8,8 +8,11 @@ entry name or script name); ``--list`` prints the commands without running them.
 side of the pyramid benchmark needs a virtualenv with OOPAO
 (``OOPAO_PYTHON=/path/to/venv/bin/python``; skipped with a message otherwise). A summary
 with each command's exit code and wall time closes the run; the exit code is non-zero if any
-failed. The full run takes hours on a 2-core machine (the held-out certificate check, the
-paper's tables and the adaptive study dominate).
+failed. The run opens with the machine (CPU model, cores, memory, Python, the commit) and
+every command's line closes with the load average before and after it and the CPU time of
+its processes, so each figure is printed with the machine and the load it was measured on.
+The full run takes hours on a 2-core machine (the held-out certificate check, the paper's
+tables and the adaptive study dominate).
 """
 
 from __future__ import annotations
@@ -17,6 +20,8 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
+import platform
+import resource
 import subprocess
 import sys
 import time
@@ -104,6 +109,48 @@ BENCHMARKS: dict[str, Entry] = {
 }
 
 
+def machine() -> str:
+    """One line naming the machine the figures are measured on, and the code's commit."""
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next(
+                (ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), model
+            )
+    except OSError:
+        pass
+    try:
+        with open("/proc/meminfo") as f:
+            memory = f"{int(f.readline().split()[1]) / 2**20:.1f} GiB"
+    except (OSError, ValueError, IndexError):
+        memory = "memory unknown"
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(HERE), "rev-parse", "--short", "HEAD"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    return (
+        f"machine: {model}, {os.cpu_count()} cores, {memory}; Python {platform.python_version()};"
+        f" commit {commit}"
+    )
+
+
+def _children_cpu() -> float:
+    """User + system CPU time of the finished child processes so far [s]."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def load() -> str:
+    """The 1-minute load average (other jobs on the machine), or "n/a" where there is none."""
+    try:
+        return f"{os.getloadavg()[0]:.1f}"
+    except OSError:
+        return "n/a"
+
+
 def command(name: str, quick: bool) -> list[str]:
     """The command line of entry ``name`` (``quick``: its smoke settings)."""
     entry = BENCHMARKS[name]
@@ -129,21 +176,27 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             parser.error(f"--only: unknown {unknown}; valid: {', '.join(order)} (or a script name)")
         order = [n for n in order if n in args.only or BENCHMARKS[n].script in args.only]
+    print(machine(), flush=True)
     results = []
     for name in order:
         cmd = command(name, args.quick)
         print(f"=== {name}: {' '.join([pathlib.Path(cmd[1]).name, *cmd[2:]])}", flush=True)
         if args.list:
             continue
+        before, cpu0 = load(), _children_cpu()
         t0 = time.perf_counter()
         code = subprocess.call(cmd)
-        results.append((name, code, time.perf_counter() - t0))
+        wall, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
+        results.append((name, code, wall, cpu, before, load()))
     if args.list:
         return 0
-    print("=== summary")
-    for name, code, wall in results:
-        print(f"{name:28s} exit {code:3d}  {wall:8.1f} s")
-    return 0 if all(code == 0 for _, code, _ in results) else 1
+    print("=== summary (load: the 1-minute load average before -> after the command)")
+    for name, code, wall, cpu, before, after in results:
+        print(
+            f"{name:28s} exit {code:3d}  {wall:8.1f} s wall  {cpu:8.1f} s CPU"
+            f"  load {before} -> {after}"
+        )
+    return 0 if all(r[1] == 0 for r in results) else 1
 
 
 if __name__ == "__main__":

@@ -49,3 +49,21 @@ def test_every_entry_names_an_existing_script_and_lists(capsys):
     out = capsys.readouterr().out
     assert "bench_cascade.py --repeat 2" in out
     assert "diffractive" in out  # both entries of the script
+
+
+def test_a_run_prints_the_machine_and_each_commands_load_and_cpu(capsys, monkeypatch):
+    run_all = _run_all()
+    calls = []
+
+    def fake_call(cmd):
+        calls.append(cmd)
+        return 3  # a failing benchmark: the run's exit code says so
+
+    monkeypatch.setattr(run_all.subprocess, "call", fake_call)
+    assert run_all.main(["--only", "lqg"]) == 1
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith("machine: ") and " cores, " in out
+    assert "commit " in out.splitlines()[0]
+    (line,) = [ln for ln in out.splitlines() if ln.startswith("lqg ")]
+    assert re.search(r"exit\s+3\s+[\d.]+ s wall\s+[\d.]+ s CPU\s+load \S+ -> \S+$", line), line
+    assert len(calls) == 1 and calls[0][1].endswith("bench_lqg.py")
