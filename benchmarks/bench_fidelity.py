@@ -322,7 +322,7 @@ def fidelity(
     for case in cases:
         spec = apply_overrides(load_case(case), overrides) if overrides else case
         for sensor, og in settings:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), _cpu_seconds()
             comp = compare_case(
                 spec,
                 controllers=controllers,
@@ -334,9 +334,15 @@ def fidelity(
                 sensor=sensor,
                 optical_gain=og,
             )
-            wall = time.perf_counter() - t0
+            wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
             label = f"{sensor}/{og}" + (f", overrides {overrides}" if overrides else "")
             print("\n".join(_markdown(case, label, comp, seconds, wall)), flush=True)
+            split = ", ".join(f"{k} {v:.0f} s" for k, v in comp.seconds.items())
+            print(
+                f"- cost: {cpu:.0f} s CPU, {wall:.0f} s wall (load "
+                f"{_loadavg()}); wall per part: {split} (design is part of runs)",
+                flush=True,
+            )
 
 
 def main() -> None:
@@ -408,6 +414,33 @@ def main() -> None:
     if "datadriven-paper" in controllers:
         register_controller(DATADRIVEN_PAPER, replace=True)
     fidelity(quick, seconds, cases, settings, args.seed, grid, overrides, schemes, controllers)
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and of its live worker processes (the data-driven
+    design's joblib workers; psutil if installed, else this process alone). A worker that
+    exits between two calls is not counted: a lower bound."""
+    t = time.process_time()
+    try:
+        import psutil
+    except ImportError:
+        return t
+    for child in psutil.Process().children(recursive=True):
+        try:
+            c = child.cpu_times()
+        except psutil.Error:
+            continue
+        t += c.user + c.system
+    return t
+
+
+def _loadavg() -> str:
+    """The 1-min load average (``/proc/loadavg``), '?' where there is none."""
+    try:
+        with open("/proc/loadavg") as f:
+            return f.read().split()[0]
+    except OSError:
+        return "?"
 
 
 def _parse_overrides(text: str | None) -> dict | None:
