@@ -54,7 +54,9 @@ import time
 
 import numpy as np
 
-# The paper's tables (same folder: run as a script, its directory is on sys.path).
+# The paper's tables and the CPU count with the design's workers (same folder: run as a
+# script, its directory is on sys.path).
+from bench_adaptive import _cpu_seconds  # noqa: E402
 from bench_paper_tables import _ORDER as ORDER  # noqa: E402
 from bench_paper_tables import PAPER  # noqa: E402
 
@@ -414,24 +416,6 @@ def main() -> None:
     if "datadriven-paper" in controllers:
         register_controller(DATADRIVEN_PAPER, replace=True)
     fidelity(quick, seconds, cases, settings, args.seed, grid, overrides, schemes, controllers)
-
-
-def _cpu_seconds() -> float:
-    """CPU seconds of this process and of its live worker processes (the data-driven
-    design's joblib workers; psutil if installed, else this process alone). A worker that
-    exits between two calls is not counted: a lower bound."""
-    t = time.process_time()
-    try:
-        import psutil
-    except ImportError:
-        return t
-    for child in psutil.Process().children(recursive=True):
-        try:
-            c = child.cpu_times()
-        except psutil.Error:
-            continue
-        t += c.user + c.system
-    return t
 
 
 def _loadavg() -> str:
