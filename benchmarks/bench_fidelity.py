@@ -37,7 +37,10 @@ Measured (full scale, seed 0, one loaded run, linear/calibrated): dCAO - standal
 reference/OMGI/data-driven) and +3.2/+4.4/+7.1 (dCAO): 5 of 6 cells within 5 points. With the
 reference integrator, the diffractive stage 2 (calibrated gains) and the linear two-pass
 model are 1.0-1.4 points below the linear one in that configuration, and agree with each
-other within 0.4 points.
+other within 0.4 points. Full scale, 5-s exposures, seed 0 (3 Dec, docs/fidelity.md): every
+diffractive setting (none, calibrated, tracked) 5 of 6 cells, dCAO data-driven +6.7 to +6.9
+points, the three within 0.6 points of each other in every cell; linear 4 of 6. The whole
+diffractive case: 305 s CPU (calibration runs and data-driven designs ~35 % each).
 
     .venv/bin/python benchmarks/bench_fidelity.py [--quick] [--cost-only] [--seconds S]
         [--cases red5-best,bright1-best] [--settings linear/calibrated,diffractive/none]
