@@ -37,7 +37,10 @@ Measured (full scale, seed 0, one loaded run, linear/calibrated): dCAO - standal
 reference/OMGI/data-driven) and +3.2/+4.4/+7.1 (dCAO): 5 of 6 cells within 5 points. With the
 reference integrator, the diffractive stage 2 (calibrated gains) and the linear two-pass
 model are 1.0-1.4 points below the linear one in that configuration, and agree with each
-other within 0.4 points.
+other within 0.4 points. Full scale, 5-s exposures, seed 0 (3 Dec, docs/fidelity.md): every
+diffractive setting (none, calibrated, tracked) 5 of 6 cells, dCAO data-driven +6.7 to +6.9
+points, the three within 0.6 points of each other in every cell; linear 4 of 6. The whole
+diffractive case: 305 s CPU (calibration runs and data-driven designs ~35 % each).
 
     .venv/bin/python benchmarks/bench_fidelity.py [--quick] [--cost-only] [--seconds S]
         [--cases red5-best,bright1-best] [--settings linear/calibrated,diffractive/none]
@@ -54,7 +57,9 @@ import time
 
 import numpy as np
 
-# The paper's tables (same folder: run as a script, its directory is on sys.path).
+# The paper's tables and the CPU count with the design's workers (same folder: run as a
+# script, its directory is on sys.path).
+from bench_adaptive import _cpu_seconds  # noqa: E402
 from bench_paper_tables import _ORDER as ORDER  # noqa: E402
 from bench_paper_tables import PAPER  # noqa: E402
 
@@ -322,7 +327,7 @@ def fidelity(
     for case in cases:
         spec = apply_overrides(load_case(case), overrides) if overrides else case
         for sensor, og in settings:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), _cpu_seconds()
             comp = compare_case(
                 spec,
                 controllers=controllers,
@@ -334,9 +339,15 @@ def fidelity(
                 sensor=sensor,
                 optical_gain=og,
             )
-            wall = time.perf_counter() - t0
+            wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
             label = f"{sensor}/{og}" + (f", overrides {overrides}" if overrides else "")
             print("\n".join(_markdown(case, label, comp, seconds, wall)), flush=True)
+            split = ", ".join(f"{k} {v:.0f} s" for k, v in comp.seconds.items())
+            print(
+                f"- cost: {cpu:.0f} s CPU, {wall:.0f} s wall (load "
+                f"{_loadavg()}); wall per part: {split} (design is part of runs)",
+                flush=True,
+            )
 
 
 def main() -> None:
@@ -408,6 +419,15 @@ def main() -> None:
     if "datadriven-paper" in controllers:
         register_controller(DATADRIVEN_PAPER, replace=True)
     fidelity(quick, seconds, cases, settings, args.seed, grid, overrides, schemes, controllers)
+
+
+def _loadavg() -> str:
+    """The 1-min load average (``/proc/loadavg``), '?' where there is none."""
+    try:
+        with open("/proc/loadavg") as f:
+            return f.read().split()[0]
+    except OSError:
+        return "?"
 
 
 def _parse_overrides(text: str | None) -> dict | None:
