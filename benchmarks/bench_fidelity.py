@@ -271,7 +271,7 @@ def _markdown(case: str, setting: str, comp, seconds: float, wall: float) -> lis
         f"{ {k: round(v, 2) for k, v in comp.reference_gains.items()} }, {wall:.0f} s)",
         "",
         "| scheme controller | Strehl % | paper | diff | contrast 4-6 | paper | ratio "
-        "| stage-2 residual nm | predicted nm | pred/meas |",
+        "| stage-2 residual nm | predicted nm | pred/meas [2 s.e.] |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     # Controllers beyond the paper's three (e.g. "datadriven-paper") sit beside the paper's
@@ -290,11 +290,12 @@ def _markdown(case: str, setting: str, comp, seconds: float, wall: float) -> lis
         diff = f"{100 * c.strehl - ps[i]:+.2f}" if ps else "-"
         ratio = f"{c.mean_contrast_4_6 / pc[i]:.2f}" if pc else "-"
         pred = c.predicted_rms_nm
-        pm = f"{pred / c.residual_rms_nm:.3f}" if pred == pred else "-"
+        pm = "{:.3f} [{:.2f}, {:.2f}]".format(*c.ratio_interval()) if pred == pred else "-"
         lines.append(
             f"| {scheme} {ctrl} | {100 * c.strehl:.2f} | {s_pap} | {diff} | "
-            f"{c.mean_contrast_4_6:.3e} | {c_pap} | {ratio} | {c.residual_rms_nm:.2f} | "
-            f"{pred:.2f} | {pm} |"
+            f"{c.mean_contrast_4_6:.3e} | {c_pap} | {ratio} | "
+            f"{c.residual_rms_nm:.2f} +- {c.residual_rms_se_nm:.2f} | "
+            f"{pred:.2f} +- {c.predicted_rms_se_nm:.2f} | {pm} |"
         )
     lines.append("")
     for scheme in sorted({c.scheme for c in comp.cells}):

@@ -20,6 +20,7 @@ from aocontrol.study.compare import (
     MODULUS_MARGIN,
     ControllerSpec,
     _check_names,
+    calibration_seconds,
     compare_case,
     register_controller,
     run_configuration,
@@ -126,6 +127,32 @@ def test_quick_case_predictions_match_measurements(quick_comparison):
                 c.scheme,
                 c.controller,
             )
+
+
+@pytest.mark.slow
+def test_quick_case_prediction_standard_errors(quick_comparison):
+    # Every cell's prediction and measurement carry a standard error from the same predicted
+    # residual PSD: their relative sizes go as sqrt(exposure / calibration length).
+    scene = build_scene("bright1-best", quick=True)
+    length = math.sqrt(calibration_seconds(scene, quick=True) / 0.5)
+    for c in quick_comparison.cells:
+        rel_p = c.predicted_rms_se_nm / c.predicted_rms_nm
+        rel_m = c.residual_rms_se_nm / c.residual_rms_nm
+        assert 0 < rel_p < rel_m, (c.scheme, c.controller)
+        assert rel_m == pytest.approx(rel_p * length, rel=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 15, linear stage 2: the prediction is 6-8 % above the measured residual, "
+    "about 6 standard errors of the sampling: a bias of the estimator (its white floor "
+    "1-2.4 % low in a noise-dominated residual, Welch's finite-record bias), not chance",
+)
+def test_quick_case_prediction_within_its_interval(quick_comparison):
+    for c in quick_comparison.cells:
+        r, lo, hi = c.ratio_interval(z=3)
+        assert lo <= 1 <= hi, (c.scheme, c.controller, r, lo, hi)
 
 
 @pytest.mark.slow

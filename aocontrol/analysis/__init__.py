@@ -36,7 +36,11 @@ from aocontrol.analysis._margins import (
 )
 from aocontrol.analysis._margins import _winding_zeros as winding_zeros
 from aocontrol.analysis._psd import welch_psd
-from aocontrol.analysis._residual import residual_psd, residual_variance
+from aocontrol.analysis._residual import (
+    mean_square_sampling_variance,
+    residual_psd,
+    residual_variance,
+)
 from aocontrol.analysis._wiener import wiener_bound
 
 __all__ = [
@@ -57,6 +61,7 @@ __all__ = [
     "is_stable",
     "loop_response",
     "margins",
+    "mean_square_sampling_variance",
     "noise_transfer",
     "residual_psd",
     "residual_variance",

@@ -7,13 +7,19 @@ import logging
 import control
 import numpy as np
 
-from aocontrol._validation import check_broadcast, check_frequency_grid, mode_psds
+from aocontrol._validation import (
+    check_broadcast,
+    check_finite_array,
+    check_frequency_grid,
+    check_positive,
+    mode_psds,
+)
 from aocontrol.analysis._loop import loop_response
 from aocontrol.analysis._margins import is_stable
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import plant_fs
 
-__all__ = ["residual_psd", "residual_variance"]
+__all__ = ["mean_square_sampling_variance", "residual_psd", "residual_variance"]
 
 logger = logging.getLogger(__name__)
 
@@ -190,3 +196,60 @@ def residual_variance(
         if np.any(np.isinf(res)):
             logger.warning("unstable closed loop: residual variance is infinite")
     return float(res) if np.ndim(res) == 0 else res
+
+
+def mean_square_sampling_variance(freqs: object, psd: object, seconds: float) -> np.ndarray:
+    """Variance of the mean square of a ``seconds``-long record of a stationary Gaussian
+    signal of one-sided PSD ``psd``: ``int psd^2 df / seconds`` [units^4] per mode.
+
+    The mean square of a record is itself a random variable: for a zero-mean Gaussian
+    signal ``Cov(x^2(t), x^2(t + tau)) = 2 R(tau)^2`` (Isserlis), and Parseval gives
+    ``sum_tau R(tau)^2 = (fs / 2) int_0^{fs/2} psd^2 df``, so the mean of ``n = fs T``
+    samples has variance ``int psd^2 df / T`` (white noise of variance ``s2``: ``2 s2^2 /
+    n``, the chi-square's). Valid for a record much longer than the signal's correlation
+    time; the modes are taken independent (the variances of their mean squares add). A
+    residual dominated by slow modes (tip and tilt behind a slow loop) scatters by tens of
+    per cent between 0.5-s exposures: the figure a predicted-to-measured ratio is judged
+    against (:class:`aocontrol.study.compare.Cell`).
+
+    Parameters
+    ----------
+    freqs : array_like, shape (n_freqs,)
+        Increasing grid from 0 [Hz] (the PSD's; at least 2 points).
+    psd : array_like, shape (n_freqs,) or (n_modes, n_freqs)
+        One-sided PSD [units^2/Hz], >= 0, e.g. :func:`residual_psd`.
+    seconds : float
+        Record length [s], > 0.
+
+    Returns
+    -------
+    float for a 1-D ``psd``, ndarray of shape (n_modes,) for a 2-D one.
+
+    Raises
+    ------
+    ValueError
+        ``freqs`` not increasing or negative, ``psd`` of the wrong shape, negative or not
+        finite, ``seconds`` not > 0.
+
+    Examples
+    --------
+    >>> fs, s2 = 1000.0, 4.0
+    >>> f = np.linspace(0, fs / 2, 101)
+    >>> v = mean_square_sampling_variance(f, np.full(f.size, 2 * s2 / fs), 2.0)
+    >>> round(v * 2000 / (2 * s2**2), 12)  # 2 s2^2 / n for n = 2000 white samples
+    1.0
+    """
+    t = check_positive("seconds", seconds)
+    f = check_finite_array("freqs", freqs, ndim=1)
+    if f.size < 2 or np.any(np.diff(f) <= 0) or f[0] < 0:
+        raise ValueError(
+            f"freqs must be at least 2 increasing frequencies >= 0 [Hz], got {f.size} from "
+            f"{f[:1]!r}"
+        )
+    p = check_finite_array("psd", psd)
+    if p.ndim not in (1, 2) or p.shape[-1] != f.size:
+        raise ValueError(f"psd must have shape ({f.size},) or (n_modes, {f.size}), got {p.shape}")
+    if np.any(p < 0):
+        raise ValueError("psd must be >= 0 (a one-sided PSD)")
+    out = _integrate(p**2, f) / t
+    return float(out) if out.ndim == 0 else out

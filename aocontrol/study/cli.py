@@ -242,7 +242,9 @@ def write_comparison(comparison: Any, out: str) -> list[str]:
         "strehl",
         "mean_contrast_4_6",
         "residual_rms_nm",
+        "residual_rms_se_nm",
         "predicted_rms_nm",
+        "predicted_rms_se_nm",
         "path",
     )
     csv_path = os.path.join(out, f"{name}_table.csv")

@@ -362,7 +362,10 @@ def comparison_report(
             "strehl": 100.0 * c.strehl,
             "contrast": c.mean_contrast_4_6,
             "rms": c.residual_rms_nm,
+            "rms_se": c.residual_rms_se_nm,
             "pred": c.predicted_rms_nm,
+            "pred_se": c.predicted_rms_se_nm,
+            "ratio": "{:.2f} [{:.2f}, {:.2f}]".format(*c.ratio_interval()),
             "file": os.path.basename(c.path) if c.path else "",
         }
         for c in cells
@@ -373,7 +376,10 @@ def comparison_report(
         ("strehl", "Strehl [%]", ".2f"),
         ("contrast", "contrast 4-6 l/D", ".3e"),
         ("rms", "stage-2 residual [nm]", ".2f"),
+        ("rms_se", "+- s.e. [nm]", ".2f"),
         ("pred", "predicted [nm]", ".2f"),
+        ("pred_se", "+- s.e. [nm]", ".2f"),
+        ("ratio", "predicted / measured [2 s.e.]", ""),
         ("file", "results file", ""),
     ]
     body = [
@@ -381,7 +387,10 @@ def comparison_report(
         _p(
             "Strehl and mean raw contrast over 4-6 lambda/D after a perfect coronagraph, at "
             "1.65 um; stage-2 modal residual measured in the run, and predicted from the "
-            "calibration telemetry's PSDs (the design data)."
+            "calibration telemetry's PSDs (the design data). Standard errors: the calibration "
+            "record and the exposure are each one draw of the atmosphere; their RMS scatter "
+            "by the predicted residual PSD's sampling variance (Gaussian residual), "
+            "combined in the ratio's interval (2 standard errors)."
         ),
     ]
     vib = comparison.vibration
