@@ -73,33 +73,116 @@ def _spec(cases, controllers, schemes, seeds, seconds, quick):
     )
 
 
-def _serial(runner, runs, out: pathlib.Path, cpu: list | None = None) -> float:
-    """Every run one after the other in this process [s]; each run's CPU [s] into ``cpu``."""
+def _serial(
+    runner, runs, out: pathlib.Path, cpu: list | None = None, parts: list | None = None
+) -> float:
+    """Every run one after the other in this process [s]; each run's CPU [s] into ``cpu``,
+    its parts (cache, kernel counts: ``aocontrol.study.sweep._usage``) into ``parts``."""
+    from aocontrol.study.sweep import _usage
+
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     for r in runs:
-        c0 = time.process_time()
+        c0, u0 = time.process_time(), _usage()
         runner.run(dict(r.settings), out / f"{r.hash}.h5")
         if cpu is not None:
             cpu.append(time.process_time() - c0)
+        if parts is not None:
+            parts.append({k: v - u0[k] for k, v in _usage().items()})
     return time.perf_counter() - t0
 
 
-def _breakdown(label: str, report, wall: float, serial_cpu: list) -> None:
-    """Per worker: runs, busy wall and CPU; against the one process's CPU per run."""
+def _cpu_outside() -> tuple[float, float]:
+    """CPU [s] so far of this process (client and scheduler) and of the nannies (children of
+    this process; the workers are their children)."""
+    import psutil
+
+    me = psutil.Process()
+    nannies = 0.0
+    for child in me.children():
+        try:
+            t = child.cpu_times()
+            nannies += t.user + t.system
+        except psutil.Error:
+            pass
+    return time.process_time(), nannies
+
+
+def _sweep(spec, out, cluster, runner):
+    """``run_sweep`` on ``cluster``; prints the CPU this process and the nannies used."""
+    from aocontrol.study.sweep import run_sweep
+
+    a = _cpu_outside()
+    rep = run_sweep(spec, out=out, scheduler=cluster.scheduler_address, runner=runner)
+    b = _cpu_outside()
+    print(
+        f"  during the sweep: this process (client, scheduler) {b[0] - a[0]:.2f} s CPU, the "
+        f"nannies {b[1] - a[1]:.2f} s CPU",
+        flush=True,
+    )
+    return rep
+
+
+def _parts_line(parts: list) -> str:
+    """Sums of the runs' parts: cache lock waits, loads, builds, writes; kernel counts."""
+    tot: dict = {}
+    for p in parts:
+        for k, v in (p or {}).items():
+            tot[k] = tot.get(k, 0.0) + v
+    g = tot.get
+    return (
+        f"lock wait {g('lock_wait_s', 0):.2f} s; loads {g('load_n', 0):.0f} "
+        f"({g('load_s', 0):.2f} s, {g('load_cpu_s', 0):.2f} s CPU); builds "
+        f"{g('build_n', 0):.0f} ({g('build_s', 0):.1f} s, {g('build_cpu_s', 0):.1f} s CPU); "
+        f"writes {g('write_n', 0):.0f} ({g('write_s', 0):.2f} s, {g('write_cpu_s', 0):.2f} s "
+        f"CPU); user {g('user_s', 0):.1f} s, sys {g('sys_s', 0):.1f} s, page faults "
+        f"{g('minflt', 0) / 1e3:.0f}k, preempted {g('nivcsw', 0):.0f}x, "
+        f"blocked {g('nvcsw', 0):.0f}x"
+    )
+
+
+def _breakdown(
+    label: str,
+    report,
+    wall: float,
+    serial_cpu: list,
+    serial_parts: list | None = None,
+    serial_by_hash: dict | None = None,
+) -> None:
+    """Per worker: runs, busy wall and CPU, its parts; against the one process's."""
     per: dict = {}
     for t in report.timings:
-        w = per.setdefault(t["worker"], {"runs": 0, "wall": 0.0, "cpu": 0.0})
+        w = per.setdefault(t["worker"], {"runs": 0, "wall": 0.0, "cpu": 0.0, "parts": []})
         w["runs"] += 1
         w["wall"] += t["seconds"]
         w["cpu"] += t["cpu_s"]
+        w["thread"] = w.get("thread", 0.0) + (t.get("thread_cpu_s") or 0.0)
+        w["parts"].append(t.get("parts"))
     for i, (_, w) in enumerate(sorted(per.items())):
         print(
             f"  {label} worker {i}: {w['runs']} runs, busy {w['wall']:.1f} s wall, "
             f"{w['cpu']:.1f} s CPU ({w['cpu'] / max(w['runs'], 1):.2f} s CPU/run); "
-            f"idle {wall - w['wall']:.1f} s of the sweep's {wall:.1f} s",
+            f"idle {wall - w['wall']:.1f} s of the sweep's {wall:.1f} s; the runs' own "
+            f"thread {w['thread']:.1f} s CPU\n"
+            f"    {_parts_line(w['parts'])}",
             flush=True,
         )
+    if serial_parts:
+        print(f"  {label} one process: {_parts_line(serial_parts)}", flush=True)
+    if serial_by_hash:
+        # the same runs' CPU in a worker and in the one process, runs that loaded nothing
+        same = [
+            (t["cpu_s"], serial_by_hash[t["hash"]])
+            for t in report.timings
+            if t["hash"] in serial_by_hash and not (t.get("parts") or {}).get("load_n")
+        ]
+        if same:
+            print(
+                f"  {label}: {len(same)} runs that loaded no calibration: CPU in the workers "
+                f"{sum(a for a, _ in same):.2f} s, the same runs in the one process "
+                f"{sum(b for _, b in same):.2f} s",
+                flush=True,
+            )
     cpu_cluster = sum(w["cpu"] for w in per.values())
     if serial_cpu:
         print(
@@ -149,12 +232,7 @@ def _warm_only(args, cases, seeds) -> int:
                     t_serial = _serial(runner, spec.runs(), tmp / f"serial{i}", cpu)
                     parts.append(f"one process {t_serial:.1f} s")
                 else:
-                    rep = run_sweep(
-                        spec,
-                        out=tmp / f"cluster{i}",
-                        scheduler=cluster.scheduler_address,
-                        runner=runner,
-                    )
+                    rep = _sweep(spec, tmp / f"cluster{i}", cluster, runner)
                     parts.append(f"cluster {rep.wall_s:.1f} s")
             serial_rows = {r["hash"]: r for r in sweep_table(tmp / f"serial{i}", runner=runner)}
             diff = max(
@@ -165,7 +243,14 @@ def _warm_only(args, cases, seeds) -> int:
             print(f"warm {i}: cluster vs one process, largest relative difference {diff:.1e}")
             ratios.append(t_serial / rep.wall_s)
             print(f"warm {i}: {', '.join(parts)}: {ratios[-1]:.2f}x", flush=True)
-            _breakdown(f"warm {i}", rep, rep.wall_s, cpu)
+            _breakdown(
+                f"warm {i}",
+                rep,
+                rep.wall_s,
+                cpu,
+                None,
+                dict(zip([r.hash for r in spec.runs()], cpu, strict=True)),
+            )
         print(f"warm ratios one process / cluster: {', '.join(f'{r:.2f}x' for r in ratios)}")
     return 0
 
@@ -271,43 +356,52 @@ def main(argv: list[str] | None = None) -> int:
             runner = default_runner()
             spec = _spec(cases, args.controllers, args.schemes, range(seeds), args.seconds, True)
             runs = spec.runs()
+            hashes = [r.hash for r in runs]
             cpu_cold: list = []
             cpu_warm: list = []
+            parts_cold: list = []
+            parts_warm: list = []
             if args.serial_first:
-                t_serial = _serial(runner, runs, tmp / "cases-serial", cpu_cold)
+                t_serial = _serial(runner, runs, tmp / "cases-serial", cpu_cold, parts_cold)
                 print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
-            t_par = run_sweep(
-                spec,
-                out=tmp / "cases-cluster",
-                scheduler=cluster.scheduler_address,
-                runner=runner,
-            )
+            t_par = _sweep(spec, tmp / "cases-cluster", cluster, runner)
             if t_par.failed:
                 print("failed runs:", t_par.failed)
                 return 1
             t_cluster = t_par.wall_s
             print(f"cluster: {len(runs)} runs in {t_cluster:.1f} s", flush=True)
             if not args.serial_first:
-                t_serial = _serial(runner, runs, tmp / "cases-serial", cpu_cold)
+                t_serial = _serial(runner, runs, tmp / "cases-serial", cpu_cold, parts_cold)
                 print(f"one process: {len(runs)} runs in {t_serial:.1f} s", flush=True)
-            _breakdown("cold", t_par, t_cluster, cpu_cold)
+            _breakdown(
+                "cold",
+                t_par,
+                t_cluster,
+                cpu_cold,
+                parts_cold,
+                dict(zip(hashes, cpu_cold, strict=True)),
+            )
             # warm: new seeds, every calibration on disk and in the processes' memory
             spec_w = _spec(
                 cases, args.controllers, args.schemes, range(seeds, 2 * seeds), args.seconds, True
             )
-            warm = run_sweep(
-                spec_w,
-                out=tmp / "warm-cluster",
-                scheduler=cluster.scheduler_address,
-                runner=runner,
-            )
+            warm = _sweep(spec_w, tmp / "warm-cluster", cluster, runner)
             t_cluster_warm = warm.wall_s
-            t_serial_warm = _serial(runner, spec_w.runs(), tmp / "warm-serial", cpu_warm)
+            t_serial_warm = _serial(
+                runner, spec_w.runs(), tmp / "warm-serial", cpu_warm, parts_warm
+            )
             print(
                 f"warm caches: cluster {t_cluster_warm:.1f} s, one process {t_serial_warm:.1f} s",
                 flush=True,
             )
-            _breakdown("warm", warm, t_cluster_warm, cpu_warm)
+            _breakdown(
+                "warm",
+                warm,
+                t_cluster_warm,
+                cpu_warm,
+                parts_warm,
+                {r.hash: c for r, c in zip(spec_w.runs(), cpu_warm, strict=True)},
+            )
             # a scene's calibrations read from the disk cache (what a worker pays for a case
             # it does not hold in memory), against a warm run
             clear_scene_cache()

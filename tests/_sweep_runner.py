@@ -72,6 +72,51 @@ def make_runner(marker_dir: str, sleep_s: float = 0.3, fail_case: str | None = N
     )
 
 
+@dataclass(frozen=True)
+class SharedCalibrationRunner:
+    """Runs that need one calibration (one disk-cache key) built in ``build_s`` seconds.
+
+    The run of case ``first`` asks the cache at once; the others wait until its build has
+    started (a marker file), so that they ask while it holds the entry's lock.
+    """
+
+    cache: str
+    first: str
+    build_s: float = 0.6
+
+    def __call__(self, settings: dict, path: pathlib.Path) -> None:
+        import os
+
+        saved = os.environ.get("AOCONTROL_CACHE")
+        os.environ["AOCONTROL_CACHE"] = self.cache  # this test's cache folder, for this run
+        try:
+            self._run(settings, path)
+        finally:
+            if saved is None:
+                os.environ.pop("AOCONTROL_CACHE")
+            else:
+                os.environ["AOCONTROL_CACHE"] = saved
+
+    def _run(self, settings: dict, path: pathlib.Path) -> None:
+        from aocontrol.study._cache import cached
+
+        started = pathlib.Path(self.cache) / "build-started"
+        if settings["case"] != self.first:
+            deadline = time.monotonic() + 60.0
+            while not started.exists() and time.monotonic() < deadline:
+                time.sleep(0.01)
+
+        def build() -> list:
+            started.touch()
+            time.sleep(self.build_s)
+            return list(range(10))
+
+        value = cached("shared calibration", build)
+        with h5py.File(path, "w") as f:
+            f.attrs["settings"] = json.dumps(settings)
+            f.attrs["value"] = float(sum(value))
+
+
 BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 

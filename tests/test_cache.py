@@ -55,6 +55,24 @@ def test_second_call_loads_the_entry_built_by_the_first(cache_dir):
     assert entry.stem == __import__("hashlib").sha256(b"key A").hexdigest()[:32]
 
 
+def test_cache_stats_count_each_part(cache_dir):
+    # cumulative per process: differences over a call are what it did
+    before = _cache.cache_stats()
+    cached("key stats", Counter())
+    mid = _cache.cache_stats()
+    cached("key stats", Counter())
+    after = _cache.cache_stats()
+
+    def diff(a, b):
+        return {k: b[k] - a[k] for k in a if k.endswith("_n")}
+
+    built = diff(before, mid)
+    loaded = diff(mid, after)
+    assert built == {"lock_wait_n": 1, "load_n": 1, "build_n": 1, "write_n": 1}
+    assert loaded == {"lock_wait_n": 1, "load_n": 1, "build_n": 0, "write_n": 0}
+    assert after["build_s"] - mid["build_s"] == 0.0 and mid["write_s"] > before["write_s"]
+
+
 @pytest.mark.parametrize("damage", ["flip", "truncate", "header", "empty"])
 def test_a_damaged_entry_is_rebuilt_never_trusted(cache_dir, caplog, damage):
     build = Counter()

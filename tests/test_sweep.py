@@ -17,10 +17,12 @@ import pytest
 from _sweep_runner import (
     BLAS_VARS,
     VALID,
+    SharedCalibrationRunner,
     environment_row,
     environment_run,
     expected_value,
     make_runner,
+    read_row,
 )
 
 from aocontrol.study.sweep import (
@@ -374,3 +376,35 @@ def test_successful_cli_sweep_prints_no_traceback_and_no_dask_info(tmp_path):
     assert "CommClosedError" not in proc.stderr
     assert "Warning" not in proc.stderr, proc.stderr[-3000:]  # e.g. a busy dashboard port
     assert not [line for line in proc.stderr.splitlines() if line.startswith("INFO")]
+
+
+def test_timings_give_each_runs_cache_parts_and_cpu(tmp_path, scheduler_address):
+    # Two cases needing one calibration, on two workers at once: the first builds it, the
+    # other waits on the entry's lock and reads it; each run's timing says so (its parts).
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    text = SPEC.replace('["integrator", "datadriven"]', '["integrator"]').replace(
+        "[0, 1, 2]", "[0]"
+    )
+    runner = SweepRunner(
+        run=SharedCalibrationRunner(str(cache), first="alpha"), read=read_row, valid=VALID
+    )
+    report = run_sweep(
+        _write(tmp_path, text), out=tmp_path / "out", runner=runner, scheduler=scheduler_address
+    )
+    assert report.failed == () and len(report.timings) == 2
+    parts = {}
+    for t in report.timings:
+        (row,) = [r for r in report.table if r["hash"] == t["hash"]]
+        parts[row["case"]] = t["parts"]
+        # the process's CPU is its user + system time; the run's thread is a part of it
+        assert t["parts"]["user_s"] + t["parts"]["sys_s"] == pytest.approx(t["cpu_s"], abs=0.02)
+        assert 0.0 <= t["thread_cpu_s"] <= t["cpu_s"] + 1e-3, t
+    assert len({t["worker"] for t in report.timings}) == 2  # ran at the same time
+    alpha, beta = parts["alpha"], parts["beta"]
+    assert (alpha["build_n"], alpha["write_n"], beta["build_n"], beta["write_n"]) == (1, 1, 0, 0)
+    assert alpha["build_s"] >= 0.6 and alpha["lock_wait_s"] < 0.3
+    # beta asked once the build had started: it waited for it (the lock), then loaded the entry
+    assert 0.2 <= beta["lock_wait_s"] <= alpha["build_s"] + alpha["write_s"] + 0.5
+    assert beta["load_n"] == 1 and alpha["load_n"] == 1  # alpha's one look found nothing
+    assert {r["value"] for r in report.table} == {45.0}

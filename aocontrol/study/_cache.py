@@ -58,6 +58,7 @@ __all__ = [
     "cache_dir",
     "cache_settings",
     "cached",
+    "cache_stats",
     "code_fingerprint",
     "is_cached",
 ]
@@ -81,6 +82,35 @@ _STALE_TMP_S = 24 * 3600.0
 _MAX_HEADER = 1 << 16
 _warned: set[str] = set()
 _fingerprint: str | None = None
+# What this process spent in :func:`cached` (:func:`cache_stats`): wall and CPU seconds and
+# counts per part.
+_PARTS = ("lock_wait", "load", "build", "write")
+_stats: dict[str, float] = {f"{p}_{k}": 0.0 for p in _PARTS for k in ("s", "cpu_s", "n")}
+
+
+def cache_stats() -> dict[str, float]:
+    """What this process has spent in :func:`cached` so far (cumulative; take differences).
+
+    Returns
+    -------
+    dict
+        ``<part>_s`` (wall), ``<part>_cpu_s`` (this process's CPU) and ``<part>_n`` (count) for
+        the parts ``lock_wait`` (waiting for another process building the same entry),
+        ``load`` (reading and checking an entry), ``build`` (the caller's ``build``) and
+        ``write`` (pickling and writing an entry, its ``fsync`` included).
+    """
+    return dict(_stats)
+
+
+@contextlib.contextmanager
+def _timed(part: str) -> Iterator[None]:
+    t0, c0 = time.perf_counter(), time.process_time()
+    try:
+        yield
+    finally:
+        _stats[f"{part}_s"] += time.perf_counter() - t0
+        _stats[f"{part}_cpu_s"] += time.process_time() - c0
+        _stats[f"{part}_n"] += 1
 
 
 class CacheWarning(UserWarning):
@@ -352,12 +382,14 @@ def cached(key: str, build: Callable[[], T]) -> T:
     path = _entry_path(directory, key)
     lock = _locked(path.with_suffix(".lock"))
     try:
-        lock.__enter__()
+        with _timed("lock_wait"):
+            lock.__enter__()
     except OSError as exc:
         _warn_once(directory, f"cannot lock an entry: {exc}")
         return build()
     try:
-        ok, value = _read(path, key)
+        with _timed("load"):
+            ok, value = _read(path, key)
         if ok:
             with contextlib.suppress(OSError):
                 os.utime(path)  # least-recently-used order
@@ -365,9 +397,11 @@ def cached(key: str, build: Callable[[], T]) -> T:
             return value
         if value is not None:
             logger.warning("calibration cache entry %s %s: rebuilt", path, value)
-        value = build()
+        with _timed("build"):
+            value = build()
         try:
-            _write(path, key, value)
+            with _timed("write"):
+                _write(path, key, value)
         except OSError as exc:  # the folder became unwritable, the disk is full
             _warn_once(directory, f"cannot write an entry: {exc}")
             return value

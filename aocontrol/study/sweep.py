@@ -309,7 +309,8 @@ def _execute(
     partial.mkdir(parents=True, exist_ok=True)
     tmp = partial / f"{hash_}.{uuid.uuid4().hex}.h5"
     error_file = out_dir / f"{hash_}.error.json"
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, u0 = time.perf_counter(), time.process_time(), _usage()
+    th0 = time.thread_time()
     try:
         run(dict(settings), tmp)
         if not tmp.is_file():
@@ -327,7 +328,36 @@ def _execute(
         # CPU of the worker process over the run (its every thread), and which process ran it
         "cpu_s": time.process_time() - c0,
         "worker": f"{socket.gethostname()}:{os.getpid()}",
+        # the run's own thread (the rest of cpu_s: BLAS threads, Dask's event loop)
+        "thread_cpu_s": time.thread_time() - th0,
+        "parts": {k: v - u0[k] for k, v in _usage().items()},
     }
+
+
+def _usage() -> dict[str, float]:
+    """This process's cumulative usage: the calibration cache's parts
+    (:func:`aocontrol.study._cache.cache_stats`: lock waits, loads, builds, writes) and, where
+    the ``resource`` module exists, the kernel's counts (``minflt``: page faults, ``nivcsw``:
+    involuntary context switches, i.e. preemptions by other processes, ``oublock``: blocks
+    written)."""
+    from aocontrol.study._cache import cache_stats
+
+    out = cache_stats()
+    try:
+        import resource
+    except ImportError:  # pragma: no cover (Windows)
+        return out
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    out.update(
+        user_s=ru.ru_utime,
+        sys_s=ru.ru_stime,
+        minflt=float(ru.ru_minflt),
+        majflt=float(ru.ru_majflt),
+        nvcsw=float(ru.ru_nvcsw),
+        nivcsw=float(ru.ru_nivcsw),
+        oublock=float(ru.ru_oublock),
+    )
+    return out
 
 
 @dataclass(frozen=True)
@@ -349,7 +379,10 @@ class SweepReport:
     timings : tuple of dict
         Per run executed now, in completion order: ``hash``, ``worker`` (``host:pid`` of the
         process that ran it), ``seconds`` (wall) and ``cpu_s`` (that process's CPU over the
-        run, every thread) [s]: the load balance of the sweep (``bench_sweep`` prints it).
+        run, every thread) [s]: the load balance of the sweep (``bench_sweep`` prints it);
+        ``thread_cpu_s`` (the CPU of the thread that ran it, a part of ``cpu_s``); ``parts``:
+        what the run spent in the calibration cache and the kernel's counts (:func:`_usage`,
+        differences over the run).
     """
 
     out: pathlib.Path
@@ -362,7 +395,7 @@ class SweepReport:
 
 
 #: What :attr:`SweepReport.timings` keeps of a worker's status of a completed run.
-_TIMING_KEYS = ("hash", "worker", "seconds", "cpu_s")
+_TIMING_KEYS = ("hash", "worker", "seconds", "cpu_s", "thread_cpu_s", "parts")
 
 #: Loggers of the Dask machinery kept quiet around a sweep's own local cluster.
 _DASK_LOGGERS = ("distributed", "tornado", "asyncio")
