@@ -93,31 +93,31 @@ def _serial(
 
 
 def _cpu_outside() -> tuple[float, float]:
-    """CPU [s] so far of this process (client and scheduler) and of the nannies (children of
-    this process; the workers are their children)."""
+    """CPU [s] so far of this process (client, scheduler and nannies: the local cluster runs
+    them in this process) and of its children (the worker processes)."""
     import psutil
 
     me = psutil.Process()
-    nannies = 0.0
+    workers = 0.0
     for child in me.children():
         try:
             t = child.cpu_times()
-            nannies += t.user + t.system
+            workers += t.user + t.system
         except psutil.Error:
             pass
-    return time.process_time(), nannies
+    return time.process_time(), workers
 
 
 def _sweep(spec, out, cluster, runner):
-    """``run_sweep`` on ``cluster``; prints the CPU this process and the nannies used."""
+    """``run_sweep`` on ``cluster``; prints the CPU this process and the workers used."""
     from aocontrol.study.sweep import run_sweep
 
     a = _cpu_outside()
     rep = run_sweep(spec, out=out, scheduler=cluster.scheduler_address, runner=runner)
     b = _cpu_outside()
     print(
-        f"  during the sweep: this process (client, scheduler) {b[0] - a[0]:.2f} s CPU, the "
-        f"nannies {b[1] - a[1]:.2f} s CPU",
+        f"  during the sweep: this process (client, scheduler, nannies) {b[0] - a[0]:.2f} s "
+        f"CPU, the worker processes {b[1] - a[1]:.2f} s CPU",
         flush=True,
     )
     return rep

@@ -117,6 +117,28 @@ class SharedCalibrationRunner:
             f.attrs["value"] = float(sum(value))
 
 
+@dataclass(frozen=True)
+class IntervalRunner:
+    """Writes ``<case>.<seed>.json`` in ``record_dir``: the run's start and end time and its
+    process; sleeps ``sleep_s`` (``first_s`` for seed 0) in between; then a small result."""
+
+    record_dir: str
+    sleep_s: float = 0.1
+    first_s: float = 0.6
+
+    def __call__(self, settings: dict, path: pathlib.Path) -> None:
+        import os
+
+        start = time.time()
+        time.sleep(self.first_s if settings["seed"] == 0 else self.sleep_s)
+        record = {"start": start, "end": time.time(), "pid": os.getpid()}
+        name = f"{settings['case']}.{settings['seed']}.json"
+        (pathlib.Path(self.record_dir) / name).write_text(json.dumps(record))
+        with h5py.File(path, "w") as f:
+            f.attrs["settings"] = json.dumps(settings)
+            f.attrs["value"] = expected_value(settings)
+
+
 BLAS_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 

@@ -250,6 +250,28 @@ def test_sweep_pins_only_cases_whose_calibrations_are_not_on_disk(cache_dir, mon
     assert set(pinned.values()) == {"tcp://a", "tcp://b"}  # one each: balanced
 
 
+def test_other_runs_of_a_case_to_build_are_held_until_its_first_is_done(cache_dir):
+    from aocontrol.study._sweep_place import _after_builds
+    from aocontrol.study.sweep import SweepSpec
+
+    spec = SweepSpec(
+        cases=("bright1-best", "red1-fast", "red3-medium"),
+        controllers=("reference",),
+        schemes=("standalone",),
+        seeds=(0, 1, 2),
+        seconds=0.1,
+        quick=True,
+    )
+    runs = spec.runs()
+    cached(scene.geometry_cache_key(scene.load_case("red1-fast"), True), Counter())
+    later = _after_builds(runs)
+    by_case: dict = {}
+    for r in runs:
+        by_case.setdefault(r.settings["case"], []).append(r)
+    # the cases to build: their first run builds, the others wait for it; red1-fast is on disk
+    assert later == {by_case[c][0].hash: by_case[c][1:] for c in ("bright1-best", "red3-medium")}
+
+
 def test_sweep_places_calibrated_runs_where_their_scene_is_in_memory(cache_dir):
     # Cases on disk: their runs are balanced over the workers by expected work, each
     # preferably where its scene is in memory (a worker without it loads it from disk); a case

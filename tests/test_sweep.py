@@ -17,6 +17,7 @@ import pytest
 from _sweep_runner import (
     BLAS_VARS,
     VALID,
+    IntervalRunner,
     SharedCalibrationRunner,
     environment_row,
     environment_run,
@@ -408,3 +409,32 @@ def test_timings_give_each_runs_cache_parts_and_cpu(tmp_path, scheduler_address)
     assert 0.2 <= beta["lock_wait_s"] <= alpha["build_s"] + alpha["write_s"] + 0.5
     assert beta["load_n"] == 1 and alpha["load_n"] == 1  # alpha's one look found nothing
     assert {r["value"] for r in report.table} == {45.0}
+
+
+def test_other_runs_of_a_case_to_build_wait_for_its_first_then_go_anywhere(
+    tmp_path, scheduler_address
+):
+    # A case not calibrated (every case of a runner that is not the package's): its first run
+    # builds on a worker of its own; the others start only once it is done (none waits on the
+    # build's lock), then on any worker.
+    records = tmp_path / "records"
+    records.mkdir()
+    text = SPEC.replace('["integrator", "datadriven"]', '["integrator"]').replace(
+        "[0, 1, 2]", "[0, 1, 2, 3]"
+    )
+    runner = SweepRunner(run=IntervalRunner(str(records)), read=read_row, valid=VALID)
+    report = run_sweep(
+        _write(tmp_path, text), out=tmp_path / "out", runner=runner, scheduler=scheduler_address
+    )
+    assert report.failed == () and len(report.ran) == 8
+    rec = {p.stem: json.loads(p.read_text()) for p in records.glob("*.json")}
+    assert len(rec) == 8
+    for case in ("alpha", "beta"):
+        first = rec[f"{case}.0"]
+        for seed in (1, 2, 3):
+            assert rec[f"{case}.{seed}"]["start"] >= first["end"], (case, seed, rec)
+    # the two first runs ran at the same time, on the two workers
+    assert rec["alpha.0"]["pid"] != rec["beta.0"]["pid"]
+    assert {row["value"] for row in report.table} == {
+        expected_value({"seed": s, "case": c}) for c in ("alpha", "beta") for s in range(4)
+    }

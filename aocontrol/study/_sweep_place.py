@@ -10,7 +10,7 @@ from typing import Any
 
 from aocontrol.study._sweep_spec import SweepRun
 
-__all__ = ["_calibrated_cases", "_case_affinity", "_run_placement"]
+__all__ = ["_after_builds", "_calibrated_cases", "_case_affinity", "_run_placement"]
 
 
 def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
@@ -187,3 +187,28 @@ def _calibrated_cases(todo: Sequence[SweepRun]) -> set[str]:
             key = _scene_key(r.settings)
             out[case] = key is not None and is_cached(key)
     return {case for case, ok in out.items() if ok}
+
+
+def _after_builds(todo: Sequence[SweepRun]) -> dict[str, list[SweepRun]]:
+    """The runs to submit once their case's first run is done, by that first run's hash.
+
+    A case whose calibrations are not on disk (:func:`_calibrated_cases`) is built by its
+    first run, on the worker :func:`_case_affinity` gives it. Its other runs are held back
+    until that run is done, then go to any worker (a free one loads the calibrations from
+    disk): submitted with the first, they would all wait for the same worker while the other
+    sits idle once its own cases are built, and a run moved to another worker would block
+    on the lock of the entry being built.
+    """
+    free = _calibrated_cases(todo)
+    first: dict[str, str] = {}
+    out: dict[str, list[SweepRun]] = {}
+    for r in todo:
+        case = r.settings["case"]
+        if case in free:
+            continue
+        if case in first:
+            out[first[case]].append(r)
+        else:
+            first[case] = r.hash
+            out[r.hash] = []
+    return {h: runs for h, runs in out.items() if runs}

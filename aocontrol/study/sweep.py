@@ -32,13 +32,15 @@ system). The *worker* writes the result in
 ``out/.partial/`` and renames it to ``out/<hash>.h5`` when complete, so a file with a final name
 is always complete and a killed sweep loses at most the runs in flight; run it again and it
 skips what exists. A run that raises leaves ``out/<hash>.error.json`` (settings, error,
-traceback) instead of a result, and the other runs go on. The runs of a case whose
-calibrations are not yet on disk go to one worker where possible (each worker process caches
-the scenes it builds in memory; their calibrations are also cached on disk,
+traceback) instead of a result, and the other runs go on. The first run of a case whose
+calibrations are not yet on disk builds them on a worker of its own where possible (each worker
+process caches the scenes it builds in memory; their calibrations are also cached on disk,
 :mod:`aocontrol.study._cache`, so that a scene built by one worker or an earlier sweep is read,
-not built again); the runs of cases on disk are balanced over the workers by their expected
-work (fast frames of the run, a scene loaded from disk; :mod:`aocontrol.study._sweep_place`),
-each preferably on a worker that holds its scene in memory. :attr:`SweepReport.timings` gives
+not built again); the case's other runs are submitted once that run is done, to any worker
+(never one that would wait for the build); the runs of cases on disk are balanced over the
+workers by their expected work (fast frames of the run, a scene loaded from disk;
+:mod:`aocontrol.study._sweep_place`), each preferably on a worker that holds its scene in
+memory. :attr:`SweepReport.timings` gives
 each run's worker, wall and CPU time. Start one sweep per folder at a time:
 a sweep clears ``out/.partial/`` (files of interrupted sweeps) first.
 
@@ -69,7 +71,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from aocontrol._atomic import atomic_path
-from aocontrol.study._sweep_place import _run_placement
+from aocontrol.study._sweep_place import _after_builds, _run_placement
 from aocontrol.study._sweep_spec import (
     _HASH_LEN,
     _NAME_KEYS,
@@ -619,10 +621,11 @@ def run_sweep(
             client = _connect(scheduler, n_workers, timeout, stack)
             token = uuid.uuid4().hex[:8]
             placement = _run_placement(client, todo)
-            futures = {}
-            for r in todo:
-                where = placement.get(r.hash)
-                fut = client.submit(
+            later = _after_builds(todo)
+            held = {r.hash for runs in later.values() for r in runs}
+
+            def submit(r: SweepRun, where: str | None) -> Any:
+                return client.submit(
                     _execute,
                     runner.run,
                     dict(r.settings),
@@ -634,14 +637,22 @@ def run_sweep(
                     # (a restriction only with affinity: Dask refuses allow_other_workers alone)
                     **({"workers": [where], "allow_other_workers": True} if where else {}),
                 )
-                futures[fut] = r
+
+            futures = {submit(r, placement.get(r.hash)): r for r in todo if r.hash not in held}
             bar = None
             if progress:
                 from tqdm.auto import tqdm
 
                 bar = stack.enter_context(tqdm(total=len(todo), desc="sweep", unit="run"))
-            for fut in as_completed(futures):
+            done = as_completed(futures)
+            for fut in done:
                 r = futures[fut]
+                # the case's calibrations are built (or its build failed): its other runs
+                # go to any worker
+                for other in later.pop(r.hash, ()):
+                    new = submit(other, None)
+                    futures[new] = other
+                    done.add(new)
                 try:
                     status = fut.result()
                 except Exception as exc:  # the worker died (killed, out of memory)
