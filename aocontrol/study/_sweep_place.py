@@ -1,4 +1,5 @@
-"""Where the runs of a sweep go (private): whole cases to build on one worker each, the runs of
+"""Where the runs of a sweep go (private): the first run of each case to build on a worker of its
+own (its other runs wait for it, then go to any worker: :func:`_after_builds`), the runs of
 cases already calibrated on disk balanced over the workers by their expected work, preferring
 the worker that holds the scene in memory (:func:`aocontrol.study.sweep.run_sweep`)."""
 
@@ -22,7 +23,8 @@ def _case_affinity(client: Any, todo: Sequence[SweepRun]) -> dict[str, str]:
     remote scheduler may move them (then a worker builds a scene again). A case whose
     calibrations are already in the disk cache (:func:`_calibrated_cases`) gets no worker: any
     worker loads them in a moment, so its runs fill whichever worker is free (with whole cases
-    per worker, five cases on two workers could not beat 5/3 of one process).
+    per worker, five cases on two workers could not beat 5/3 of one process). The sweep sends
+    only a case's first run there; the others follow it once it is done (:func:`_after_builds`).
     """
     try:
         workers = sorted(client.scheduler_info()["workers"])
