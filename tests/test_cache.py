@@ -210,6 +210,20 @@ def test_scene_geometry_goes_through_the_disk_cache(cache_dir, monkeypatch):
         scene.clear_scene_cache()
 
 
+def test_quick_geometry_key_names_the_modes_built():
+    # quick mode builds at most QUICK_MODES modes per stage: cases that differ only in n_modes
+    # above that limit share their calibrations; in full mode they do not
+    from aocontrol.study.cases import apply_overrides
+
+    case = scene.load_case("bright1-best")
+    more = apply_overrides(case, {"stage1.n_modes": case.stage1.n_modes - 1})
+    assert case.stage1.n_modes - 1 > scene.QUICK_MODES[0]
+    assert scene.geometry_cache_key(case, True) == scene.geometry_cache_key(more, True)
+    assert scene.geometry_cache_key(case, False) != scene.geometry_cache_key(more, False)
+    fewer = apply_overrides(case, {"stage1.n_modes": scene.QUICK_MODES[0] - 1})
+    assert scene.geometry_cache_key(case, True) != scene.geometry_cache_key(fewer, True)
+
+
 def test_is_cached_sees_only_entries_of_this_code_and_key(cache_dir, monkeypatch):
     assert not _cache.is_cached("key")  # nothing yet
     cached("key", Counter())

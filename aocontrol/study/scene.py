@@ -429,13 +429,17 @@ def build_scene(
 
 
 def _geometry_key(c: Case, quick: bool, rng: int) -> str:
-    """The case values the calibrations depend on (not the flux, rates, gains or tau0)."""
+    """The case values the calibrations depend on (not the flux, rates, gains or tau0; in quick
+    mode the modes actually built, at most :data:`QUICK_MODES`)."""
     flux = ("fs", "band", "read_noise", "throughput", "gain", "latency_frames", "dm_stroke")
     flux += ("sensor", "optical_gain")
     stages = [
         {k: v for k, v in dataclasses.asdict(s).items() if k not in flux}
         for s in (c.stage1, c.stage2)
     ]
+    if quick:  # the modes built (a case's n_modes above the quick limit changes nothing)
+        for st, limit in zip(stages, QUICK_MODES, strict=True):
+            st["n_modes"] = min(st["n_modes"], limit)
     atm = (c.atmosphere.seeing, c.atmosphere.L0)
     return json.dumps([dataclasses.asdict(c.simulation), atm, stages, quick, rng], default=str)
 
