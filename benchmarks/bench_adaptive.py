@@ -116,6 +116,13 @@ def part_b(args: argparse.Namespace) -> None:
         _print_transients(scenario, studies)
 
 
+def _emit(lines: list[str]) -> str:
+    """Print ``lines`` (flushed) and return them as one text."""
+    text = "\n".join(lines)
+    print(text, flush=True)
+    return text
+
+
 def _print_transients(scenario: str, studies: list) -> str:
     """Per strategy, period, window and seed: switches, uncertified banks and modes, and the
     residual energy 50 frames after a switch / before (median, worst) against the same ratio
@@ -136,9 +143,7 @@ def _print_transients(scenario: str, studies: list) -> str:
                 f"{r.transient_median:>7.3f} {r.transient_worst:>7.3f} "
                 f"{r.reference_median:>7.3f} {r.reference_worst:>7.3f} {r.transient_p:>7.3f}"
             )
-    text = "\n".join(lines)
-    print(text, flush=True)
-    return text
+    return _emit(lines)
 
 
 def _cpu_seconds() -> float:
@@ -332,9 +337,7 @@ def _print_seed_summary(scenario: str, studies: list, fixed_window: float | None
             f"[{min(r['oracle']):.3f}, {max(r['oracle']):.3f}]; per seed "
             f"{r['seeds']}: {per}"
         )
-    text = "\n".join(lines)
-    print(text, flush=True)
-    return text
+    return _emit(lines)
 
 
 def study(args: argparse.Namespace) -> None:
