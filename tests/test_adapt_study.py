@@ -46,6 +46,10 @@ def test_adaptive_modal_gain_study_runs_and_adapts():
     row = study.row("modal-gain")
     assert row.n_switches == 5 and row.n_rejected_banks == 0
     assert 0 < row.residual < 1e6 and "modal-gain" in study.table()
+    # Every switch is 600 frames from the next: each is measured (50 frames either side) and
+    # each midpoint between two is a reference; the ratios are energies' ratios, positive.
+    assert row.transient_worst >= row.transient_median > 0
+    assert row.reference_worst >= row.reference_median > 0 and 0 <= row.transient_p <= 1
 
 
 def test_bad_study_arguments():

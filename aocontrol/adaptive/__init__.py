@@ -48,7 +48,9 @@ commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 t
    to frames), **bumplessly**: the new bank's state is set from the recent measurements and
    the commands actually applied, so the first command of the new filter continues the loop
    instead of restarting from zero: Direct-Form I rows by :func:`bumpless_outputs`,
-   state-space rows by :func:`bumpless_state`. The loop runs a :class:`RealisedBank`
+   state-space rows by :func:`bumpless_state`. :func:`switch_transients` measures it on a run:
+   the residual in the 50 frames after each switch / the 50 before, against the same ratio
+   where no switch happened. The loop runs a :class:`RealisedBank`
    (Direct-Form I rows and state-space rows, each batched over its modes).
 
 Timing: frame ``k`` (counted from :meth:`reset`; a frame rejected for a non-finite measurement
@@ -104,6 +106,7 @@ from aocontrol.adaptive._redesign import (
     residual_shift,
     select_modes,
 )
+from aocontrol.adaptive._transients import TRANSIENT_FRAMES, SwitchTransients, switch_transients
 
 __all__ = [
     "BOUND_N_FFT",
@@ -112,6 +115,7 @@ __all__ = [
     "BUMPLESS_MEMORY",
     "MIN_WINDOW_FRAMES",
     "RANKINGS",
+    "TRANSIENT_FRAMES",
     "AdaptiveController",
     "AdaptiveRun",
     "Designer",
@@ -119,6 +123,7 @@ __all__ = [
     "RealisedBank",
     "Redesign",
     "StateSpaceRows",
+    "SwitchTransients",
     "Update",
     "bumpless_outputs",
     "bumpless_state",
@@ -132,4 +137,5 @@ __all__ = [
     "select_modes",
     "state_space_gain",
     "state_space_gains",
+    "switch_transients",
 ]

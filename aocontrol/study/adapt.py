@@ -48,9 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aocontrol._atomic import atomic_path
-from aocontrol.adaptive import (
-    AdaptiveRun,
-)
+from aocontrol.adaptive import AdaptiveRun, switch_transients
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.loop import ModalTimeSeries, Stage, TurbulenceSource, run_loop
@@ -194,6 +192,15 @@ class AdaptRow:
     clipped : int
         Actuator-frames clipped by the case's DM stroke (:attr:`LoopResult.actuator_saturation`
         summed; 0 without an actuator stroke).
+    transient_median, transient_worst : float
+        Residual energy in the 50 frames after a switch / the 50 before: median and largest
+        over the run's switches (:func:`aocontrol.adaptive.switch_transients`; ``nan``
+        without a switch).
+    reference_median, reference_worst : float
+        The same ratio at the midpoints between switches, where no switch happened: the noise
+        of the ratio.
+    transient_p : float
+        One-sided Mann-Whitney p-value that the switches' ratios exceed the reference's.
     """
 
     strategy: str
@@ -206,6 +213,11 @@ class AdaptRow:
     n_rejected_banks: int
     design_seconds: float
     clipped: int = 0
+    transient_median: float = float("nan")
+    transient_worst: float = float("nan")
+    reference_median: float = float("nan")
+    reference_worst: float = float("nan")
+    transient_p: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -445,6 +457,7 @@ def run_adapt(
             first = round((window if measure_from is None else measure_from) * st.fs)
             secs = [r.design_seconds for r in run.redesigns]
             sat = res.actuator_saturation
+            tr = switch_transients(e, run.switch_frames)
             rows.append(
                 AdaptRow(
                     strategy=strategy,
@@ -457,6 +470,11 @@ def run_adapt(
                     n_rejected_banks=run.n_rejected_banks,
                     design_seconds=float(np.median(secs)) if secs else 0.0,
                     clipped=int(np.sum(sat)) if sat is not None else 0,
+                    transient_median=tr.median,
+                    transient_worst=tr.worst,
+                    reference_median=tr.reference_median,
+                    reference_worst=tr.reference_worst,
+                    transient_p=tr.p_value,
                 )
             )
             logger.info("%s", rows[-1])
