@@ -327,6 +327,19 @@ def _print_seed_summary(scenario: str, studies: list, fixed_window: float | None
     return text
 
 
+def _design_args(args: argparse.Namespace, seed: int, opts: dict) -> dict:
+    """The design arguments shared by the study and the cascade study."""
+    return dict(
+        latency=args.latency,
+        order=2 if args.quick else 5,
+        quick=args.quick,
+        seed=seed,
+        n_jobs=args.jobs,
+        design_options=opts,
+        adaptive_options={"select": args.select} if args.select else {},
+    )
+
+
 def study(args: argparse.Namespace) -> None:
     """The study (issue 17, part 3): the strategies at every period, per scenario and seed,
     one period at a time (longest first) so that a partial run still gives whole rows; the
@@ -371,13 +384,7 @@ def study(args: argparse.Namespace) -> None:
                         windows=ws,
                         duration=args.seconds,
                         strategies=strategies,
-                        latency=args.latency,
-                        order=2 if args.quick else 5,
-                        quick=args.quick,
-                        seed=seed,
-                        n_jobs=args.jobs,
-                        design_options=opts,
-                        adaptive_options={"select": args.select} if args.select else {},
+                        **_design_args(args, seed, opts),
                         measure_from=args.measure_from,
                     )
                     rows.extend(part.rows)
@@ -426,13 +433,7 @@ def cascade(args: argparse.Namespace) -> None:
                     duration=args.seconds,
                     strategies=(strategy,),
                     scheme=args.scheme,
-                    latency=args.latency,
-                    order=2 if args.quick else 5,
-                    quick=args.quick,
-                    seed=seed,
-                    n_jobs=args.jobs,
-                    design_options=opts,
-                    adaptive_options={"select": args.select} if args.select else {},
+                    **_design_args(args, seed, opts),
                     inner_band=band,
                 )
             )
