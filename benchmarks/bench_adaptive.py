@@ -26,6 +26,12 @@ seed with their mean and spread; ``--strategies fixed,adaptive,oracle`` runs onl
 ``--measure-from 6`` averages every row's residual from the same time (rows of different
 windows comparable).
 
+The cascade study (``--cascade``): :func:`aocontrol.study.adapt.run_adapt_cascade` on
+``bright1-best`` at full scale unless ``--quick``, one strategy at a time (``--strategies``
+among fixed, adaptive, oracle; ``--periods``, ``--window``, ``--seconds``, ``--seeds``,
+``--scheme``, ``--scenarios``' first): residual, contrast over 4-6 and ``--inner-band``
+lambda/D with their ratios to the fixed design, Strehl, stage-2 clip count, CPU per strategy.
+
 Timings are wall-clock on a shared machine: compare the ratios measured in one run.
 """
 
@@ -340,6 +346,19 @@ def _print_seed_summary(scenario: str, studies: list, fixed_window: float | None
     return _emit(lines)
 
 
+def _design_args(args: argparse.Namespace, seed: int, opts: dict) -> dict:
+    """The design arguments shared by the study and the cascade study."""
+    return dict(
+        latency=args.latency,
+        order=2 if args.quick else 5,
+        quick=args.quick,
+        seed=seed,
+        n_jobs=args.jobs,
+        design_options=opts,
+        adaptive_options={"select": args.select} if args.select else {},
+    )
+
+
 def study(args: argparse.Namespace) -> None:
     """The study (issue 17, part 3): the strategies at every period, per scenario and seed,
     one period at a time (longest first) so that a partial run still gives whole rows; the
@@ -384,13 +403,7 @@ def study(args: argparse.Namespace) -> None:
                         windows=ws,
                         duration=args.seconds,
                         strategies=strategies,
-                        latency=args.latency,
-                        order=2 if args.quick else 5,
-                        quick=args.quick,
-                        seed=seed,
-                        n_jobs=args.jobs,
-                        design_options=opts,
-                        adaptive_options={"select": args.select} if args.select else {},
+                        **_design_args(args, seed, opts),
                         measure_from=args.measure_from,
                     )
                     rows.extend(part.rows)
@@ -419,6 +432,42 @@ def study(args: argparse.Namespace) -> None:
             text = _print_seed_summary(scenario, studies, fixed_window)
             with open(os.path.join(args.out, f"adapt_seeds_{scenario}.txt"), "w") as fh:
                 fh.write(text + "\n")
+
+
+def cascade(args: argparse.Namespace) -> None:
+    """The cascade study (issue 17): every strategy of ``--strategies`` run on its own (its
+    CPU time: this process and its design workers), the rows of each seed as one table."""
+    from aocontrol.study.adapt import AdaptCascadeStudy, run_adapt_cascade
+
+    periods = tuple(float(x) for x in args.periods.split(","))
+    band = tuple(float(x) for x in args.inner_band.split(","))
+    opts = {**_quick_options(args), **_options(args.design_options)}
+    for seed in (int(x) for x in args.seeds.split(",")):
+        rows: list = []
+        cpu: list = []
+        for strategy in (x.strip() for x in args.strategies.split(",")):
+            part, wall, c = _timed(
+                lambda strategy=strategy, seed=seed: run_adapt_cascade(
+                    "bright1-best",
+                    scenario=args.scenarios.split(",")[0],
+                    periods=periods,
+                    window=args.window,
+                    duration=args.seconds,
+                    strategies=(strategy,),
+                    scheme=args.scheme,
+                    **_design_args(args, seed, opts),
+                    inner_band=band,
+                )
+            )
+            rows.extend(part.rows)
+            cpu.append(f"{strategy} {c:.0f} s CPU ({wall:.0f} s wall)")
+            print(f"seed {seed}: {cpu[-1]}, load {os.getloadavg()[0]:.1f}", flush=True)
+        whole = AdaptCascadeStudy(
+            part.case, part.scenario, part.scheme, part.duration, tuple(rows), part.settings
+        )
+        print(f"seed {seed}, inner band {band[0]:g}-{band[1]:g} lambda/D", flush=True)
+        print(whole.table(), flush=True)
+        print("; ".join(cpu), flush=True)
 
 
 def main() -> None:
@@ -475,11 +524,19 @@ def main() -> None:
         "--scenarios", default="wind-doubles,seeing-worsens", help="study: scenarios"
     )
     parser.add_argument("--out", default="adapt-study", help="study: output folder")
+    parser.add_argument("--cascade", action="store_true", help="run the cascade study")
+    parser.add_argument("--scheme", default="standalone", help="cascade: standalone or dcao")
+    parser.add_argument(
+        "--inner-band", default="1,2", help="cascade: second contrast annulus [lambda/D]"
+    )
     args = parser.parse_args()
     warnings.simplefilter("ignore")
     logging.disable(logging.WARNING)
     if args.study:
         study(args)
+        return
+    if args.cascade:
+        cascade(args)
         return
     for part, fun in (("a", part_a), ("b", part_b), ("c", part_c)):
         if part in args.parts:
