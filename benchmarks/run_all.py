@@ -86,6 +86,17 @@ BENCHMARKS: dict[str, Entry] = {
         ("--quick", "--seconds", "1", "--cases", "red5-best"),
         ("--quick", "--seconds", "0.2", "--cases", "red5-best"),
     ),
+    "fidelity-full": Entry(
+        "bench_fidelity.py",
+        tuple(
+            "--cases red5-best --overrides paper-text --seconds 5 "
+            "--settings diffractive/calibrated".split()
+        ),
+        tuple(
+            "--quick --seconds 0.2 --cases red5-best --overrides paper-text "
+            "--settings diffractive/calibrated".split()
+        ),
+    ),
     "adaptive-study": Entry(
         "bench_adaptive.py", ("--study", "--quick", "--select", "0.9", "--jobs", "1")
     ),
@@ -98,6 +109,33 @@ BENCHMARKS: dict[str, Entry] = {
         tuple(
             "--study --quick --jobs 1 --scenarios wind-doubles --strategies fixed,adaptive "
             "--seconds 6 --periods 2".split()
+        ),
+    ),
+    "adaptive-seeing": Entry(
+        "bench_adaptive.py",
+        tuple(
+            "--study --quick --jobs 1 --scenarios seeing-worsens --strategies "
+            "fixed,adaptive,oracle --measure-from 6 --seeds 0,1,2 --periods 2".split()
+        ),
+        tuple(
+            "--study --quick --jobs 1 --scenarios seeing-worsens --strategies fixed,adaptive "
+            "--seconds 6 --periods 2".split()
+        ),
+    ),
+    "adaptive-transients": Entry(
+        "bench_adaptive.py",
+        tuple("--parts b --quick --scenarios seeing-worsens --seeds 0,1,2".split()),
+        tuple("--parts b --quick --scenarios seeing-worsens --seeds 0 --seconds 6".split()),
+    ),
+    "adaptive-cascade": Entry(
+        "bench_adaptive.py",
+        tuple(
+            "--cascade --strategies fixed,adaptive,oracle --periods 1,2 --window 1 "
+            "--seconds 10 --jobs 2".split()
+        ),
+        tuple(
+            "--cascade --quick --strategies fixed,adaptive,oracle --periods 1 --seconds 4 "
+            "--jobs 1".split()
         ),
     ),
     "warm-redesign": Entry(
