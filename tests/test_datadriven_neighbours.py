@@ -21,8 +21,8 @@ MARGIN = 0.5
 def setting():
     plant = loop_plant(FS, 0.83)
     f = np.linspace(0.0, FS / 2, 257)
-    # 16 neighbouring KL-like turbulence modes of a 540-mode basis (similar PSDs).
-    psd = synthetic_turbulence_psd(f, 540, wind_speed=10.0, fs=FS)[100:116]
+    # 12 neighbouring KL-like turbulence modes of a 540-mode basis (similar PSDs).
+    psd = synthetic_turbulence_psd(f, 540, wind_speed=10.0, fs=FS)[100:112]
     noise = np.full(psd.shape[0], 2.0 * 2.0**2 / FS)
     kw = dict(order=5, modulus_margin=MARGIN, n_jobs=1, progress=False)
     cold = datadriven(plant, f, psd, noise_psd=noise, **kw)
@@ -83,3 +83,28 @@ def test_bad_settings_named(setting, name, value):
     plant, f, psd, noise, kw, *_ = setting
     with pytest.raises(ValueError, match=name):
         datadriven_neighbours(plant, f, psd, noise_psd=noise, **{name: value}, **kw)
+
+
+def test_refused_warm_start_is_designed_cold(setting, monkeypatch):
+    # The first warm-started mode of each warm call is refused (as the synthesis does when
+    # its convexified problem is infeasible around the neighbour's design): it is designed
+    # cold, alone, and reported as such; every mode stays certified.
+    from aocontrol.synthesis import _dd_neighbours
+    from aocontrol.synthesis._dd_results import DataDrivenError
+
+    plant, f, psd, noise, kw, *_ = setting
+    real = _dd_neighbours.datadriven
+
+    def refusing(*args, **kwargs):
+        res = real(*args, **kwargs)
+        if kwargs.get("initial") is not None:
+            raise DataDrivenError({0: "forced refusal"}, res)
+        return res
+
+    monkeypatch.setattr(_dd_neighbours, "datadriven", refusing)
+    out = datadriven_neighbours(plant, f, psd[:5], noise_psd=noise[:5], stride=4, **kw)
+    alone = real(plant, f, psd[[1]], noise_psd=noise[[1]], **kw)  # mode 1: first warm one
+    np.testing.assert_array_equal(out.controller.b[1], alone.controller.b[0])
+    assert not out.reports[1].start.startswith("mode")
+    assert out.reports[2].start.startswith("mode")
+    assert out.ok.all() and out.stable.all()

@@ -163,7 +163,8 @@ def datadriven_neighbours(
         )
         ok = np.ones(modes.size, bool)
         ok[list(bad)] = False
-        results.append((modes[ok], _subset(res, np.flatnonzero(ok)), True))
+        if ok.any():
+            results.append((modes[ok], _subset(res, np.flatnonzero(ok)), True))
         redo = np.concatenate([redo, modes[~ok]])
     if redo.size:
         # A warm start the synthesis refuses (e.g. its convexified problem is infeasible
