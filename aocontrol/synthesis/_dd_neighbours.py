@@ -42,6 +42,13 @@ def nearest_designed(n_modes: int, stride: int) -> np.ndarray:
     return np.argmin(dist, axis=1)
 
 
+def has_integrator(bank: IIRBank) -> np.ndarray:
+    """Modes whose controller has a pole at ``z = 1`` (``a(1) = 0``: integral action),
+    shape (n_modes,)."""
+    scale = np.abs(bank.a).sum(axis=1)
+    return np.abs(bank.a.sum(axis=1)) <= _INTEGRATOR_RTOL * scale
+
+
 def _rows(bank: IIRBank, idx: np.ndarray) -> IIRBank:
     return IIRBank(bank.b[idx], bank.a[idx], bank.fs)
 
@@ -151,8 +158,7 @@ def datadriven_neighbours(
     near = nearest_designed(n, stride)
     rest = np.setdiff1d(np.arange(n), rep)
     start = _rows(cold.controller, near)
-    scale = np.abs(start.a).sum(axis=1)
-    integral = np.abs(start.a.sum(axis=1)) <= _INTEGRATOR_RTOL * scale
+    integral = has_integrator(start)
     warm_opts = {
         k: v
         for k, v in options.items()
