@@ -106,7 +106,9 @@ def datadriven_neighbours(
     dCAO modes 200-259 2.77x, -0.03 %, worst +2.7 %. ``stride=2``: 1.33x, +0.17 %, worst
     +6.8 % (bright1-best standalone). Whole 400-mode banks of bright1-best (commit 98d0dc6):
     standalone 52.6 -> 29.8 s CPU (1.77x), summed +0.18 %, 95th percentile +2.9 %, worst
-    mode +19.6 % (mode 40); dCAO 57.6 -> 39.6 s (1.46x), +0.11 %, worst +4.9 %. The summed
+    mode +19.6 % (mode 40); dCAO 57.6 -> 39.6 s (1.46x), +0.11 %, worst +4.9 %; red5-best
+    standalone 54.8 -> 25.5 s (2.15x), -0.10 %, worst +10.9 %; dCAO 52.6 -> 31.6 s (1.67x),
+    +0.26 %, worst +9.7 % (load 5 to 27). The summed
     residual holds 0.5 % on whole banks, but single modes lose up to 20 %: the paper's
     comparison keeps the cold bank (option ``stride`` of the registry's design, default 1).
 
