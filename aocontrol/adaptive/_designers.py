@@ -22,6 +22,7 @@ from aocontrol.synthesis import (
     lqg,
     optimal_modal_gain,
 )
+from aocontrol.synthesis._dd_neighbours import has_integrator
 
 logger = logging.getLogger(__name__)
 
@@ -32,16 +33,6 @@ CANCEL_RTOL = 0.1
 CANCEL_MAX_ERROR = 0.05
 #: Points of the unit circle on which that change is measured.
 _CHECK_POINTS = 2048
-
-# Relative size of a(1) below which a controller has a pole at z = 1 (integral action).
-_INTEGRATOR_RTOL = 1e-9
-
-
-def _has_integrator(bank: IIRBank) -> np.ndarray:
-    """Modes whose controller has a pole at ``z = 1`` (``a(1) = 0``: integral action),
-    shape (n_modes,)."""
-    scale = np.abs(bank.a).sum(axis=1)
-    return np.abs(bank.a.sum(axis=1)) <= _INTEGRATOR_RTOL * scale
 
 
 def _certified(res: DataDrivenResult) -> np.ndarray:
@@ -136,7 +127,7 @@ def datadriven_designer(
             warm["max_iter"] = warm_max_iter
         if warm_n_grid is not None:
             warm["n_grid"] = warm_n_grid
-        integral = _has_integrator(current)
+        integral = has_integrator(current)
         parts = []
         try:
             for take, fixed in ((integral, [1.0, -1.0]), (~integral, None)):
