@@ -22,32 +22,16 @@ and the pyramid runs its numpy passes.
 
 from __future__ import annotations
 
-import logging
-import os
-
 import numpy as np
 
-from aocontrol.sim._fused import ENV_NO_NUMBA
-
-logger = logging.getLogger(__name__)
+from aocontrol.sim._fused import compile_once
 
 _KERNELS: list = []  # [(tilt_rows, intensity_terms) compiled, or None], filled on first use
 
 
 def kernels() -> tuple | None:
     """The compiled ``(tilt_rows, intensity_terms)``, or ``None`` (no numba, or disabled)."""
-    if os.environ.get(ENV_NO_NUMBA):
-        return None
-    if not _KERNELS:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - numba is a dependency
-            logger.info("numba is not installed: the pyramid runs its numpy passes")
-            _KERNELS.append(None)
-        else:
-            jit = numba.njit(cache=True, nogil=True)
-            _KERNELS.append((jit(tilt_rows), jit(intensity_terms)))
-    return _KERNELS[0]
+    return compile_once(_KERNELS, (tilt_rows, intensity_terms), "the pyramid runs its numpy passes")
 
 
 def tilt_rows(g0, g1, w, w0, j0, j1, two, ny0, y0, out):
