@@ -46,7 +46,9 @@ propagation). Threads: ``workers`` BLAS threads during each call. The element-wi
 between and after the products (y tilts, constant row, direct images, intensity sums) are two
 compiled loops (:mod:`._pyramid_fused`, numba; the numpy passes without numba or with
 ``$AOCONTROL_NO_NUMBA``): the same frames to float32 rounding (the sums in float64); CPU per
-frame at SAXO+ sampling (80 px, 40x40) 1.21x less at 40 points, 1.35x at 20 (issue 19).
+frame at SAXO+ sampling (80 px, 40x40) 1.21x less at 40 points, 1.35x at 20, and 1.18x less
+for the whole closed-loop frame of ``benchmarks/bench_pyramid.py`` (500 modes; issue 19,
+alternating rounds in one process, load 17-24).
 
 Detector and signals
 --------------------
