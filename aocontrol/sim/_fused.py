@@ -38,22 +38,31 @@ _FUSED_BOUND = 1e150
 # Status codes of linear_frames.
 DONE, GUARD, NOT_FINITE = 0, 1, 2
 
-_KERNEL: list = []  # [the compiled function or None], filled on first use
+_KERNEL: list = []  # [(the compiled function,) or None], filled on first use
+
+
+def compile_once(store: list, functions: tuple, fallback: str) -> tuple | None:
+    """The ``functions`` compiled by numba (``cache=True, nogil=True``) on first use and kept
+    in ``store`` (a module's one-item list), or ``None`` without numba (logging
+    ``fallback``, what runs instead) or with ``$AOCONTROL_NO_NUMBA`` set."""
+    if os.environ.get(ENV_NO_NUMBA):
+        return None
+    if not store:
+        try:
+            import numba
+        except ImportError:  # pragma: no cover - numba is a dependency
+            logger.info("numba is not installed: %s", fallback)
+            store.append(None)
+        else:
+            jit = numba.njit(cache=True, nogil=True)
+            store.append(tuple(jit(f) for f in functions))
+    return store[0]
 
 
 def kernel() -> Callable | None:
     """The compiled :func:`linear_frames`, or ``None`` (no numba, or disabled)."""
-    if os.environ.get(ENV_NO_NUMBA):
-        return None
-    if not _KERNEL:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - numba is a dependency
-            logger.info("numba is not installed: linear stages run the numpy frame loop")
-            _KERNEL.append(None)
-        else:
-            _KERNEL.append(numba.njit(cache=True, nogil=True)(linear_frames))
-    return _KERNEL[0]
+    out = compile_once(_KERNEL, (linear_frames,), "linear stages run the numpy frame loop")
+    return None if out is None else out[0]
 
 
 def warm_up() -> None:

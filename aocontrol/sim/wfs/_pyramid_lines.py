@@ -102,12 +102,12 @@ _GEMM = {
 }
 
 
-def gemm_acc(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> None:
-    """``c += a @ b`` in place (C-contiguous 2-D arrays, real or complex, one dtype; BLAS
-    ``gemm``, beta = 1)."""
+def gemm_acc(a: np.ndarray, b: np.ndarray, c: np.ndarray, beta: float = 1.0) -> None:
+    """``c = beta c + a @ b`` in place (C-contiguous 2-D arrays, real or complex, one dtype;
+    BLAS ``gemm``; ``beta = 1`` accumulates, ``0`` overwrites)."""
     gemm = _GEMM[c.dtype]
     # in Fortran order the C-contiguous arrays are the transposes: c.T += b.T @ a.T
-    res = gemm(1.0, b.T, a.T, beta=1.0, c=c.T, overwrite_c=True)
+    res = gemm(1.0, b.T, a.T, beta=beta, c=c.T, overwrite_c=True)
     if not np.may_share_memory(res, c):  # pragma: no cover - a BLAS wrapper that copied
         c[...] = res.T
 

@@ -42,7 +42,13 @@ per parity class for all points: half the FLOPs of the complex per-point product
 (issue 15: 135 instead of 213 MFLOP per frame at SAXO+ sampling, ``benchmarks/bench_pyramid.py
 --flops``). Single precision by default (``complex64`` / ``float32``; the difference from
 double precision is < 1e-5 of the largest pixel, tested against frames of the former
-propagation). Threads: ``workers`` BLAS threads during each call.
+propagation). Threads: ``workers`` BLAS threads during each call. The element-wise passes
+between and after the products (y tilts, constant row, direct images, intensity sums) are two
+compiled loops (:mod:`._pyramid_fused`, numba; the numpy passes without numba or with
+``$AOCONTROL_NO_NUMBA``): the same frames to float32 rounding (the sums in float64); CPU per
+frame at SAXO+ sampling (80 px, 40x40) 1.21x less at 40 points, 1.35x at 20, and 1.18x less
+for the whole closed-loop frame of ``benchmarks/bench_pyramid.py`` (500 modes; issue 19,
+alternating rounds in one process, load 17-24).
 
 Detector and signals
 --------------------
@@ -80,6 +86,7 @@ from aocontrol._validation import (
 )
 from aocontrol.sim.noise import add_detector_noise
 from aocontrol.sim.pupil import Pupil
+from aocontrol.sim.wfs import _pyramid_fused
 from aocontrol.sim.wfs._common import bin_matrix, blas_threads, check_opd, opd_to_phase
 from aocontrol.sim.wfs._pyramid_lines import (
     apply_runs,
@@ -425,7 +432,7 @@ class PyramidWFS:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
 
-    def _fields(self, field: np.ndarray):
+    def _fields(self, field: np.ndarray, fused: tuple | None = None):
         """Detector-plane fields of all modulation points, as pair products.
 
         Yields one tuple ``(o0, o1)``, ``o_q`` of shape ``(n_l, 2, n_g, 2 n_lines)`` (real
@@ -438,6 +445,11 @@ class PyramidWFS:
 
         The arrays are the work buffers (:attr:`_work`): valid until the generator advances
         (copy them to keep them).
+
+        ``fused``: the compiled kernels of :mod:`._pyramid_fused`; the y tilts are then one
+        compiled pass, the products are written without the direct images, and the tuples
+        hold a fourth item, the chunk's step-y inputs ``[x0, x1]`` (the direct images are
+        ``x_q[src + l] * delta_q``: :meth:`_frames` adds them while it sums the intensities).
         """
         plan, work = self._plan, self._work
         classes, dense_t = plan["classes"], plan["dense_t"]
@@ -464,6 +476,11 @@ class PyramidWFS:
         for ci, (j0, j1, two) in enumerate(chunks):
             x = [xs[p * len(chunks) + ci] for p in (0, 1)]
             for p in (0, 1):
+                if fused is not None:
+                    wp, w0 = (plan["w"][p][..., 0], j0) if two else (plan["w1"][p], 0)
+                    y0 = float(plan["y0"][p])
+                    fused[0](gqv[0][p], gqv[1][p], wp, w0, j0, j1, two, -y0, y0, x[p])
+                    continue
                 # real and imaginary parts apart (columns [re | im]), one op per class and part
                 for qx in (0, 1):
                     for c in (0, 1):
@@ -490,10 +507,19 @@ class PyramidWFS:
                 pr = plan["pairs"][q]
                 n_l = pr.first.size
                 oq = o[q][: n_l * 2 * n_g * 2 * nl].reshape(n_l, 2, n_g, 2 * nl)
-                np.multiply(x[q][pr.src : pr.src + n_l, None], plan["delta"][q], out=oq)
-                gemm_acc(plan["kern"][q], x[1 - q].reshape(n_m + 1, -1), oq.reshape(2 * n_l, -1))
+                if fused is None:
+                    np.multiply(x[q][pr.src : pr.src + n_l, None], plan["delta"][q], out=oq)
+                gemm_acc(
+                    plan["kern"][q],
+                    x[1 - q].reshape(n_m + 1, -1),
+                    oq.reshape(2 * n_l, -1),
+                    beta=1.0 if fused is None else 0.0,
+                )
                 om.append(oq)
-            yield om[0], om[1], (j1 - j0 if two else 0)
+            if fused is None:
+                yield om[0], om[1], (j1 - j0 if two else 0)
+            else:
+                yield om[0], om[1], (j1 - j0 if two else 0), x
 
     def _accumulate(self, acc: dict, f: tuple, h: tuple, scale: float = 1.0) -> None:
         """``acc`` += ``scale`` times the bilinear intensity terms of the fields ``f`` and ``h``
@@ -551,12 +577,20 @@ class PyramidWFS:
         """Detector frames ``(m, 2 n_sub, 2 n_sub)`` of phase maps ``(m, n_pix, n_pix)`` [rad]."""
         out = np.empty((phase.shape[0], *self.frame_shape))
         acc = {k: self._work[k] for k in ("s", "x")}
+        fused = _pyramid_fused.kernels()
+        delta = self._plan["delta"]
         with self._blas_threads():
             for i in range(phase.shape[0]):
                 for a in acc["s"] + acc["x"]:
                     a.fill(0.0)
-                for f in self._fields(self._field(phase[i])):
-                    self._accumulate(acc, f, f)
+                for f in self._fields(self._field(phase[i]), fused):
+                    if fused is None:
+                        self._accumulate(acc, f, f)
+                        continue
+                    for q in (0, 1):
+                        src = self._plan["pairs"][q].src
+                        d = delta[q][:, 0, 0]
+                        fused[1](f[q], f[3][q], src, d[0], d[1], acc["s"][q], acc["x"][q])
                 out[i] = self._bin(acc)
         return out
 
