@@ -238,15 +238,22 @@ def _golden(prefix):
 
 
 def _assert_same(res, gold):
+    # Telemetry and counts bit for bit. The statistics reduced from them over frames
+    # (residual variance, ...) within 1e-13: numpy's SIMD reductions dispatch on the CPU's
+    # instruction set, so their last bits differ between host generations (measured: 1.3e-15
+    # on one of four arrays), while the telemetry they reduce is the same bit for bit.
     assert gold, "no golden arrays for this configuration"
     for name, want in gold.items():
-        got = res.telemetry[name] if name in res.telemetry else getattr(res, name)
-        np.testing.assert_array_equal(np.asarray(got), want, err_msg=name)
+        if name in res.telemetry or not np.issubdtype(want.dtype, np.floating):
+            got = res.telemetry[name] if name in res.telemetry else getattr(res, name)
+            np.testing.assert_array_equal(np.asarray(got), want, err_msg=name)
+        else:
+            np.testing.assert_allclose(getattr(res, name), want, rtol=1e-13, err_msg=name)
 
 
 @pytest.mark.parametrize("name", ["lin_a", "lin_b", "lin_c", "lin_d"])
 def test_engine_is_bit_identical_to_the_golden_runs(name):
-    # Every telemetry array, statistic and saturation count equal bit for bit.
+    # Every telemetry array and saturation count equal bit for bit, statistics to 1e-13.
     import _golden_loop
 
     gold = _golden(f"{name}/")

@@ -19,10 +19,10 @@ from aocontrol.synthesis import (
     ModalGainError,
     TelemetryPSD,
     datadriven,
+    has_integrator,
     lqg,
     optimal_modal_gain,
 )
-from aocontrol.synthesis._dd_neighbours import has_integrator
 
 logger = logging.getLogger(__name__)
 

@@ -15,7 +15,7 @@ from aocontrol.synthesis._datadriven import (
     ModeReport,
     datadriven,
 )
-from aocontrol.synthesis._dd_neighbours import datadriven_neighbours
+from aocontrol.synthesis._dd_neighbours import datadriven_neighbours, has_integrator
 from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
 from aocontrol.synthesis._modal_gain import (
@@ -79,6 +79,7 @@ __all__ = [
     "ar2_variance",
     "datadriven",
     "datadriven_neighbours",
+    "has_integrator",
     "disturbance_from_telemetry",
     "fit_disturbance_model",
     "integrator_gain_limit",

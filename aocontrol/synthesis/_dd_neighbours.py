@@ -43,8 +43,18 @@ def nearest_designed(n_modes: int, stride: int) -> np.ndarray:
 
 
 def has_integrator(bank: IIRBank) -> np.ndarray:
-    """Modes whose controller has a pole at ``z = 1`` (``a(1) = 0``: integral action),
-    shape (n_modes,)."""
+    """Modes whose controller has a pole at ``z = 1`` (``a(1) = 0``: integral action).
+
+    Parameters
+    ----------
+    bank : IIRBank
+        The controller bank, one transfer function per mode.
+
+    Returns
+    -------
+    numpy.ndarray of bool, shape (n_modes,)
+        True where ``|a(1)|`` is below a relative tolerance of the denominator's size.
+    """
     scale = np.abs(bank.a).sum(axis=1)
     return np.abs(bank.a.sum(axis=1)) <= _INTEGRATOR_RTOL * scale
 
