@@ -410,3 +410,27 @@ def cached(key: str, build: Callable[[], T]) -> T:
     logger.info("calibrations cached in %s", path)
     enforce_policy(directory, settings["max_bytes"], settings["max_age_s"], keep=(path,))
     return value
+
+
+def process_usage() -> dict[str, float]:
+    """This process's cumulative usage: the calibration cache's parts
+    (:func:`aocontrol.study._cache.cache_stats`: lock waits, loads, builds, writes) and, where
+    the ``resource`` module exists, the kernel's counts (``minflt``: page faults, ``nivcsw``:
+    involuntary context switches, i.e. preemptions by other processes, ``oublock``: blocks
+    written)."""
+    out = cache_stats()
+    try:
+        import resource
+    except ImportError:  # pragma: no cover (Windows)
+        return out
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    out.update(
+        user_s=ru.ru_utime,
+        sys_s=ru.ru_stime,
+        minflt=float(ru.ru_minflt),
+        majflt=float(ru.ru_majflt),
+        nvcsw=float(ru.ru_nvcsw),
+        nivcsw=float(ru.ru_nivcsw),
+        oublock=float(ru.ru_oublock),
+    )
+    return out

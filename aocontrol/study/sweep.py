@@ -71,6 +71,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from aocontrol._atomic import atomic_path
+from aocontrol.study._cache import process_usage
 from aocontrol.study._sweep_place import _after_builds, _run_placement
 from aocontrol.study._sweep_spec import (
     _HASH_LEN,
@@ -311,7 +312,7 @@ def _execute(
     partial.mkdir(parents=True, exist_ok=True)
     tmp = partial / f"{hash_}.{uuid.uuid4().hex}.h5"
     error_file = out_dir / f"{hash_}.error.json"
-    t0, c0, u0 = time.perf_counter(), time.process_time(), _usage()
+    t0, c0, u0 = time.perf_counter(), time.process_time(), process_usage()
     th0 = time.thread_time()
     try:
         run(dict(settings), tmp)
@@ -332,34 +333,8 @@ def _execute(
         "worker": f"{socket.gethostname()}:{os.getpid()}",
         # the run's own thread (the rest of cpu_s: BLAS threads, Dask's event loop)
         "thread_cpu_s": time.thread_time() - th0,
-        "parts": {k: v - u0[k] for k, v in _usage().items()},
+        "parts": {k: v - u0[k] for k, v in process_usage().items()},
     }
-
-
-def _usage() -> dict[str, float]:
-    """This process's cumulative usage: the calibration cache's parts
-    (:func:`aocontrol.study._cache.cache_stats`: lock waits, loads, builds, writes) and, where
-    the ``resource`` module exists, the kernel's counts (``minflt``: page faults, ``nivcsw``:
-    involuntary context switches, i.e. preemptions by other processes, ``oublock``: blocks
-    written)."""
-    from aocontrol.study._cache import cache_stats
-
-    out = cache_stats()
-    try:
-        import resource
-    except ImportError:  # pragma: no cover (Windows)
-        return out
-    ru = resource.getrusage(resource.RUSAGE_SELF)
-    out.update(
-        user_s=ru.ru_utime,
-        sys_s=ru.ru_stime,
-        minflt=float(ru.ru_minflt),
-        majflt=float(ru.ru_majflt),
-        nvcsw=float(ru.ru_nvcsw),
-        nivcsw=float(ru.ru_nivcsw),
-        oublock=float(ru.ru_oublock),
-    )
-    return out
 
 
 @dataclass(frozen=True)
@@ -383,8 +358,8 @@ class SweepReport:
         process that ran it), ``seconds`` (wall) and ``cpu_s`` (that process's CPU over the
         run, every thread) [s]: the load balance of the sweep (``bench_sweep`` prints it);
         ``thread_cpu_s`` (the CPU of the thread that ran it, a part of ``cpu_s``); ``parts``:
-        what the run spent in the calibration cache and the kernel's counts (:func:`_usage`,
-        differences over the run).
+        what the run spent in the calibration cache and the kernel's counts
+        (``aocontrol.study._cache.process_usage``, differences over the run).
     """
 
     out: pathlib.Path

@@ -203,3 +203,14 @@ def image_pairs(op: np.ndarray, lines: np.ndarray, n_fft: int) -> tuple[ImagePai
     if out[0].first.size + out[1].first.size != first_all.size:
         raise RuntimeError("the pyramid line operator lacks its parity structure")
     return out[0], out[1]
+
+
+def bin_permutation(b: np.ndarray) -> np.ndarray | None:
+    """Order of the lines (columns of the binning matrix ``b``) by bin when every line falls
+    in one bin with weight 1 and every bin holds the same number of lines, else ``None``."""
+    one = (b == 1.0).sum(axis=0) == 1
+    counts = (b != 0).sum(axis=0)
+    per_bin = (b != 0).sum(axis=1)
+    if not (np.all(one) and np.all(counts == 1) and np.all(per_bin == per_bin[0])):
+        return None
+    return np.argsort(np.argmax(b, axis=0), kind="stable")

@@ -90,6 +90,7 @@ from aocontrol.sim.wfs import _pyramid_fused
 from aocontrol.sim.wfs._common import bin_matrix, blas_threads, check_opd, opd_to_phase
 from aocontrol.sim.wfs._pyramid_lines import (
     apply_runs,
+    bin_permutation,
     gemm_acc,
     image_pairs,
     line_operator,
@@ -116,17 +117,6 @@ def default_modulation_points(modulation: float) -> int:
     """
     r = check_nonnegative("modulation", modulation)
     return 1 if r == 0 else 4 * math.ceil(math.pi * r)
-
-
-def _bin_permutation(b: np.ndarray) -> np.ndarray | None:
-    """Order of the lines (columns of the binning matrix ``b``) by bin when every line falls
-    in one bin with weight 1 and every bin holds the same number of lines, else ``None``."""
-    one = (b == 1.0).sum(axis=0) == 1
-    counts = (b != 0).sum(axis=0)
-    per_bin = (b != 0).sum(axis=1)
-    if not (np.all(one) and np.all(counts == 1) and np.all(per_bin == per_bin[0])):
-        return None
-    return np.argsort(np.argmax(b, axis=0), kind="stable")
 
 
 @dataclass(frozen=True)
@@ -340,7 +330,7 @@ class PyramidWFS:
             "bin_rows": scipy.sparse.csr_matrix(self._binning_full[:, lines[rows]]),
             "bin_cols": scipy.sparse.csr_matrix(self._binning_full[:, lines[order]]),
             # an integer binning factor: each line in one bin, summed by a reshape
-            "bin_perm": [_bin_permutation(self._binning_full[:, lines[i]]) for i in (rows, order)],
+            "bin_perm": [bin_permutation(self._binning_full[:, lines[i]]) for i in (rows, order)],
         }
         for v in plan.values():
             if isinstance(v, np.ndarray):
