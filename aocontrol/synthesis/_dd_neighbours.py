@@ -6,9 +6,11 @@ every ``stride``-th mode cold (:func:`~aocontrol.synthesis.datadriven` with the 
 options), then every other mode from the design of its nearest designed mode, with few convex
 iterations on a coarser grid (``warm_max_iter``, ``warm_n_grid``, ``warm_tol``), its
 structure kept (integral action fixed where the neighbour has it). Every mode goes through
-the same synthesis, so every mode carries the same certificates as in the cold bank (exact
-modulus margin over the circle, closed-loop stability, the fine residual check) and is never
-worse than its start on them.
+the same synthesis, so every mode carries the same certificates as in the cold bank (the
+exact modulus margin over the whole circle and closed-loop stability, not grid samples;
+``test_every_mode_certified_like_cold`` recomputes them independently) and the same
+"never worse than its start" check, which is a residual on the synthesis' fine frequency
+grid: a sample, not a certificate.
 
 It changes results: the tolerance against the full cold bank is measured, not assumed
 (``tests/test_datadriven_neighbours.py`` and the figures in the function's docstring). The
@@ -102,8 +104,9 @@ def datadriven_neighbours(
     synthesis with at most ``warm_max_iter`` convex iterations on ``warm_n_grid`` design
     points, tolerance ``warm_tol``, keeping that start's structure (integral action fixed,
     ``fixed_denominator = 1 - z^-1``, where the start has a pole at ``z = 1``; every pole
-    free otherwise). Every mode is certified as in a cold bank: the warm calls are the same
-    synthesis, which never returns a design worse than its start. A warm start the
+    free otherwise). Every mode is certified as in a cold bank (exact modulus margin and
+    stability): the warm calls are the same synthesis, which never returns a design worse
+    than its start on its fine-grid residual check. A warm start the
     synthesis refuses (its convexified problem infeasible around the neighbour's design,
     seen on 4 of 60 dCAO modes of bright1-best) is designed cold.
 
