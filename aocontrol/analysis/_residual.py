@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 
 import control
 import numpy as np
@@ -240,12 +241,9 @@ def mean_square_sampling_variance(freqs: object, psd: object, seconds: float) ->
     1.0
     """
     t = check_positive("seconds", seconds)
-    f = check_finite_array("freqs", freqs, ndim=1)
-    if f.size < 2 or np.any(np.diff(f) <= 0) or f[0] < 0:
-        raise ValueError(
-            f"freqs must be at least 2 increasing frequencies >= 0 [Hz], got {f.size} from "
-            f"{f[:1]!r}"
-        )
+    f = check_frequency_grid("freqs", freqs, math.inf)  # the PSD's grid; no rate given
+    if f.size < 2:
+        raise ValueError(f"freqs must hold at least 2 frequencies, got {f.size}")
     p = check_finite_array("psd", psd)
     if p.ndim not in (1, 2) or p.shape[-1] != f.size:
         raise ValueError(f"psd must have shape ({f.size},) or (n_modes, {f.size}), got {p.shape}")
