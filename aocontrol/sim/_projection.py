@@ -54,6 +54,20 @@ _MAP_COST = 40
 _PROBE_RTOL = 1e-8
 
 
+def _flush_subnormal(a: np.ndarray, dtype: type) -> np.ndarray:
+    """A C-contiguous copy of ``a`` in ``dtype`` with its subnormal numbers set to zero.
+
+    The Gaussian influences' far tails (``exp(k d^2)`` over the whole grid) fall below the
+    smallest normal number of float32 (1.2e-38): as operands of the BLAS products they cost a
+    microcode assist per multiply on x86 (measured: one row's product 2.9 ms with them, 0.2 ms
+    flushed, 1500 frames x 60 pixels x 41 actuators). Their contribution is below any float32
+    sum of the projection, so flushing them changes no result beyond its rounding.
+    """
+    out = np.array(a, dtype=dtype, order="C", copy=True)
+    out[np.abs(out) < np.finfo(dtype).tiny] = 0.0
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class SeparableMirror:
     """The Gaussian influence functions of a square-grid DM, as two 1-D factors.
@@ -216,8 +230,8 @@ class ModalProjector:
                 groups[id(m)] = []
                 self._mirrors.append(
                     (
-                        np.ascontiguousarray(m.gx.T, dtype=dtype),
-                        np.ascontiguousarray(m.gy, dtype=dtype),
+                        _flush_subnormal(m.gx.T, dtype),
+                        _flush_subnormal(m.gy, dtype),
                         groups[id(m)],
                     )
                 )
