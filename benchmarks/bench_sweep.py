@@ -77,8 +77,8 @@ def _serial(
     runner, runs, out: pathlib.Path, cpu: list | None = None, parts: list | None = None
 ) -> float:
     """Every run one after the other in this process [s]; each run's CPU [s] into ``cpu``,
-    its parts (cache, kernel counts: ``aocontrol.study.sweep._usage``) into ``parts``."""
-    from aocontrol.study.sweep import _usage
+    its parts (cache, kernel counts: ``aocontrol.study._cache.process_usage``) into ``parts``."""
+    from aocontrol.study._cache import process_usage as _usage
 
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
