@@ -67,6 +67,7 @@ import argparse
 import os
 import time
 import warnings
+from dataclasses import replace
 
 import cvxpy as cp
 import numpy as np
@@ -78,6 +79,9 @@ from aocontrol.controllers import Integrator
 from aocontrol.disturbance import synthetic_turbulence_psd
 from aocontrol.synthesis import _datadriven as dd
 from aocontrol.synthesis import _socp
+from aocontrol.synthesis._dd_certify import _grid_data, _ModeCertifier, _p_of, _to_v
+from aocontrol.synthesis._dd_grids import _interp_matrix
+from aocontrol.synthesis._dd_mode import _design_chunk
 from aocontrol.synthesis._modal_gain import integrator_gain_limit, optimal_modal_gain
 
 FS = 3000.0
@@ -95,25 +99,25 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
     verified: stable and modulus margin met on the dense grid).
     """
     _, psd_row, noise_row, b0, a0, fixed, _ = item
-    ctx = dd.replace(setup.ctx, fixed=fixed, nq=setup.ctx.nq + setup.ctx.fixed.size - fixed.size)
-    H = dd._interp_matrix(ctx.f_h2, ctx.freqs)
+    ctx = replace(setup.ctx, fixed=fixed, nq=setup.ctx.nq + setup.ctx.fixed.size - fixed.size)
+    H = _interp_matrix(ctx.f_h2, ctx.freqs)
     pos = np.searchsorted(ctx.f_design, ctx.f_h2)
     q1 = np.zeros(ctx.f_design.size)
     qn = np.zeros(ctx.f_design.size)
     q1[pos] = (psd_row * ctx.tw) @ H.T
     qn[pos] = (noise_row * ctx.tw) @ H.T
     mu_d = min(ctx.mu * (1 + dd._MARGIN_SAFETY), 0.999)
-    grid = dd._grid_data(ctx, ctx.f_design, ctx.g_design, mu_d)
-    wind = dd._grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu).take(ctx.wind_index)
+    grid = _grid_data(ctx, ctx.f_design, ctx.g_design, mu_d)
+    wind = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu).take(ctx.wind_index)
     total = q1 + qn
-    _, P0 = dd._p_of(ctx, ctx.f_design, ctx.g_design, b0, a0)
+    _, P0 = _p_of(ctx, ctx.f_design, ctx.g_design, b0, a0)
     Y0 = P0 - ctx.g_design * np.polyval(b0[::-1], np.exp(-2j * np.pi * ctx.f_design / FS))
     v_ref = float(np.sum((q1 * np.abs(Y0) ** 2 + qn * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2))
     with np.errstate(invalid="ignore", divide="ignore"):
         r1 = np.where(total > 0, np.sqrt(q1 / total), 0.0)
         rn = np.where(total > 0, np.sqrt(qn / total), 0.0)
     h = total / v_ref
-    vc = dd._to_v(ctx, b0, a0)
+    vc = _to_v(ctx, b0, a0)
     J, Pc = _socp.true_objective(grid, vc, r1, rn, h)
     history = [J]
     solves = 0
@@ -177,8 +181,8 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
             past = history[-1 - _socp.PATIENCE]
             if past - J <= ctx.tol * past:
                 break
-    dense = dd._grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
-    cert = dd._ModeCertifier(ctx, psd_row, noise_row, v_ref, b0, a0, dense, mu_d)
+    dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
+    cert = _ModeCertifier(ctx, psd_row, noise_row, v_ref, b0, a0, dense, mu_d)
     return J, solves, cert.check_final(vc) is not None
 
 
@@ -341,7 +345,7 @@ def main() -> None:
     subset = np.unique(np.linspace(0, n_modes - 1, n_subset).round().astype(int))
     setup = _setup(plant, freqs, psd[subset], noise, 1e-3)
     t0 = time.perf_counter()
-    ours = [dd._design_chunk(setup.ctx, [item])[0] for item in setup.items]
+    ours = [_design_chunk(setup.ctx, [item])[0] for item in setup.items]
     t_ours = (time.perf_counter() - t0) / len(subset)
     t0 = time.perf_counter()
     naive = [naive_mode(setup, item) for item in setup.items]
@@ -390,7 +394,7 @@ def main() -> None:
         st = _setup(plant, f_w, p_in[subset], noise, 0.0)
         t0 = time.perf_counter()
         for item in st.items:
-            dd._design_chunk(st.ctx, [item])
+            _design_chunk(st.ctx, [item])
         est[name] = (st.ctx.f_design.size, (time.perf_counter() - t0) / len(subset))
 
     # (c) Convergence against a tightly converged reference, each mode alone (same start: the
