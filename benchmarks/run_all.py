@@ -133,8 +133,8 @@ BENCHMARKS: dict[str, Entry] = {
     "adaptive-cascade": Entry(
         "bench_adaptive.py",
         tuple(
-            "--cascade --strategies fixed,adaptive,oracle --periods 1,2 --window 1 "
-            "--seconds 10 --jobs 2".split()
+            "--cascade --strategies fixed,adaptive,oracle --periods 2 --window 1 "
+            "--seconds 60 --jobs 2".split()
         ),
         tuple(
             "--cascade --quick --strategies fixed,adaptive,oracle --periods 1 --seconds 4 "
