@@ -154,3 +154,25 @@ def test_vibration_plot_reverse_cumulative(tmp_path):
     np.testing.assert_allclose(
         line.get_ydata(), np.sqrt(2.0 * (500.0 - line.get_xdata())), rtol=1e-9, atol=1e-9
     )
+
+
+def test_adapt_plot_draws_a_single_period_as_markers_and_the_fixed_design_as_a_line(tmp_path):
+    # One period (the seeds study): every redesigning strategy is a visible marker at T, the
+    # fixed design a horizontal line, each in its own colour.
+    rows = [
+        {"strategy": "fixed", "period": 1.0, "window": 1.0, "residual": 28.0},
+        {"strategy": "adaptive", "period": 2.0, "window": 1.0, "residual": 22.5},
+        {"strategy": "oracle", "period": 2.0, "window": 1.0, "residual": 22.2},
+    ]
+    fig = plot.plot_adapt({"wind": rows}, path=tmp_path / "adapt.png")
+    ax = fig.axes[0]
+    by_label = {line.get_label(): line for line in ax.get_lines()}
+    for name, value in (("adaptive (W = 1 s)", 22.5), ("oracle (W = 1 s)", 22.2)):
+        line = by_label[name]
+        assert line.get_marker() == "o" and list(line.get_xdata()) == [2.0]
+        assert list(line.get_ydata()) == [value]
+    fixed = by_label["fixed (W = 1 s)"]
+    assert list(fixed.get_ydata()) == [28.0, 28.0] and fixed.get_linestyle() == "--"
+    assert len({str(line.get_color()) for line in by_label.values()}) == 3
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["2"]
+    assert (tmp_path / "adapt.png").stat().st_size > 0

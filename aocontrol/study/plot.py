@@ -722,8 +722,10 @@ def plot_adapt(
     ----------
     tables : mapping scenario -> sequence of rows
         Rows with keys ``strategy``, ``period`` [s], ``window`` [s] and ``residual`` [nm^2]
-        (e.g. ``dataclasses.asdict`` of :class:`aocontrol.study.adapt.AdaptRow`). A strategy
-        with one row (the fixed design) is drawn as a horizontal line.
+        (e.g. ``dataclasses.asdict`` of :class:`aocontrol.study.adapt.AdaptRow`). The fixed
+        design (strategy ``"fixed"``: no period) is drawn as a dashed horizontal line, every
+        other strategy as markers at its periods joined by a line, each (strategy, window)
+        in its own colour.
     title : str, optional
         Figure title.
     path : str or os.PathLike, optional
@@ -739,18 +741,21 @@ def plot_adapt(
         lines: dict[tuple[str, float], list[tuple[float, float]]] = {}
         for r in rows:
             lines.setdefault((r["strategy"], r["window"]), []).append((r["period"], r["residual"]))
-        for (strategy, window), pts in sorted(lines.items()):
+        ax.set_xscale("log")
+        for k, ((strategy, window), pts) in enumerate(sorted(lines.items())):
             pts.sort()
             t, v = np.array(pts).T
             label = f"{strategy} (W = {window:g} s)"
-            if t.size == 1:
-                ax.axhline(v[0], ls="--", lw=1.0, color="0.3", label=label)
+            color = f"C{k % 10}"
+            if strategy == "fixed":
+                ax.axhline(v.mean(), ls="--", lw=1.0, color=color, label=label)
             else:
-                ax.semilogx(t, v, "o-", ms=4, lw=1.0, label=label)
-        periods = sorted({r["period"] for r in rows})
-        if len(periods) > 1:
+                ax.plot(t, v, "o-", ms=5, lw=1.0, color=color, label=label)
+        periods = sorted({r["period"] for r in rows if r["strategy"] != "fixed"})
+        if periods:
             ax.set_xticks(periods, [f"{p:g}" for p in periods])
             ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+            ax.set_xlim(periods[0] / 1.5, periods[-1] * 1.5)
         ax.set_xlabel("update period T [s]")
         ax.set_ylabel("residual variance [nm$^2$]")
         ax.set_title(scenario)
