@@ -97,6 +97,17 @@ BENCHMARKS: dict[str, Entry] = {
             "--settings diffractive/calibrated".split()
         ),
     ),
+    "fidelity-bright": Entry(
+        "bench_fidelity.py",
+        tuple(
+            "--cases bright1-best,bright1-worst --seconds 5 "
+            "--settings linear/calibrated,diffractive/calibrated".split()
+        ),
+        tuple(
+            "--quick --seconds 0.2 --cases bright1-best "
+            "--settings linear/calibrated,diffractive/calibrated".split()
+        ),
+    ),
     "adaptive-study": Entry(
         "bench_adaptive.py",
         ("--study", "--quick", "--select", "0.9", "--jobs", "1"),
