@@ -118,7 +118,8 @@ BENCHMARKS: dict[str, Entry] = {
         "bench_adaptive.py",
         tuple(
             "--study --quick --jobs 1 --scenarios wind-doubles --strategies "
-            "fixed,adaptive,oracle --measure-from 6 --seeds 0,1,2 --periods 2".split()
+            "fixed,adaptive,oracle --measure-from 6 --seeds 0,1,2 --periods 2 "
+            "--windows 1,T".split()
         ),
         tuple(
             "--study --quick --jobs 1 --scenarios wind-doubles --strategies fixed,adaptive "
