@@ -53,6 +53,8 @@ diffractive case: 305 s CPU (calibration runs and data-driven designs ~35 % each
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import re
 import time
 
 import numpy as np
@@ -68,7 +70,13 @@ from aocontrol.sim.loop import Stage, run_cascade
 from aocontrol.study.cases import apply_overrides, load_case
 from aocontrol.study.compare import compare_case, run_configuration
 from aocontrol.study.scene import build_scene
-from aocontrol.synthesis import MODULUS_MARGIN, ControllerSpec, datadriven, register_controller
+from aocontrol.synthesis import (
+    MODULUS_MARGIN,
+    ControllerSpec,
+    datadriven,
+    get_controller,
+    register_controller,
+)
 
 CASES = ("red5-best", "red3-medium", "bright1-best")
 CONTROLLERS = ("reference", "omgi", "datadriven")
@@ -98,6 +106,26 @@ DATADRIVEN_PAPER = ControllerSpec(
     _datadriven_paper,
     parameters={"order": 5, "noise_term": False, "modulus_margin": MODULUS_MARGIN},
 )
+
+def margin_variant(name: str) -> ControllerSpec:
+    """``datadriven-mm<mu>``: the comparison's data-driven design with modulus margin ``mu``.
+
+    The paper states a modulus-margin constraint but not its value; ours is
+    :data:`MODULUS_MARGIN`. The variant is the registered ``datadriven`` design (same order,
+    noise term, certificates) with only the margin changed, so the cells measure what the
+    margin alone does to the data-driven controller's lead over the integrators.
+    """
+    m = re.fullmatch(r"datadriven-mm([0-9]*\.?[0-9]+)", name)
+    mu = float(m.group(1)) if m else float("nan")
+    if not 0.0 < mu < 1.0:
+        raise ValueError(f"controller {name!r}: expected datadriven-mm<mu> with 0 < mu < 1")
+    base = get_controller("datadriven")
+
+    def design(inp):
+        return base.design(dataclasses.replace(inp, modulus_margin=mu))
+
+    return ControllerSpec(name, design, parameters={**base.parameters, "modulus_margin": mu})
+
 
 #: Red 5 best as the paper's text describes it (module docstring, ``--overrides``).
 PAPER_TEXT_RED5 = {
@@ -380,7 +408,8 @@ def main() -> None:
         "--controllers",
         default=None,
         help="comma-separated controllers of part (b) (default the paper's three; "
-        "'datadriven-paper': the data-driven design without its noise term)",
+        "'datadriven-paper': the data-driven design without its noise term; "
+        "'datadriven-mm0.7': the data-driven design with modulus margin 0.7)",
     )
     parser.add_argument("--explain", action="store_true", help="only part (c)")
     parser.add_argument(
@@ -419,6 +448,9 @@ def main() -> None:
     controllers = tuple(args.controllers.split(",")) if args.controllers else CONTROLLERS
     if "datadriven-paper" in controllers:
         register_controller(DATADRIVEN_PAPER, replace=True)
+    for name in controllers:
+        if name.startswith("datadriven-mm"):
+            register_controller(margin_variant(name), replace=True)
     fidelity(quick, seconds, cases, settings, args.seed, grid, overrides, schemes, controllers)
 
 
