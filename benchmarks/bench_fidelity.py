@@ -464,7 +464,8 @@ def _loadavg() -> str:
 
 
 def _parse_overrides(text: str | None) -> dict | None:
-    """``"a.b=1,c=x"`` -> ``{"a.b": 1.0, "c": "x"}`` (numbers as float)."""
+    """``"a.b=1,c=0.5,d=x"`` -> ``{"a.b": 1, "c": 0.5, "d": "x"}`` (integers as int: a count
+    such as ``atmosphere.simulated_layers`` is refused as a float)."""
     if not text:
         return None
     if text == "paper-text":
@@ -474,10 +475,13 @@ def _parse_overrides(text: str | None) -> dict | None:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise SystemExit(f"--overrides: expected key=value, got {item!r}")
-        try:
-            out[key.strip()] = float(value)
-        except ValueError:
-            out[key.strip()] = value.strip()
+        value = value.strip()
+        for kind in (int, float, str):
+            try:
+                out[key.strip()] = kind(value)
+                break
+            except ValueError:
+                continue
     return out
 
 
