@@ -107,6 +107,7 @@ DATADRIVEN_PAPER = ControllerSpec(
     parameters={"order": 5, "noise_term": False, "modulus_margin": MODULUS_MARGIN},
 )
 
+
 def margin_variant(name: str) -> ControllerSpec:
     """``datadriven-mm<mu>``: the comparison's data-driven design with modulus margin ``mu``.
 
@@ -348,6 +349,7 @@ def fidelity(
     overrides: dict | None = None,
     schemes: tuple[str, ...] = SCHEMES,
     controllers: tuple[str, ...] = CONTROLLERS,
+    estimator: str = "prewhitened",
 ) -> None:
     """Part (b): the paper's protocol (:func:`compare_case`: gain scan, calibration, the three
     controllers, both schemes) per case and stage-2 setting, as markdown beside the paper;
@@ -367,9 +369,11 @@ def fidelity(
                 gain_grid=gain_grid,
                 sensor=sensor,
                 optical_gain=og,
+                estimator=estimator,
             )
             wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
             label = f"{sensor}/{og}" + (f", overrides {overrides}" if overrides else "")
+            label += f", estimator {estimator}" if estimator != "prewhitened" else ""
             print("\n".join(_markdown(case, label, comp, seconds, wall)), flush=True)
             split = ", ".join(f"{k} {v:.0f} s" for k, v in comp.seconds.items())
             print(
@@ -411,6 +415,12 @@ def main() -> None:
         "'datadriven-paper': the data-driven design without its noise term; "
         "'datadriven-mm0.7': the data-driven design with modulus margin 0.7)",
     )
+    parser.add_argument(
+        "--estimator",
+        default="prewhitened",
+        choices=("prewhitened", "welch"),
+        help="disturbance estimator of the calibration telemetry (part b)",
+    )
     parser.add_argument("--explain", action="store_true", help="only part (c)")
     parser.add_argument(
         "--reference-gain", type=float, default=0.3, help="stage-2 gain of part (c)"
@@ -451,7 +461,18 @@ def main() -> None:
     for name in controllers:
         if name.startswith("datadriven-mm"):
             register_controller(margin_variant(name), replace=True)
-    fidelity(quick, seconds, cases, settings, args.seed, grid, overrides, schemes, controllers)
+    fidelity(
+        quick,
+        seconds,
+        cases,
+        settings,
+        args.seed,
+        grid,
+        overrides,
+        schemes,
+        controllers,
+        args.estimator,
+    )
 
 
 def _loadavg() -> str:
