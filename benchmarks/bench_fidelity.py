@@ -71,6 +71,7 @@ from aocontrol.study.cases import apply_overrides, load_case
 from aocontrol.study.compare import compare_case, run_configuration
 from aocontrol.study.scene import build_scene
 from aocontrol.synthesis import (
+    ESTIMATORS,
     MODULUS_MARGIN,
     ControllerSpec,
     datadriven,
@@ -349,7 +350,7 @@ def fidelity(
     overrides: dict | None = None,
     schemes: tuple[str, ...] = SCHEMES,
     controllers: tuple[str, ...] = CONTROLLERS,
-    estimator: str = "prewhitened",
+    estimator: str = ESTIMATORS[0],
 ) -> None:
     """Part (b): the paper's protocol (:func:`compare_case`: gain scan, calibration, the three
     controllers, both schemes) per case and stage-2 setting, as markdown beside the paper;
@@ -373,7 +374,7 @@ def fidelity(
             )
             wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
             label = f"{sensor}/{og}" + (f", overrides {overrides}" if overrides else "")
-            label += f", estimator {estimator}" if estimator != "prewhitened" else ""
+            label += f", estimator {estimator}" if estimator != ESTIMATORS[0] else ""
             print("\n".join(_markdown(case, label, comp, seconds, wall)), flush=True)
             split = ", ".join(f"{k} {v:.0f} s" for k, v in comp.seconds.items())
             print(
@@ -417,8 +418,8 @@ def main() -> None:
     )
     parser.add_argument(
         "--estimator",
-        default="prewhitened",
-        choices=("prewhitened", "welch"),
+        default=ESTIMATORS[0],
+        choices=ESTIMATORS,
         help="disturbance estimator of the calibration telemetry (part b)",
     )
     parser.add_argument("--explain", action="store_true", help="only part (c)")
