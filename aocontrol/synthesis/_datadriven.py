@@ -169,7 +169,12 @@ def datadriven(
     paper's ``||W2 T||_inf^2``, ``W2^2 = hinf_weight``) penalises the peak of the command
     response (``|T| = |K S|`` for a pure-delay plant). With ``noise_psd = 0`` this is the paper's
     objective with the disturbance normalised by a scalar instead of its value at the
-    bandwidth.
+    bandwidth. The noise term changes no minimiser where the noise is white and the loop
+    has at least one frame of delay: ``T = 1 - S`` with ``s_0 = 1`` and ``t_k = -s_k``
+    after, so (Parseval) ``||Wn T||_2^2 = ||Wn S||_2^2 -`` the noise variance, and a design
+    on the noisy pseudo-open-loop PSD with ``noise_psd = 0`` (the paper's way) has the same
+    H2 part up to a constant; only ``v_ref``, hence the weight of ``||T||_inf^2`` relative
+    to it, differs.
 
     The problem is solved by convex-concave iterations: each step is a second-order cone
     program (cvxpy with Clarabel, compiled once per worker with ``Parameter``s and re-solved)
