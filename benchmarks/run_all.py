@@ -97,6 +97,17 @@ BENCHMARKS: dict[str, Entry] = {
             "--settings diffractive/calibrated".split()
         ),
     ),
+    "fidelity-limits": Entry(
+        "bench_fidelity.py",
+        tuple(
+            "--limits --cases red5-best --overrides paper-text "
+            "--alphas 0.001,0.03,0.1,0.3,1".split()
+        ),
+        tuple(
+            "--limits --quick --cases red5-best --overrides paper-text --schemes dcao "
+            "--n-taps 64 --n-bound 6".split()
+        ),
+    ),
     "fidelity-bright": Entry(
         "bench_fidelity.py",
         tuple(
