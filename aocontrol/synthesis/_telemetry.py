@@ -45,8 +45,12 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 # Noise band declared not flat (warning) when the median of its lower half exceeds that of
-# its upper half by this factor (the chi-square scatter of the medians is a few %).
+# its upper half by this factor (the chi-square scatter of the medians is a few % with 8 or
+# more segments), or by 4 standard deviations of the ratio's scatter where that is wider
+# (few segments: one segment's bins scatter as chi-square(2), and white noise alone passed
+# 1.5 in 10 of 400 modes of a 1,500-frame record; :func:`_flatness_threshold`).
 _FLATNESS_RATIO = 1.5
+_FLATNESS_SIGMAS = 4.0
 # Disturbance PSD after noise removal is clipped to this fraction of the noise level (of the
 # POL PSD maximum if there is no noise), so that it stays strictly positive.
 _PSD_FLOOR_FRACTION = 1e-6
@@ -747,6 +751,22 @@ def _floor(noise: np.ndarray, pxx: np.ndarray) -> np.ndarray:
     return np.where(floor > 0, floor, np.finfo(float).tiny)
 
 
+def _flatness_threshold(dof: float, n_bins: int) -> float:
+    """Ratio of the noise band's two half medians above which it is not flat (a warning).
+
+    Each half's median is that of ``n_bins`` Welch bins, ``chi2(dof) / dof`` around the
+    level; its relative standard deviation is ``1 / (2 f(m) m sqrt(n))`` (the sample
+    median's asymptotic scatter, ``f`` the density at the median ``m``), with ``n`` half the
+    bins (a Hann window correlates neighbours). The log of the ratio of two independent
+    halves scatters ``sqrt(2)`` times that: the threshold is :data:`_FLATNESS_RATIO` or
+    :data:`_FLATNESS_SIGMAS` standard deviations of it, whichever is larger.
+    """
+    m = stats.chi2.median(dof) / dof
+    density = dof * stats.chi2.pdf(m * dof, dof)
+    rel = 1.0 / (2.0 * density * m * math.sqrt(max(n_bins / 2.0, 1.0)))
+    return max(_FLATNESS_RATIO, math.exp(_FLATNESS_SIGMAS * math.sqrt(2.0) * rel))
+
+
 def _plain_estimate(
     pol: np.ndarray, fs_: float, nperseg: int, noise_band: tuple[float, float]
 ) -> TelemetryPSD:
@@ -777,7 +797,8 @@ def _plain_estimate(
         # not negligible there and the noise level is overestimated.
         lower = np.median(pxx[:, idx[: idx.size // 2]], axis=1)
         upper = np.median(pxx[:, idx[idx.size // 2 :]], axis=1)
-        sloped = np.flatnonzero(lower > _FLATNESS_RATIO * upper)
+        threshold = _flatness_threshold(_welch_dof(n_frames, nperseg), idx.size // 2)
+        sloped = np.flatnonzero(lower > threshold * upper)
         if sloped.size:
             logger.warning(
                 "POL PSD not flat in the noise band %s of Nyquist for modes %s: "
