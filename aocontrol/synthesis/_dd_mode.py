@@ -129,7 +129,9 @@ def _design_mode(
         if vc is None:
             continue
         Jc, Pc_grid = true_objective(grid, vc, r1, rn, h)
-        with np.errstate(divide="ignore"):
+        # 0/0 where a candidate's P and Y both vanish on the grid gives nan: "not met" below
+        # (nan >= need is False), so such a start is skipped, silently.
+        with np.errstate(divide="ignore", invalid="ignore"):
             met = float(np.min(np.abs(Pc_grid) / np.abs(grid.AY @ vc + grid.F)))
         # The previous mode's design meets the design grid's margin mu_d (to the solver's
         # accuracy); a reduced bound, fitted, may meet only the certified mu there: the design
