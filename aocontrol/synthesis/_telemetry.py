@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import control
 import numpy as np
-from scipy import signal, stats
+from scipy import signal
 
 from aocontrol._validation import (
     check_finite_array,
@@ -32,6 +32,14 @@ from aocontrol._validation import (
 )
 from aocontrol.analysis import welch_psd
 from aocontrol.plant import plant_fs, z_inverse_coefficients
+from aocontrol.synthesis._welch_stats import (
+    _DETECTION_SIGMAS,
+    _debias,
+    _flatness_threshold,
+    _floor,
+    _median_to_mean,
+    _welch_dof,
+)
 
 __all__ = [
     "ESTIMATORS",
@@ -43,24 +51,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-# Noise band declared not flat (warning) when the median of its lower half exceeds that of
-# its upper half by this factor (the chi-square scatter of the medians is a few % with 8 or
-# more segments), or by 4 standard deviations of the ratio's scatter where that is wider
-# (few segments: one segment's bins scatter as chi-square(2), and white noise alone passed
-# 1.5 in 10 of 400 modes of a 1,500-frame record; :func:`_flatness_threshold`).
-_FLATNESS_RATIO = 1.5
-_FLATNESS_SIGMAS = 4.0
-# Disturbance PSD after noise removal is clipped to this fraction of the noise level (of the
-# POL PSD maximum if there is no noise), so that it stays strictly positive.
-_PSD_FLOOR_FRACTION = 1e-6
-
-# Noise-dominated bins: the POL PSD minus the noise is below this many standard deviations of
-# the Welch scatter of the noise (sqrt(2 / nu) of the level): the disturbance is not detected
-# there, and the bin's excess is replaced by the mean excess of such bins within
-# _SMOOTH_OCTAVES around it before the clip (see _debias).
-_DETECTION_SIGMAS = 3.0
-_SMOOTH_OCTAVES = 1.0
 
 # Fewest frames for a Welch estimate (the smallest segment accepted).
 _MIN_FRAMES = 8
@@ -261,25 +251,6 @@ def _check_optical_gain(optical_gain: object, n_modes: int) -> np.ndarray:
             f"mode), got shape {og.shape} with min {float(np.min(og)) if og.size else None!r}"
         )
     return np.asarray(og, dtype=float)
-
-
-def _welch_dof(n_frames: int, nperseg: int) -> float:
-    """Equivalent degrees of freedom of a Welch estimate (Hann, 50 % overlap).
-
-    Percival & Walden (1993), eq. (292b): ``nu = 2 K / (1 + 2 sum_m (1 - m/K) c_m^2)`` with
-    ``K`` segments and ``c_m`` the normalised overlap of the window with itself shifted by
-    ``m`` segment steps (only ``m = 1`` overlaps at 50 %).
-    """
-    step = nperseg - nperseg // 2
-    k = 1 + (n_frames - nperseg) // step
-    w = signal.get_window("hann", nperseg)
-    c1 = float(np.dot(w[step:], w[:-step]) / np.dot(w, w)) if k > 1 else 0.0
-    return 2 * k / (1 + 2 * (1 - 1 / k) * c1 * c1)
-
-
-def _median_to_mean(dof: float) -> float:
-    """Mean / median of a chi-square variable with ``dof`` degrees of freedom."""
-    return float(dof / stats.chi2.median(dof))
 
 
 # Default Welch segment of the pre-whitened estimate: the largest power of 2 giving at least
@@ -705,66 +676,6 @@ def _below_finest_bin(
     shape[:, :-1] *= scale[:, None]
     shape = np.where(spread[:, None], shape, 1.0)
     return x[:-1] * f1, p1[:, None] * shape[:, :-1]
-
-
-def _debias(excess: np.ndarray, noise: np.ndarray, dof: float) -> np.ndarray:
-    """Excess ``POL PSD - noise`` with the noise-dominated bins averaged (step 4).
-
-    A bin is noise-dominated when its excess is below ``_DETECTION_SIGMAS`` standard
-    deviations of the noise's Welch scatter, ``noise * sqrt(2 / dof)``. Its excess is replaced
-    by the mean excess of the noise-dominated bins of the same mode within
-    ``_SMOOTH_OCTAVES`` centred on it (bin ``k`` of the first positive frequency: bins
-    ``k 2^-b/2 .. k 2^b/2``, by cumulative sums, vectorised over modes); the other bins are
-    kept. The mean of an unbiased excess stays unbiased; its scatter, and so the bias of the
-    clip that follows, shrinks as the square root of the number of bins averaged (``0.71 k``
-    for one octave around bin ``k``: 180 bins at fs/4 with 1024-frame segments).
-
-    Parameters
-    ----------
-    excess : ndarray, shape (n_modes, n_bins)
-        Unbiased disturbance estimate on the positive frequencies (may be < 0) [units^2/Hz].
-    noise : ndarray, shape (n_modes,)
-        White noise level [units^2/Hz].
-    dof : float
-        Equivalent degrees of freedom of the Welch estimate.
-
-    Returns
-    -------
-    ndarray, shape (n_modes, n_bins)
-    """
-    quiet = excess <= _DETECTION_SIGMAS * math.sqrt(2.0 / dof) * noise[:, None]
-    n_bins = excess.shape[1]
-    k = np.arange(1, n_bins + 1)
-    half = 2.0 ** (_SMOOTH_OCTAVES / 2)
-    lo = np.clip(np.floor(k / half).astype(int) - 1, 0, n_bins)
-    hi = np.clip(np.ceil(k * half).astype(int), 1, n_bins)
-    zero = np.zeros((excess.shape[0], 1))
-    sums = np.concatenate([zero, np.cumsum(np.where(quiet, excess, 0.0), axis=1)], axis=1)
-    counts = np.concatenate([zero, np.cumsum(quiet, axis=1)], axis=1)
-    mean = (sums[:, hi] - sums[:, lo]) / np.maximum(counts[:, hi] - counts[:, lo], 1.0)
-    return np.where(quiet, mean, excess)
-
-
-def _floor(noise: np.ndarray, pxx: np.ndarray) -> np.ndarray:
-    """Lowest disturbance PSD per mode: a fraction of the noise (of the POL PSD maximum)."""
-    floor = _PSD_FLOOR_FRACTION * np.where(noise > 0, noise, pxx.max(axis=1))
-    return np.where(floor > 0, floor, np.finfo(float).tiny)
-
-
-def _flatness_threshold(dof: float, n_bins: int) -> float:
-    """Ratio of the noise band's two half medians above which it is not flat (a warning).
-
-    Each half's median is that of ``n_bins`` Welch bins, ``chi2(dof) / dof`` around the
-    level; its relative standard deviation is ``1 / (2 f(m) m sqrt(n))`` (the sample
-    median's asymptotic scatter, ``f`` the density at the median ``m``), with ``n`` half the
-    bins (a Hann window correlates neighbours). The log of the ratio of two independent
-    halves scatters ``sqrt(2)`` times that: the threshold is :data:`_FLATNESS_RATIO` or
-    :data:`_FLATNESS_SIGMAS` standard deviations of it, whichever is larger.
-    """
-    m = stats.chi2.median(dof) / dof
-    density = dof * stats.chi2.pdf(m * dof, dof)
-    rel = 1.0 / (2.0 * density * m * math.sqrt(max(n_bins / 2.0, 1.0)))
-    return max(_FLATNESS_RATIO, math.exp(_FLATNESS_SIGMAS * math.sqrt(2.0) * rel))
 
 
 def _plain_estimate(
