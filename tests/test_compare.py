@@ -34,7 +34,12 @@ MARGIN_RTOL = 1e-2
 # Predicted (design PSDs of the calibration run) vs measured stage-2 residual RMS: two
 # independent 0.5-s realisations dominated by a few slow low-order modes; at this length
 # their RMS differ by ~10-20 % (measured spread), so 35 % flags a wrong model, not chance.
+# Where a cell's own standard error is wider (dCAO LQG: 21-32 % of its ratio, seeds 0-2)
+# 35 % is a coin toss: its 3-s.e. interval is the bound there, and a factor 2 (the LQG's
+# old failure) is refused in every cell.
 PREDICTION_RTOL = 0.35
+PREDICTION_SIGMAS = 3.0
+PREDICTION_FACTOR = 2.0
 # Marechal bounds on the long-exposure Strehl: exp(-sigma^2) is the coherent energy; the
 # halo adds a few per cent at the peak; allow 5 %.
 MARECHAL_RTOL = 0.05
@@ -123,9 +128,14 @@ def test_quick_case_predictions_match_measurements(quick_comparison):
     # took the turbulence unresolved below the first Welch bin for an undamped resonance.
     for c in quick_comparison.cells:
         if c.controller in ("omgi", "datadriven", "lqg"):
-            assert c.predicted_rms_nm == pytest.approx(c.residual_rms_nm, rel=PREDICTION_RTOL), (
+            r, lo, hi = c.ratio_interval(z=PREDICTION_SIGMAS)
+            within = abs(r - 1) <= PREDICTION_RTOL or lo <= 1 <= hi
+            assert within and 1 / PREDICTION_FACTOR < r < PREDICTION_FACTOR, (
                 c.scheme,
                 c.controller,
+                r,
+                lo,
+                hi,
             )
 
 
@@ -145,11 +155,10 @@ def test_quick_case_prediction_standard_errors(quick_comparison):
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 15, linear stage 2: the prediction is 6-8 % above the measured residual, "
-    "about 6 standard errors of the sampling: a bias of the estimator, not chance (the true "
-    "disturbance and noise predict it within 1 %): its noise floor's per-mode scatter "
-    "(+-5-11 % in 1.37 s) becomes a positive disturbance excess where the floor is low and "
-    "is clipped where it is high (docs/fidelity.md)",
+    reason="issue 15, linear stage 2: dCAO data-driven predicted 1.085 of its measured "
+    "residual (3-s.e. interval from 1.000; seeds 1, 2: 1.145, 0.975), a bias left in that "
+    "cell; the standalone cells' bias (1.050-1.084, the noise floor's scatter made one-sided) "
+    "went with the extended noise band (0.994-1.040, every interval holding 1)",
 )
 def test_quick_case_prediction_within_its_interval(quick_comparison):
     for c in quick_comparison.cells:
