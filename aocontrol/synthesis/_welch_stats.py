@@ -77,16 +77,21 @@ def _debias(excess: np.ndarray, noise: np.ndarray, dof: float) -> np.ndarray:
     ndarray, shape (n_modes, n_bins)
     """
     quiet = excess <= _DETECTION_SIGMAS * math.sqrt(2.0 / dof) * noise[:, None]
-    n_bins = excess.shape[1]
+    sums = _octave_sums(np.where(quiet, excess, 0.0))
+    mean = sums / np.maximum(_octave_sums(quiet.astype(float)), 1.0)
+    return np.where(quiet, mean, excess)
+
+
+def _octave_sums(x: np.ndarray) -> np.ndarray:
+    """Sum of ``x[:, k']`` over the :data:`_SMOOTH_OCTAVES` centred on each bin ``k`` (bins
+    counted from 1: ``k 2^-b/2 .. k 2^b/2``); cumulative sums, vectorised over modes."""
+    n_bins = x.shape[1]
     k = np.arange(1, n_bins + 1)
     half = 2.0 ** (_SMOOTH_OCTAVES / 2)
     lo = np.clip(np.floor(k / half).astype(int) - 1, 0, n_bins)
     hi = np.clip(np.ceil(k * half).astype(int), 1, n_bins)
-    zero = np.zeros((excess.shape[0], 1))
-    sums = np.concatenate([zero, np.cumsum(np.where(quiet, excess, 0.0), axis=1)], axis=1)
-    counts = np.concatenate([zero, np.cumsum(quiet, axis=1)], axis=1)
-    mean = (sums[:, hi] - sums[:, lo]) / np.maximum(counts[:, hi] - counts[:, lo], 1.0)
-    return np.where(quiet, mean, excess)
+    sums = np.concatenate([np.zeros((x.shape[0], 1)), np.cumsum(x, axis=1)], axis=1)
+    return sums[:, hi] - sums[:, lo]
 
 
 def _floor(noise: np.ndarray, pxx: np.ndarray) -> np.ndarray:
@@ -116,19 +121,6 @@ def _flatness_threshold(dof: float, n_bins: int) -> float:
 # the floor (its own and the octave mean's scatter), and never below this fraction of Nyquist.
 _EXTEND_SIGMAS = 3.0
 _EXTEND_MIN = 0.1
-
-
-def _octave_mean(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of ``x[:, k']`` over one octave centred on each bin ``k`` (bins counted from 1)
-    and the number of bins averaged; cumulative sums, vectorised over modes."""
-    n_bins = x.shape[1]
-    k = np.arange(1, n_bins + 1)
-    half = 2.0 ** (_SMOOTH_OCTAVES / 2)
-    lo = np.clip(np.floor(k / half).astype(int) - 1, 0, n_bins)
-    hi = np.clip(np.ceil(k * half).astype(int), 1, n_bins)
-    sums = np.concatenate([np.zeros((x.shape[0], 1)), np.cumsum(x, axis=1)], axis=1)
-    count = (hi - lo).astype(float)
-    return (sums[:, hi] - sums[:, lo]) / count, count
 
 
 def extended_noise_level(
@@ -174,7 +166,8 @@ def extended_noise_level(
     rel_bin = math.sqrt(2.0 / dof)
     # The median of n bins scatters ~1.25 / sqrt(n) times a bin (Hann: n / 2 independent).
     rel_level = 1.25 * rel_bin / math.sqrt(max(idx.size / 2.0, 1.0))
-    mean, count = _octave_mean(pxx[:, 1:])
+    count = _octave_sums(np.ones((1, pxx.shape[1] - 1)))[0]
+    mean = _octave_sums(pxx[:, 1:]) / count
     rel_mean = rel_bin / np.sqrt(np.maximum(count / 2.0, 1.0))
     limit = level0[:, None] * (1.0 + _EXTEND_SIGMAS * np.hypot(rel_mean, rel_level))
     flat = mean <= limit  # (n_modes, n_freqs - 1): bin k + 1
