@@ -459,8 +459,8 @@ def limits(
     names = ["omgi", "datadriven"] + [f"datadriven-paper-h{a:g}" for a in alphas]
     banks = {}
     for name in names:
-        spec_c = paper_variant(name) if name.startswith("datadriven-paper") else None
-        banks[name] = (spec_c or get_controller(name)).design(d)
+        variant = name.startswith("datadriven-paper")
+        banks[name] = (paper_variant(name) if variant else get_controller(name)).design(d)
     v = {k: residual_variance(d.plant, b, d.freqs, d.psd, noise) for k, b in banks.items()}
     sub = np.unique(np.geomspace(1, n, n_bound).round().astype(int) - 1)
     t0 = time.perf_counter()
@@ -555,11 +555,12 @@ def main() -> None:
     quick = args.quick
     if args.limits:
         alphas = tuple(float(a) for a in args.alphas.split(","))
+        overrides = _parse_overrides(args.overrides)
         for case in tuple(args.cases.split(",")) if args.cases else ("red5-best",):
             for scheme in tuple(args.schemes.split(",")) if args.schemes else SCHEMES:
                 limits(
                     case,
-                    _parse_overrides(args.overrides),
+                    overrides,
                     scheme,
                     args.reference_gain,
                     args.seed,

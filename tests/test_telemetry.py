@@ -154,8 +154,10 @@ def test_noise_band_extends_over_white_noise_and_stops_at_a_disturbance():
     rng = np.random.default_rng(11)
     x = rng.standard_normal((n, 400)) * math.sqrt(fs / 2)  # one-sided PSD 1
     sos = signal.butter(8, 400.0, fs=fs, output="sos")
-    x[:, 200:] += math.sqrt(3.0) * signal.sosfilt(sos, rng.standard_normal((n, 200)), axis=0) * (
-        math.sqrt(fs / 2)
+    x[:, 200:] += (
+        math.sqrt(3.0)
+        * signal.sosfilt(sos, rng.standard_normal((n, 200)), axis=0)
+        * (math.sqrt(fs / 2))
     )
     f, pxx = welch_psd(x, fs, nperseg)
     nyq = fs / 2

@@ -712,14 +712,15 @@ def _plain_estimate(
             f"(resolution {freqs[1]:.4g} Hz); widen it or increase nperseg"
         )
     first = int(np.searchsorted(freqs, _EXTEND_MIN * nyq))
-    noise = extended_noise_level(pxx, band, _welch_dof(n_frames, nperseg), first)[0]
+    dof = _welch_dof(n_frames, nperseg)
+    noise = extended_noise_level(pxx, band, dof, first)[0]
     idx = np.flatnonzero(band)
     if idx.size >= 8:
         # A floor that still falls across the band is not white noise: the disturbance is
         # not negligible there and the noise level is overestimated.
         lower = np.median(pxx[:, idx[: idx.size // 2]], axis=1)
         upper = np.median(pxx[:, idx[idx.size // 2 :]], axis=1)
-        threshold = _flatness_threshold(_welch_dof(n_frames, nperseg), idx.size // 2)
+        threshold = _flatness_threshold(dof, idx.size // 2)
         sloped = np.flatnonzero(lower > threshold * upper)
         if sloped.size:
             logger.warning(
@@ -729,7 +730,7 @@ def _plain_estimate(
                 sloped[:10].tolist(),
             )
     excess = pxx - noise[:, None]
-    excess[:, 1:] = _debias(excess[:, 1:], noise, _welch_dof(n_frames, nperseg))
+    excess[:, 1:] = _debias(excess[:, 1:], noise, dof)
     psd = np.maximum(excess, _floor(noise, pxx)[:, None])
     return TelemetryPSD(
         freqs=freqs,

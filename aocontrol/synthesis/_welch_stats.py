@@ -161,7 +161,7 @@ def extended_noise_level(
     """
     idx = np.flatnonzero(band)
     lo_band = int(idx[0])
-    m2m = float(dof / stats.chi2.median(dof))
+    m2m = _median_to_mean(dof)
     level0 = np.median(pxx[:, band], axis=1) * m2m
     rel_bin = math.sqrt(2.0 / dof)
     # The median of n bins scatters ~1.25 / sqrt(n) times a bin (Hann: n / 2 independent).
