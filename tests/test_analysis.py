@@ -57,29 +57,51 @@ def test_gain_margin_at_nyquist_one_frame_delay(g):
 
 
 @pytest.mark.parametrize("g", [0.2, 0.5, 1.2])
-def test_phase_and_delay_margin_closed_form(g):
+def test_phase_margin_closed_form(g):
     # Oracle for L = g/(z-1): |L| = 1 at theta_c = 2 asin(g/2); arg L = -(pi/2 + theta_c/2);
-    # PM = pi/2 - theta_c/2; delay margin = PM / theta_c frames.
+    # PM = pi/2 - theta_c/2.
     m = margins(loop_plant(FS, 0.0), Integrator(g, fs=FS))
     theta_c = 2 * np.arcsin(g / 2)
     pm = np.pi / 2 - theta_c / 2
     assert m.phase_margin == pytest.approx(np.degrees(pm), rel=REFINED)
-    assert m.delay_margin == pytest.approx(pm / theta_c, rel=REFINED)
     assert m.gain_crossover_hz == pytest.approx(theta_c * FS / (2 * np.pi), rel=REFINED)
+    assert m.crossover_phase_margins == pytest.approx((np.degrees(pm),), rel=REFINED)
+    # The continuous-delay estimate PM / theta_c is close to the held-command latency margin
+    # at a low crossover (7.34 vs 7.38 frames at g = 0.2) and not equal to it.
+    if g < 0.5:
+        assert m.delay_margin == pytest.approx(pm / theta_c, rel=0.02)
 
 
-def test_delay_margin_is_the_delay_that_destabilises():
-    # Invariant: adding exactly the delay margin (as a pure delay on an FRD) is marginal.
+@pytest.mark.parametrize("g", [0.7, 0.9, 1.0, 1.2, 1.5, 1.9])
+def test_delay_margin_of_integrator_jury_oracle(g):
+    # Oracle (Jury): L = g z^-1 / (1 - z^-1) with a latency d = m + f added, the plant's
+    # delay interpolated. m = 0: z^2 + (g (1-f) - 1) z + g f, stable iff g f < 1 (g < 2):
+    # margin 1/g for g >= 1. m = 1: z^3 - z^2 + g (1-f) z + g f, stable iff
+    # 1 - g^2 f^2 > g: margin 1 + sqrt(1 - g)/g for (sqrt(5) - 1)/2 < g <= 1.
+    m = margins(loop_plant(FS, 0.0), Integrator(g, fs=FS))
+    expected = 1.0 / g if g >= 1.0 else 1.0 + np.sqrt(1.0 - g) / g
+    assert m.delay_margin == pytest.approx(expected, rel=REFINED)
+    assert m.delay_margin_removed == 0.0 and m.latency_frames == 0.0
+    # The continuous-delay formula PM / theta_c (python-control's) is not this margin, except
+    # where the margin is a whole frame (g = 1: both say d = 2 is the limit).
+    theta_c = 2 * np.arcsin(g / 2)
+    assert bool(abs((np.pi / 2 - theta_c / 2) / theta_c - expected) > 1e-3) == (g != 1.0)
+
+
+def test_delay_margin_is_the_latency_that_destabilises():
+    # Invariant: the loop with the latency just inside the interval is stable, just outside
+    # it is not (SAXO+ stage 2: 0.83 frame at 3 kHz, an integrator at 0.45).
     fs = 3000.0
-    plant = loop_plant(fs, 0.83)
     ctrl = Integrator(0.45, fs=fs)
-    dm = margins(plant, ctrl).delay_margin
-    f = np.linspace(0, fs / 2, 20001)
-    G = frequency_response(plant, f)
-    w = 2 * np.pi * f / fs
-    for factor, stable in [(0.97, True), (1.03, False)]:
-        delayed = measured_plant(f, G * np.exp(-1j * w * dm * factor), fs)
-        assert winding_stability(delayed, ctrl) is stable
+    m = margins(loop_plant(fs, 0.83), ctrl)
+    up, down = 0.83 + m.delay_margin, 0.83 - m.delay_margin_removed
+    assert is_stable(loop_plant(fs, up - 1e-6), ctrl)
+    assert not is_stable(loop_plant(fs, up + 1e-6), ctrl)
+    # g = 0.45 < 2 is stable with no latency at all: every latency can be removed.
+    assert down == 0.0 and is_stable(loop_plant(fs, 0.0), ctrl)
+    # Its twin: a gain unstable at no latency (g > 2 at d = 1) keeps a finite removal margin.
+    m = margins(loop_plant(fs, 0.83), Integrator(0.8, fs=fs))
+    assert 0.0 < m.delay_margin_removed < 0.83 or m.delay_margin_removed == 0.83
 
 
 @pytest.mark.parametrize("latency", [0.0, 0.83, 1.5])
@@ -160,8 +182,14 @@ def test_frd_plant_gives_same_analysis_as_tf(latency):
     mt, mf = margins(plant, ctrl), margins(frd, ctrl)
     assert mf.stable == mt.stable
     # FRD crossings are interpolated linearly between 0.05 Hz-spaced points.
-    for name in ("gain_margin", "phase_margin", "modulus_margin", "delay_margin"):
+    for name in ("gain_margin", "phase_margin", "modulus_margin"):
         assert getattr(mf, name) == pytest.approx(getattr(mt, name), rel=1e-4), name
+    # A measured plant's latency is unknown: latency is added to it as a held delay, the same
+    # model as the plant's own for a whole-frame latency; near the margin the winding number
+    # on a 0.05 Hz grid refuses (counted unstable), 2e-3 frame early at most.
+    if latency == int(latency):
+        assert mt.delay_margin - 5e-3 <= mf.delay_margin <= mt.delay_margin + 1e-4
+    assert np.isnan(mf.delay_margin_removed) and np.isnan(mf.latency_frames)
     unstable = Integrator(integrator_stability_limit(int(np.ceil(1 + latency))) * 1.5, fs=fs)
     assert is_stable(frd, unstable) == is_stable(plant, unstable) is False
     fr = np.linspace(1, 1400, 50)

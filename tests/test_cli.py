@@ -50,11 +50,14 @@ def test_cli_demo_prints_a_row_per_controller_with_its_margins(tmp_path, capsys)
     out = capsys.readouterr().out
     names = ["integrator g=0.5 (hand-tuned)", "optimal-gain integrator", "data-driven (order 5)"]
     rows = _table_rows(out, names + ["physical limit (Wiener bound)"])
-    # Every controller has its row: stable, and a modulus margin (5th cell) above 0.3.
+    # Every controller has its row: stable, a modulus margin above 0.3, no negative phase or
+    # latency margin, and a gain that can rise (GM+ > 0 dB) and fall (GM- < 0 dB).
     for name in names:
-        stable, _, _, mm, _, resid = rows[name]
+        stable, gm_down, gm_up, pm, mm, lat_rm, lat_add, resid = rows[name]
         assert stable == "True", name
         assert float(mm) > 0.3, name
+        assert float(gm_down) < 0.0 < float(gm_up) and float(pm) > 0.0, name
+        assert float(lat_rm) >= 0.0 and float(lat_add) > 0.0, name
     # The Wiener bound row is the smallest residual (the physical limit).
     bound = float(rows["physical limit (Wiener bound)"][0])
     assert all(bound <= float(rows[n][-1]) for n in names)

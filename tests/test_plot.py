@@ -123,7 +123,7 @@ def test_margins_plot(tmp_path):
     mar = {k: margins(plant, c) for k, c in ctrls.items()}
     fig = plot.plot_margins(mar, required_modulus_margin=0.5, path=tmp_path / "m.png")
     _png_ok(tmp_path / "m.png")
-    assert [a.get_ylabel() for a in fig.axes] == [
+    assert [a.get_ylabel().split("\n")[0] for a in fig.axes] == [
         "gain margin [dB]",
         "phase margin [deg]",
         "modulus margin [1]",
@@ -132,6 +132,13 @@ def test_margins_plot(tmp_path):
     # The bars are the margins: the modulus panel's bar heights equal the computed values.
     heights = [p.get_height() for p in fig.axes[2].patches]
     np.testing.assert_allclose(heights, [m.modulus_margin for m in mar.values()])
+    # Both sides of the intervals: gain up above zero, latency removed below zero.
+    n = len(mar)
+    gain = [p.get_height() for p in fig.axes[0].patches]
+    np.testing.assert_allclose(gain[:n], [m.gain_margin_db for m in mar.values()])
+    delay = [p.get_height() for p in fig.axes[3].patches]
+    np.testing.assert_allclose(delay[:n], [m.delay_margin for m in mar.values()])
+    np.testing.assert_allclose(delay[n:], [-m.delay_margin_removed for m in mar.values()])
 
 
 def test_vibration_plot_reverse_cumulative(tmp_path):

@@ -185,11 +185,11 @@ def test_comparison_report_is_self_contained_with_every_row(loop, compared):
     )
     assert [r[:2] for r in _rows(page, "margins")] == expected
     assert [r[0] for r in _rows(page, "vibration")] == ["reference", "omgi"]
-    # The margins table states the banks' certified margins (min modulus margin, column 5).
+    # The margins table states the banks' certified margins (min modulus margin, column 6).
     plant = loop[0]
     for row, c in zip(_rows(page, "margins"), comparison.cells, strict=True):
         mm = min(margins(plant, c.bank, mode=i).modulus_margin for i in range(6))
-        assert row[2] == "6/6" and float(row[5]) == pytest.approx(mm, abs=6e-4)
+        assert row[2] == "6/6" and float(row[6]) == pytest.approx(mm, abs=6e-4)
 
 
 def test_comparison_report_without_design_data_says_so(compared, tmp_path):
@@ -235,7 +235,8 @@ def test_design_report_rows_bounds_and_ratios(loop, tmp_path):
     # The per-mode margins are those of aocontrol.analysis.margins for the first bank.
     for i, row in enumerate(modes):
         m = margins(plant, banks["omgi"], mode=i)
-        assert row[1] == "yes" and float(row[4]) == pytest.approx(m.modulus_margin, abs=6e-4)
+        assert row[1] == "yes" and float(row[5]) == pytest.approx(m.modulus_margin, abs=6e-4)
+        assert float(row[3]) == pytest.approx(m.gain_margin_db, abs=6e-3)
 
 
 def test_design_report_data_names_the_bad_argument(loop):

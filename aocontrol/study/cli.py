@@ -346,19 +346,21 @@ def _demo(args: argparse.Namespace) -> int:
         f"Loop: fs = {res.fs:g} Hz, latency = {res.latency_frames} frame (+1 frame WFS integration)"
     )
     header = (
-        f"{'controller':34s} {'stable':>6s} {'GM':>7s} {'PM[deg]':>8s} "
-        f"{'MM':>6s} {'DM[fr]':>7s} {'resid[nm]':>9s}"
+        f"{'controller':34s} {'stable':>6s} {'GM-[dB]':>8s} {'GM+[dB]':>8s} {'PM[deg]':>8s} "
+        f"{'MM':>6s} {'lat-[fr]':>8s} {'lat+[fr]':>8s} {'resid[nm]':>9s}"
     )
     print(header)
     print("-" * len(header))
     for name, m in res.margins.items():
         print(
-            f"{name:34s} {str(m.stable):>6s} {m.gain_margin:7.2f} {m.phase_margin:8.1f} "
-            f"{m.modulus_margin:6.3f} {m.delay_margin:7.2f} {res.residual_rms[name]:9.2f}"
+            f"{name:34s} {str(m.stable):>6s} {m.gain_margin_down_db:8.2f} "
+            f"{m.gain_margin_db:8.2f} {m.phase_margin:8.1f} {m.modulus_margin:6.3f} "
+            f"{m.delay_margin_removed:8.2f} {m.delay_margin:8.2f} {res.residual_rms[name]:9.2f}"
         )
+    print(f"{'physical limit (Wiener bound)':34s} {'':>{len(header) - 45}s} {res.wiener_rms:9.2f}")
     print(
-        f"{'physical limit (Wiener bound)':34s} {'':>6s} {'':>7s} {'':>8s} {'':>6s} {'':>7s} "
-        f"{res.wiener_rms:9.2f}"
+        "GM-/GM+: how far the loop gain can fall / rise; PM: smallest over every crossover; "
+        "MM: certified min |1 + GK|; lat-/lat+: latency that can be removed / added [frames]"
     )
     print(f"Rejection plot written to {res.plot_path}")
     if args.no_comparison:

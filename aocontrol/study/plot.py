@@ -399,9 +399,10 @@ def plot_margins(
 ) -> Any:
     """Margins summary: one bar chart per margin, one bar per controller.
 
-    Panels: gain margin [dB], phase margin [deg], modulus margin (dimensionless), delay
-    margin [frames]. Unstable loops are hatched red; infinite margins are drawn at the top
-    of the axis and marked "inf".
+    Panels: gain margin [dB] (how far the loop gain can rise, up, and fall, down), phase
+    margin [deg] (smallest over every crossover), modulus margin (dimensionless), delay
+    margin [frames] (latency that can be added, up, and removed, down). Unstable loops are
+    hatched red; infinite margins are drawn at the edge of the axis and marked "inf".
 
     Parameters
     ----------
@@ -421,35 +422,50 @@ def plot_margins(
     if not margins:
         raise ValueError("margins must hold at least one controller")
     labels = list(margins)
+    # (axis label, value above zero, value below zero or None)
     panels = (
         (
-            "gain margin [dB]",
-            lambda m: 20 * np.log10(m.gain_margin) if m.gain_margin > 0 else -np.inf,
+            "gain margin [dB]\n(up: gain can rise; down: fall)",
+            "gain_margin_db",
+            "gain_margin_down_db",
         ),
-        ("phase margin [deg]", lambda m: m.phase_margin),
-        ("modulus margin [1]", lambda m: m.modulus_margin),
-        ("delay margin [frames]", lambda m: m.delay_margin),
+        ("phase margin [deg]", "phase_margin", None),
+        ("modulus margin [1]", "modulus_margin", None),
+        (
+            "delay margin [frames]\n(up: latency added; down: removed)",
+            "delay_margin",
+            "delay_margin_removed",
+        ),
     )
-    fig, axes = plt.subplots(1, 4, figsize=(13.0, 4.0), constrained_layout=True)
+    fig, axes = plt.subplots(1, 4, figsize=(14.0, 4.3), constrained_layout=True)
     pos = np.arange(len(labels))
-    for ax, (name, get) in zip(axes, panels, strict=True):
-        vals = np.array([float(get(margins[k])) for k in labels])
-        finite = np.isfinite(vals)
-        top = float(np.max(np.abs(vals[finite]))) * 1.2 if finite.any() else 1.0
-        shown = np.where(finite, vals, top)
-        colors = ["tab:blue" if margins[k].stable else "tab:red" for k in labels]
-        bars = ax.bar(pos, shown, color=colors)
-        for bar, k, fin in zip(bars, labels, finite, strict=True):
-            if not margins[k].stable:
-                bar.set_hatch("//")
-            if not fin:
-                ax.annotate(
-                    "inf",
-                    (bar.get_x() + bar.get_width() / 2, top),
-                    ha="center",
-                    va="bottom",
-                    fontsize="small",
-                )
+    colors = ["tab:blue" if margins[k].stable else "tab:red" for k in labels]
+    for ax, (name, up, down) in zip(axes, panels, strict=True):
+        sides = [(np.array([float(getattr(margins[k], up)) for k in labels]), 1.0)]
+        if down is not None:
+            low = np.array([float(getattr(margins[k], down)) for k in labels])
+            # dB below 0 already carry their sign; removed latency is drawn below the axis.
+            sides.append((low if down.endswith("db") else -low, -1.0))
+        every = np.concatenate([v for v, _ in sides])
+        finite = np.isfinite(every)
+        top = float(np.max(np.abs(every[finite]))) * 1.2 if finite.any() else 1.0
+        for vals, sign in sides:
+            fin = np.isfinite(vals)
+            shown = np.where(fin, vals, sign * top)
+            bars = ax.bar(pos, np.nan_to_num(shown), color=colors, alpha=1.0 if sign > 0 else 0.6)
+            for bar, k, ok, v in zip(bars, labels, fin, vals, strict=True):
+                if not margins[k].stable:
+                    bar.set_hatch("//")
+                if not ok and not np.isnan(v):
+                    ax.annotate(
+                        "inf" if v > 0 else "-inf",
+                        (bar.get_x() + bar.get_width() / 2, sign * top),
+                        ha="center",
+                        va="bottom" if sign > 0 else "top",
+                        fontsize="small",
+                    )
+        if down is not None:
+            ax.axhline(0.0, color="k", lw=0.8)
         if name.startswith("modulus") and required_modulus_margin is not None:
             ax.axhline(required_modulus_margin, color="r", ls=":", label="required")
             ax.legend(fontsize="small")
@@ -576,9 +592,11 @@ def plot_modal_margins(
     title: str | None = None,
     path: str | os.PathLike | None = None,
 ) -> Any:
-    """Margins over the modes of controller banks: modulus margin and delay margin per mode.
+    """Margins over the modes of controller banks: modulus margin and delay margins per mode.
 
-    Unstable modes are marked with a red cross on both panels (their margins mean nothing).
+    The delay panel shows the latency that can be added (above zero, solid) and removed
+    (below zero, dotted) per mode. Unstable modes are marked with a red cross on both panels
+    (their margins mean nothing).
 
     Parameters
     ----------
@@ -602,16 +620,19 @@ def plot_modal_margins(
         modes = np.arange(len(mar))
         mm = np.array([m.modulus_margin for m in mar], dtype=float)
         dm = np.array([m.delay_margin for m in mar], dtype=float)
+        dm_rm = np.array([m.delay_margin_removed for m in mar], dtype=float)
         bad = ~np.array([m.stable for m in mar], dtype=bool)
-        ax_m.plot(modes, mm, ".-", ms=3, lw=0.8, label=label)
+        (line,) = ax_m.plot(modes, mm, ".-", ms=3, lw=0.8, label=label)
         ax_d.plot(modes, np.where(np.isfinite(dm), dm, np.nan), ".-", ms=3, lw=0.8)
+        ax_d.plot(modes, -dm_rm, ".:", ms=2, lw=0.8, color=line.get_color())
         if bad.any():
             for ax, y in ((ax_m, mm), (ax_d, dm)):
                 ax.plot(modes[bad], np.nan_to_num(y[bad], posinf=1.0), "x", color="r", ms=7)
     if required_modulus_margin is not None:
         ax_m.axhline(required_modulus_margin, color="r", ls=":", lw=1.0, label="required")
     ax_m.set_ylabel("modulus margin [1]")
-    ax_d.set_ylabel("delay margin [frames]")
+    ax_d.axhline(0.0, color="k", lw=0.8)
+    ax_d.set_ylabel("latency margin [frames]\n(added above 0, removed below)")
     for ax in (ax_m, ax_d):
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_xlabel("mode")

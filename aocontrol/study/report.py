@@ -189,39 +189,38 @@ def modal_margins(plant: Any, bank: Any) -> list[Margins] | None:
         return None
 
 
-def _gm_db(m: Margins) -> float:
-    return 20.0 * math.log10(m.gain_margin) if m.gain_margin > 0 else -math.inf
-
-
 def _margin_summary(mar: Sequence[Margins] | None) -> dict:
-    """Stable modes and the worst margins over the modes (NaN when unknown)."""
+    """Stable modes and the worst margins over the modes (NaN when unknown).
+
+    The worst of each side: the gain can rise least (``gm``) and fall least (``gm_down``,
+    closest to 0 dB), the smallest phase margin over every crossover, the least latency that
+    can be added (``dm``) and removed (``dm_removed``).
+    """
+    keys = ("gm", "gm_down", "pm", "mm", "mm_med", "dm", "dm_removed")
     if not mar:
-        return {
-            "stable": "n/a",
-            "gm": math.nan,
-            "pm": math.nan,
-            "mm": math.nan,
-            "mm_med": math.nan,
-            "dm": math.nan,
-        }
+        return {"stable": "n/a", **dict.fromkeys(keys, math.nan)}
     mm = np.array([m.modulus_margin for m in mar])
     return {
         "stable": f"{sum(bool(m.stable) for m in mar)}/{len(mar)}",
-        "gm": min(_gm_db(m) for m in mar),
+        "gm": min(m.gain_margin_db for m in mar),
+        "gm_down": max(m.gain_margin_down_db for m in mar),
         "pm": min(m.phase_margin for m in mar),
         "mm": float(mm.min()),
         "mm_med": float(np.median(mm)),
         "dm": min(m.delay_margin for m in mar),
+        "dm_removed": min(m.delay_margin_removed for m in mar),
     }
 
 
 _MARGIN_COLUMNS: list[Column] = [
     ("stable", "stable modes", ""),
-    ("gm", "min GM [dB]", ".2f"),
+    ("gm_down", "GM down [dB]", ".2f"),
+    ("gm", "GM up [dB]", ".2f"),
     ("pm", "min PM [deg]", ".1f"),
     ("mm", "min MM [1]", ".3f"),
     ("mm_med", "median MM [1]", ".3f"),
-    ("dm", "min DM [frames]", ".2f"),
+    ("dm_removed", "latency removable [frames]", ".2f"),
+    ("dm", "latency addable [frames]", ".2f"),
 ]
 
 
@@ -719,9 +718,11 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
         if m is not None:
             row.update(
                 stable=bool(m.stable),
-                gm=_gm_db(m),
+                gm_down=m.gain_margin_down_db,
+                gm=m.gain_margin_db,
                 pm=m.phase_margin,
                 mm=m.modulus_margin,
+                dm_removed=m.delay_margin_removed,
                 dm=m.delay_margin,
             )
         for j, label in enumerate(labels):
@@ -732,10 +733,12 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
     pcols: list[Column] = [
         ("mode", "mode", "d"),
         ("stable", f"{first}: stable", ""),
-        ("gm", "GM [dB]", ".2f"),
+        ("gm_down", "GM down [dB]", ".2f"),
+        ("gm", "GM up [dB]", ".2f"),
         ("pm", "PM [deg]", ".1f"),
         ("mm", "MM [1]", ".3f"),
-        ("dm", "DM [frames]", ".2f"),
+        ("dm_removed", "latency - [frames]", ".2f"),
+        ("dm", "latency + [frames]", ".2f"),
         *[(f"rms{j}", f"{label} [nm]", ".3f") for j, label in enumerate(labels)],
         *[(f"b{j}", f"{b} [nm]", ".3f") for j, b in enumerate(bounds)],
     ]

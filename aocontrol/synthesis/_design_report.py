@@ -163,24 +163,28 @@ class TelemetryDesign:
     def rows(self) -> list[dict]:
         """One dict per mode for tables.
 
-        Keys: ``mode``, ``stable`` (bool), ``gain_margin_db``, ``phase_margin_deg``,
-        ``modulus_margin``, ``delay_margin_frames``, ``residual_nm`` (RMS, units),
+        Keys: ``mode``, ``stable`` (bool), ``gain_margin_db`` (how far the gain can rise),
+        ``gain_margin_down_db`` (fall; ``-inf``: any smaller gain is stable),
+        ``phase_margin_deg`` (smallest over every crossover), ``modulus_margin``,
+        ``delay_margin_frames`` (latency that can be added), ``delay_margin_removed_frames``
+        (removed), ``residual_nm`` (RMS, units),
         ``reference_nm``, ``wiener_nm``, ``constrained_nm``, ``ratio_to_constrained``
         (residual variance / constrained bound).
         """
         out = []
         for i, m in enumerate(self.margins):
-            gm = 20 * np.log10(m.gain_margin) if m.gain_margin > 0 else -np.inf
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = self.residual_variance[i] / self.constrained_variance[i]
             out.append(
                 {
                     "mode": i,
                     "stable": bool(m.stable),
-                    "gain_margin_db": float(gm),
+                    "gain_margin_db": m.gain_margin_db,
+                    "gain_margin_down_db": m.gain_margin_down_db,
                     "phase_margin_deg": float(m.phase_margin),
                     "modulus_margin": float(m.modulus_margin),
                     "delay_margin_frames": float(m.delay_margin),
+                    "delay_margin_removed_frames": float(m.delay_margin_removed),
                     "residual_nm": float(np.sqrt(self.residual_variance[i])),
                     "reference_nm": float(np.sqrt(self.reference_residual_variance[i])),
                     "wiener_nm": float(np.sqrt(self.wiener_variance[i])),

@@ -75,8 +75,7 @@ def _per_mode_margins(plant: Any, bank: Any, label: str) -> tuple:
         except ValueError as exc:
             failed.append((i, str(exc)))
             stable = is_stable(plant, bank.transfer_function(i))
-            nan = float("nan")
-            out.append(Margins(nan, nan, nan, nan, stable, nan, nan, nan))
+            out.append(Margins.unknown(stable))
     if failed:
         logger.warning(
             "margins of the %s not computed for modes %s (%s): reported as nan",
