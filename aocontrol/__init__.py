@@ -13,27 +13,19 @@ telemetry shaped ``(n_frames, n_modes)``; randomness only through a passed
 ``numpy.random.Generator`` or seed.
 """
 
+from aocontrol._deprecation import module_aliases
+from aocontrol._version import __version__
 from aocontrol.controllers import load_controller
 from aocontrol.plant import frequency_response, loop_plant, measured_plant
 
-#: The one source of the version: pyproject.toml reads it (``[tool.setuptools.dynamic]``),
-#: results files and saved controllers record it.
-__version__ = "0.1.0"
 __all__ = [
     "frequency_response",
     "loop_plant",
     "measured_plant",
     "load_controller",
-    "load_result",
     "__version__",
 ]
 
-
-def __getattr__(name: str):
-    # load_result lives in the study layer: imported on first use so that importing
-    # aocontrol (the control layer) does not import the simulator or the study layer.
-    if name == "load_result":
-        from aocontrol.study.results import load_result
-
-        return load_result
-    raise AttributeError(f"module 'aocontrol' has no attribute {name!r}")
+# load_result lives in the study layer (results files of simulator runs): reached from there,
+# so that the top package imports nothing above the control layer.
+__getattr__ = module_aliases("aocontrol", {"load_result": "aocontrol.study.results:load_result"})

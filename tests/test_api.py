@@ -109,17 +109,25 @@ def test_checker_flags_an_undocumented_parameter():
 
 
 def test_version_has_one_source():
-    # pyproject.toml reads aocontrol.__version__ (no second literal to forget), and the
-    # results' settings record the same value.
+    # pyproject.toml reads aocontrol._version.__version__ (no second literal to forget), the
+    # package and the comparison's settings record the same value, and no module reads it
+    # from elsewhere (the top package, the installed metadata).
     import pathlib
 
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
         import tomli as tomllib
-    from aocontrol.study.compare import _version
+    from aocontrol._version import __version__
 
     meta = tomllib.loads((pathlib.Path(__file__).parents[1] / "pyproject.toml").read_text())
     assert "version" not in meta["project"] and "version" in meta["project"]["dynamic"]
-    assert meta["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "aocontrol.__version__"}
-    assert _version() == aocontrol.__version__
+    assert meta["tool"]["setuptools"]["dynamic"]["version"] == {
+        "attr": "aocontrol._version.__version__"
+    }
+    assert __version__ == aocontrol.__version__
+    root = pathlib.Path(aocontrol.__file__).parent
+    for path in root.rglob("*.py"):
+        text = path.read_text()
+        assert "from aocontrol import __version__" not in text, path
+        assert 'version("aocontrol")' not in text, path

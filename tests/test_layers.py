@@ -181,3 +181,113 @@ def test_relative_upward_import_is_detected(tmp_path, source, expected):
     # And a relative import that stays in the layer is not flagged.
     bad.write_text("from ._loop import loop_response\nfrom .. import plant\n")
     assert not _violations(bad, ("aocontrol.sim", "aocontrol.study"), root=tmp_path / "aocontrol")
+
+
+def _module_graph(root: pathlib.Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the package modules it imports (anywhere in it: a function's import too).
+
+    ``from X import a`` is an edge to ``X.a`` when that is a module of the package, else to
+    ``X`` (a name defined in ``X``, e.g. its ``__init__``).
+    """
+    files = {_module_name(p, root)[0]: p for p in sorted(root.rglob("*.py"))}
+    graph = {}
+    for name, path in files.items():
+        edges = set()
+        for m in _imports(path, root):
+            if m in files:
+                # "from X import a": both X and X.a are listed; keep X.a if a module.
+                parent = m.rpartition(".")[0]
+                edges.add(m)
+                if parent in files and m not in files:
+                    edges.add(parent)
+        # Drop the parent X of "from X import a" when X.a is the module imported.
+        for m in list(edges):
+            if any(e.startswith(m + ".") and e in _imports_of(path, root, m) for e in edges):
+                edges.discard(m)
+        edges.discard(name)
+        graph[name] = edges
+    return graph
+
+
+def _imports_of(path: pathlib.Path, root: pathlib.Path, module: str) -> set[str]:
+    """Names ``path`` imports as ``from module import ...`` (``module.name``)."""
+    tree = ast.parse(path.read_text())
+    out = set()
+    name, is_package = _module_name(path, root)
+    package = name if is_package else name.rpartition(".")[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - (node.level - 1)])
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            if mod == module:
+                # a name of the module itself (not a submodule) keeps the edge to it
+                out.update(f"{mod}.{a.name}" for a in node.names)
+    return out
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+    counter = [0]
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_circle():
+    # Imports inside functions count: a circle made lazy is still one piece in the wrong place.
+    assert _cycles(_module_graph()) == []
+
+
+def test_import_circle_is_detected(tmp_path):
+    # Twin: two synthetic modules that import each other (one inside a function).
+    root = tmp_path / "aocontrol"
+    pkg = root / "study"
+    pkg.mkdir(parents=True)
+    (root / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from aocontrol.study.b import f\n")
+    (pkg / "b.py").write_text("def f():\n    from aocontrol.study.a import g\n")
+    assert _cycles(_module_graph(root)) == [["aocontrol.study.a", "aocontrol.study.b"]]
+    (pkg / "b.py").write_text("def f():\n    pass\n")
+    assert _cycles(_module_graph(root)) == []
+
+
+def test_ground_floor_imports_nothing_above_it():
+    # The shared checks, deprecations, atomic writes and the version import no layer; the top
+    # package hands out control-layer names only.
+    ground = ["_validation.py", "_deprecation.py", "_atomic.py", "_version.py"]
+    allowed = {"aocontrol._validation", "aocontrol._deprecation", "aocontrol._atomic"}
+    for name in ground:
+        mods = {m for m in _imports(ROOT / name) if m.startswith("aocontrol")}
+        assert mods <= allowed, (name, mods - allowed)
+    top = _violations(ROOT / "__init__.py", ("aocontrol.sim", "aocontrol.study"))
+    assert not top, top

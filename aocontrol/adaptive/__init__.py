@@ -74,13 +74,10 @@ from __future__ import annotations
 
 from aocontrol.adaptive._controller import (
     BUMPLESS_FRAMES,
-    BUMPLESS_LAST_WEIGHT,
-    BUMPLESS_MEMORY,
     MIN_WINDOW_FRAMES,
     AdaptiveController,
     AdaptiveRun,
     Redesign,
-    bumpless_outputs,
 )
 from aocontrol.adaptive._designers import (
     datadriven_designer,
@@ -88,8 +85,11 @@ from aocontrol.adaptive._designers import (
     modal_gain_designer,
 )
 from aocontrol.adaptive._realisation import (
+    BUMPLESS_LAST_WEIGHT,
+    BUMPLESS_MEMORY,
     RealisedBank,
     StateSpaceRows,
+    bumpless_outputs,
     bumpless_state,
     state_space_gain,
     state_space_gains,

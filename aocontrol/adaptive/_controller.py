@@ -24,9 +24,6 @@ logger = logging.getLogger(__name__)
 MIN_WINDOW_FRAMES = 64
 #: Frames over which a new filter's past outputs are fitted to the applied commands at a switch.
 BUMPLESS_FRAMES = 100
-#: E-folding age [frames] of the weights of that fit, and the weight of the last frame.
-BUMPLESS_MEMORY = 20.0
-BUMPLESS_LAST_WEIGHT = 100.0
 
 
 @dataclass(frozen=True)
@@ -131,71 +128,6 @@ class AdaptiveRun:
     def switch_frames(self) -> list[int]:
         """Frames at which a new bank started."""
         return [r.switch_frame for r in self.redesigns if r.switch_frame is not None]
-
-
-def bumpless_outputs(
-    bank: IIRBank, measurements: np.ndarray, commands: np.ndarray, *, fit_frames: int
-) -> np.ndarray:
-    """Past outputs for a new filter entering a running loop: the bumpless initial state.
-
-    Setting a new filter's Direct-Form I history to the commands another controller applied
-    makes its next command an extrapolation of a trajectory that is not its own: with poles
-    near ``z = 1`` (an LQG's turbulence model, a high-order data-driven filter) that
-    extrapolation of the old filter's shape is a transient of many times the disturbance.
-    Instead, per mode, the new filter is run over the last ``fit_frames`` frames on the
-    measurements actually received, from the initial past outputs ``c`` (``na - 1`` values)
-    that bring its outputs closest to the commands actually applied (least squares,
-    ``min ||u - (zero-state response + F c)||``, ``F`` its free responses). Its virtual
-    outputs then track the applied commands over the fit (exactly when the new filter is the
-    old one), and its state is its own: the first command continues the loop without a jump
-    and without the extrapolation transient.
-
-    Parameters
-    ----------
-    bank : IIRBank
-        The new filters.
-    measurements, commands : ndarray, shape (n_frames, n_modes)
-        Recent measurements and applied commands, oldest first.
-    fit_frames : int
-        Frames at the end of the history over which the outputs are fitted (the frames
-        before them give the measurements' initial state).
-
-    Returns
-    -------
-    ndarray, shape (fit_frames, n_modes)
-        The new filters' outputs over the fit, for :meth:`IIRBank.set_history`.
-    """
-    from scipy import signal
-
-    m = np.asarray(measurements, dtype=float)
-    u = np.asarray(commands, dtype=float)
-    n_total = m.shape[0]
-    fit = check_int("fit_frames", fit_frames, minimum=0, maximum=n_total)
-    if fit == 0 or bank.a.shape[1] == 1:
-        return u[n_total - fit :]
-    pre = n_total - fit
-    # Recent frames count more (e-folding BUMPLESS_MEMORY frames); the last one most: the
-    # first new command continues the last applied one.
-    age = np.arange(fit)[::-1]
-    weight = np.exp(-age / BUMPLESS_MEMORY)
-    weight[-1] = BUMPLESS_LAST_WEIGHT
-    out = np.empty((fit, bank.n_modes))
-    nb, na = bank.b.shape[1], bank.a.shape[1]
-    for i in range(bank.n_modes):  # at a switch only: a short loop of short filters
-        b, a = bank.b[i], bank.a[i]
-        x_past = m[max(pre - nb + 1, 0) : pre, i][::-1]
-        zi = signal.lfiltic(b, a, np.zeros(na - 1), x_past)
-        zero_state = signal.lfilter(b, a, m[pre:, i], zi=zi)[0]
-        free = np.empty((fit, na - 1))
-        for j in range(na - 1):
-            y0 = np.zeros(na - 1)
-            y0[j] = 1.0
-            free[:, j] = signal.lfilter(b, a, np.zeros(fit), zi=signal.lfiltic(b, a, y0))[0]
-        c, *_ = np.linalg.lstsq(
-            free * weight[:, None], (u[pre:, i] - zero_state) * weight, rcond=None
-        )
-        out[:, i] = zero_state + free @ c
-    return out
 
 
 class AdaptiveController(ControllerBank):

@@ -32,6 +32,7 @@ import h5py
 import numpy as np
 
 from aocontrol._atomic import atomic_path
+from aocontrol._version import __version__
 from aocontrol.controllers._base import ControllerBank, IIRBank, _command_limit_in
 from aocontrol.controllers._integrator import Integrator
 
@@ -186,7 +187,6 @@ def save_controller(bank: ControllerBank, path: str | os.PathLike) -> str:
     TypeError
         If ``bank`` has no file format (the message lists the known classes).
     """
-    from aocontrol import __version__
 
     if not isinstance(bank, ControllerBank):
         raise TypeError(f"bank must be a ControllerBank, got {type(bank).__name__}")

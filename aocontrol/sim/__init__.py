@@ -7,6 +7,7 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 ``numpy.random.Generator``.
 """
 
+from aocontrol._deprecation import module_aliases
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror, ModalDM
 from aocontrol.sim.drift import Drift
@@ -109,10 +110,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> object:
-    # LinearModalWFS: deprecated alias of LinearModalSensor (warns on use).
-    if name == "LinearModalWFS":
-        from aocontrol.sim.wfs.sensors import deprecated_alias
-
-        return deprecated_alias(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# LinearModalWFS: deprecated alias of LinearModalSensor (warns on use).
+__getattr__ = module_aliases(
+    "aocontrol.sim", {"LinearModalWFS": "aocontrol.sim.wfs.sensors:LinearModalSensor"}
+)

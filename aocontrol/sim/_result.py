@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import json
 import os
-import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from aocontrol._atomic import atomic_path
+from aocontrol._deprecation import declare, deprecated_call
 from aocontrol.analysis import welch_psd
 
 __all__ = ["TELEMETRY", "LoopDivergedError", "LoopResult", "CascadeResult"]
@@ -64,14 +64,17 @@ def _json_default(obj: Any) -> Any:
     return str(obj)
 
 
+_NPZ = (
+    "aocontrol.sim.LoopResult.save and CascadeResult.save",
+    ".npz results files",
+    "write HDF5 with aocontrol.study.results.save_result(result, path, settings=...); convert "
+    "existing .npz files with aocontrol.study.results.convert_npz(npz_path, h5_path)",
+)
+declare(*_NPZ)
+
+
 def _warn_npz_writer() -> None:
-    warnings.warn(
-        "writing results as .npz (LoopResult.save / CascadeResult.save) is deprecated: write "
-        "HDF5 with aocontrol.study.results.save_result(result, path, settings=...); convert "
-        "existing .npz files with aocontrol.study.results.convert_npz(npz_path, h5_path)",
-        DeprecationWarning,
-        stacklevel=3,
-    )
+    deprecated_call(*_NPZ, stacklevel=4)
 
 
 def _atomic_savez(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:

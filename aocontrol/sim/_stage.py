@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from aocontrol._deprecation import DeprecatedAttribute, warn_renamed
+from aocontrol._deprecation import DeprecatedAttribute, declare, warn_renamed
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import split_latency
 from aocontrol.sim._gain_tracking import DitherGainTracker
@@ -26,6 +26,10 @@ __all__ = ["Sensor", "DiffractiveSensor", "Stage"]
 
 
 _DM_NOTE = "the stage's DM: dm=ModalDM.from_basis(basis, actuator_stroke=...) or ModalDM(...)"
+
+
+for _old in ("stroke", "dm_stroke", "m2c"):  # Stage(...) keywords, warned in __init__
+    declare("aocontrol.sim._stage.Stage", _old, "dm", kind="keyword")
 
 
 @dataclass(frozen=True, init=False)

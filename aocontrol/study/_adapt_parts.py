@@ -6,8 +6,6 @@ each strategy; see :mod:`aocontrol.study.adapt` for the strategies.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from aocontrol.adaptive import (
@@ -17,19 +15,17 @@ from aocontrol.adaptive import (
     modal_gain_designer,
 )
 from aocontrol.controllers import Integrator
-from aocontrol.study.compare import prewhitened_disturbance
 from aocontrol.study.scene import Scene
-from aocontrol.synthesis import TelemetryPSD
+from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry
 
 # Offset of the seed of the oracle's independent realisation of the drift.
 _INDEPENDENT_SEED = 7919
 
 
 def _prewhitened(pol: np.ndarray, plant: object) -> TelemetryPSD:
-    """The study's PSD estimate (pre-whitened Welch, :func:`prewhitened_disturbance`)."""
+    """The study's PSD estimate of a pseudo-open loop (pre-whitened Welch)."""
     fs = 1.0 / float(plant.dt)
-    tel, psd = prewhitened_disturbance(pol, np.zeros_like(pol), plant, fs)
-    return dataclasses.replace(tel, psd=psd)
+    return disturbance_from_telemetry(pol, np.zeros_like(pol), plant, fs=fs, method="prewhitened")
 
 
 def _truth(

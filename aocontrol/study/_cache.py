@@ -53,6 +53,8 @@ import warnings
 from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
+from aocontrol._version import __version__
+
 __all__ = [
     "CacheWarning",
     "cache_dir",
@@ -178,8 +180,7 @@ def code_fingerprint() -> str:
 
         root = pathlib.Path(aocontrol.__file__).resolve().parent
         h = hashlib.sha256()
-        version = getattr(aocontrol, "__version__", "unknown")
-        h.update(f"{version}|{numpy.__version__}|{scipy.__version__}".encode())
+        h.update(f"{__version__}|{numpy.__version__}|{scipy.__version__}".encode())
         files = sorted(root.joinpath("sim").rglob("*.py"))
         files += sorted(root.joinpath("study", "cases").rglob("*.py"))
         # The scene's seeds by purpose (study/_seeds.py) set its optical-gain screens.
@@ -295,7 +296,6 @@ def _read(path: pathlib.Path, key: str) -> tuple[bool, Any]:
 
 
 def _write(path: pathlib.Path, key: str, value: Any) -> None:
-    from aocontrol import __version__
     from aocontrol._atomic import atomic_path
 
     payload = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)

@@ -307,12 +307,12 @@ def table_from_files(paths: Sequence[str | os.PathLike]) -> str:
 Cell.__module__ = CaseComparison.__module__ = ResidualModel.__module__ = "aocontrol.study.compare"
 
 
-def _stage2_result(result: Any) -> LoopResult:
+def stage2_result(result: Any) -> LoopResult:
     """Stage 2's result of a run (the run itself for stage 2 alone)."""
     return result if isinstance(result, LoopResult) else result.stages[1]
 
 
-def _vibration_report(
+def vibration_report(
     scene: Scene,
     scheme: str,
     controllers: Sequence[str],
@@ -332,7 +332,7 @@ def _vibration_report(
     out["disturbance_psd"] = design.psd[mode]
     out["sensitivity2"] = {}
     for name in controllers:
-        r2 = _stage2_result(results[(scheme, name)])
+        r2 = stage2_result(results[(scheme, name)])
         out["tilt_rms_nm"][name] = float(math.sqrt(r2.residual_variance[mode]))
         fr, p = r2.psd("residuals")
         out["psd"][name] = (fr, p[mode])

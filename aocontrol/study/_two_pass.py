@@ -9,6 +9,7 @@ import logging
 import numpy as np
 
 from aocontrol.controllers import Integrator
+from aocontrol.study._simulate import simulate_scene
 from aocontrol.study.scene import Scene
 
 __all__ = ["two_pass_scene"]
@@ -77,7 +78,6 @@ def two_pass_scene(
         If stage 2 has no diffractive model.
     """
     from aocontrol.sim.wfs import optical_gains
-    from aocontrol.study.compare import simulate_scene  # the comparison's own run (no copy)
 
     st = scene.stage2
     if st.wfs is None or st.calibration is None:

@@ -48,24 +48,18 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol._deprecation import deprecated_function
+from aocontrol._version import __version__
 from aocontrol.controllers import ControllerBank, Integrator
-from aocontrol.sim.loop import (
-    LinearModalSensor,
-    PhaseSource,
-    Stage,
-    TurbulenceSource,
-    UpstreamRecord,
-    run_cascade,
-    run_loop,
-)
+from aocontrol.sim.loop import UpstreamRecord
+from aocontrol.study._calibration import calibrate_scene, calibration_seconds, design_inputs
 from aocontrol.study._comparison import (
     CaseComparison,
     Cell,
     ResidualModel,
-    _stage2_result,
-    _vibration_report,
     predicted_residual,
     table_from_files,
+    vibration_report,
 )
 from aocontrol.study._registry import (
     CONTROLLER_ALIASES,
@@ -77,10 +71,11 @@ from aocontrol.study._registry import (
     get_controller,
     register_controller,
 )
-from aocontrol.study._seeds import seed_sequence, seed_streams
+from aocontrol.study._seeds import seed_streams
+from aocontrol.study._simulate import SCHEMES, UpstreamRecords, run_summary, simulate_scene
 from aocontrol.study._two_pass import two_pass_scene
 from aocontrol.study.cases import Case, apply_overrides, load_case
-from aocontrol.study.scene import Scene, StageScene, build_scene
+from aocontrol.study.scene import Scene, build_scene
 from aocontrol.synthesis import (
     TelemetryPSD,
     disturbance_from_telemetry,
@@ -109,19 +104,13 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Schemes: stage 2 alone on the full atmosphere, or the two cascades.
-SCHEMES = ("single", "standalone", "dcao")
 #: Gains scanned for the reference integrator (those below the stage-2 stability limit).
 GAIN_GRID = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
 #: Quick mode: fewer scan points.
 QUICK_GAIN_GRID = (0.3, 0.5)
-# Lengths of the auxiliary runs [s]: gain-scan runs and calibration run, and their quick
-# versions. The calibration run lasts at least _CAL_FRAMES (_QUICK_CAL_FRAMES) stage-2 frames
-# (27 s at 300 Hz, cheap since the cost goes with frames) so that its Welch PSDs average at
-# least 8 segments (synthesis.default_nperseg): a PSD of one segment is a chi-square(2)
-# scatter that the designs would fit.
-_SCAN_SECONDS, _CAL_SECONDS, _CAL_FRAMES = 0.5, 2.0, 8192
-_QUICK_SCAN_SECONDS, _QUICK_CAL_SECONDS, _QUICK_CAL_FRAMES = 0.2, 0.5, 4096
+# Length of the gain-scan runs [s], and in quick mode (the calibration run's:
+# aocontrol.study._calibration.calibration_seconds).
+_SCAN_SECONDS, _QUICK_SCAN_SECONDS = 0.5, 0.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,172 +138,6 @@ class RunOutcome:
     design: DesignInputs | None = None
 
 
-def _version() -> str:
-    """The package version, from its one source (``aocontrol.__version__``)."""
-    from aocontrol import __version__
-
-    return __version__
-
-
-def _frames(scene: Scene, seconds: float) -> int:
-    ratio = scene.case.rate_ratio
-    n = int(round(seconds * scene.stage2.fs))
-    return max(ratio, -(-n // ratio) * ratio)
-
-
-def _stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
-    # The sensor in the loop and its optical-gain handling, and the DM (its stroke): the
-    # case's stage settings.
-    sensor, tracker = st.loop_sensor()
-    return Stage(
-        controller,
-        sensor,
-        st.spec.latency_frames,
-        dm=st.modal_dm(),
-        name=name,
-        basis=st.basis,
-        gain_tracker=tracker,
-    )
-
-
-def _source(scene: Scene, rng: np.random.Generator, scheme: str) -> Any:
-    atm = scene.atmosphere(rng)
-    vib = scene.vibration_source(rng) if scene.case.vibration is not None else None
-    if scheme == "single":
-        return TurbulenceSource(PhaseSource(atm, vib) if vib else atm, scene.stage2.basis)
-    return PhaseSource(atm, vib) if vib else atm
-
-
-def simulate_scene(
-    scene: Scene,
-    controller: ControllerBank,
-    scheme: str,
-    seconds: float,
-    seed: int,
-    purpose: str,
-    *,
-    science: Any = True,
-    record: tuple[str, ...] = ("measurements", "commands", "residuals"),
-    progress: bool = False,
-    metadata: dict | None = None,
-    upstream: UpstreamRecord | None = None,
-) -> Any:
-    """One run of a scene: stage 2 with ``controller`` (and stage 1's integrator in a cascade).
-
-    Internal to the study layer (the comparison's runs and the two-pass calibration share
-    it; not in ``__all__``). The atmosphere and the noise draw from the ``purpose`` stream
-    of ``seed`` (:func:`aocontrol.study._seeds.seed_sequence`).
-
-    Parameters
-    ----------
-    scene : Scene
-    controller : ControllerBank
-        Stage 2's controller.
-    scheme : str
-        One of :data:`SCHEMES`.
-    seconds : float
-        Length after the start-up [s].
-    seed : int
-        User seed.
-    purpose : str
-        Its stream (``"exposure"``, ``"calibration"``, ``"gain_scan"``, ``"two_pass"``).
-    science : bool or accumulator, default True
-        The science camera (True), none (False), or an object with ``add(maps)`` and
-        ``result()``.
-    record : tuple of str
-        Telemetry recorded.
-    progress : bool
-        Progress bar.
-    metadata : dict, optional
-        Stored in the result.
-    upstream : UpstreamRecord, optional
-        A cascade's upstream (:class:`aocontrol.sim.loop.UpstreamRecord`): filled by the
-        first run given it, replayed by the next (same result bit for bit). Only for runs of
-        one scene, seed, ``purpose`` and length (stage 1 and the disturbance the same); see
-        :class:`_UpstreamRecords`. Ignored for ``"single"``.
-
-    Returns
-    -------
-    LoopResult or CascadeResult
-    """
-    sci = scene.case.science
-    settle = _frames(scene, sci.startup)
-    n = settle + _frames(scene, seconds)
-    seeds = seed_sequence(seed, purpose)
-    atm_rng, noise_rng = (np.random.default_rng(s) for s in seeds.spawn(2))
-    # science: True for the camera, False for none, or an accumulator (add(maps), result()).
-    camera = scene.camera().long_exposure() if science is True else (science or None)
-    s2 = _stage(scene.stage2, controller, "stage 2")
-    if scheme == "single":
-        return run_loop(
-            s2,
-            _source(scene, atm_rng, scheme),
-            n,
-            rng=noise_rng,
-            science=camera,
-            basis=scene.stage2.basis,
-            science_every=sci.science_every,
-            record=record,
-            settle_frames=settle,
-            progress=progress,
-            metadata=metadata,
-        )
-    st1 = scene.stage1
-    s1 = _stage(st1, Integrator(st1.spec.gain, fs=st1.fs, n_modes=st1.n_modes), "stage 1")
-    return run_cascade(
-        s1,
-        s2,
-        _source(scene, atm_rng, scheme),
-        n,
-        scheme=scheme,
-        basis1=st1.basis,
-        basis2=scene.stage2.basis,
-        rng=noise_rng,
-        science=camera,
-        science_every=sci.science_every,
-        record=record,
-        settle_frames=settle,
-        progress=progress,
-        metadata=metadata,
-        upstream=upstream,
-    )
-
-
-def _replayable(scene: Scene) -> bool:
-    """Whether a cascade of ``scene`` can replay its upstream: stage 2's sensor reads modal
-    residuals (a sensor reading phase maps needs the phase of every frame, not kept)."""
-    sensor, _ = scene.stage2.loop_sensor()
-    return isinstance(sensor, LinearModalSensor)
-
-
-class _UpstreamRecords:
-    """The upstream records of one case and seed, one per purpose and length (compare_case).
-
-    Stage 1 (its integrator at the case's gain, its sensor and noise stream) and the
-    disturbance of a purpose's stream are the same for every stage-2 controller and both
-    cascade schemes, so the runs of a comparison that share a purpose and a length replay
-    the first one's upstream (:class:`aocontrol.sim.loop.UpstreamRecord`).
-    """
-
-    def __init__(self, scene: Scene, enabled: bool = True) -> None:
-        self.enabled = enabled and _replayable(scene)
-        self.records: dict[tuple, UpstreamRecord] = {}
-
-    def get(self, scheme: str, purpose: str, seconds: float) -> UpstreamRecord | None:
-        if not self.enabled or scheme == "single":
-            return None
-        return self.records.setdefault((purpose, float(seconds)), UpstreamRecord())
-
-
-def _summary(result: Any) -> dict:
-    sci = result.science
-    return {
-        "strehl": float(sci.strehl) if sci is not None else math.nan,
-        "mean_contrast_4_6": float(sci.mean_contrast_4_6) if sci is not None else math.nan,
-        "residual_rms_nm": float(_stage2_result(result).residual_rms),
-    }
-
-
 def _sensor_overrides(sensor: str | None, optical_gain: str | None) -> dict:
     """Case overrides of stage 2's sensor settings (validated by the case loader)."""
     out = {}
@@ -331,10 +154,14 @@ def _check_names(controller: str, scheme: str) -> ControllerSpec:
     return get_controller(controller)
 
 
+@deprecated_function(
+    "aocontrol.study.compare.prewhitened_disturbance",
+    "aocontrol.synthesis.disturbance_from_telemetry(m, u, plant, fs=fs) (its .psd)",
+)
 def prewhitened_disturbance(
     measurements: np.ndarray, commands: np.ndarray, plant: Any, fs: float
 ) -> tuple[TelemetryPSD, np.ndarray]:
-    """Pre-whitened disturbance PSD; kept for old callers (now in the control layer).
+    """Pre-whitened disturbance PSD: deprecated, now in the control layer.
 
     ``disturbance_from_telemetry(measurements, commands, plant, fs=fs)`` (whose default is
     the pre-whitened estimator) returned as ``(tel, tel.psd)``; use
@@ -358,120 +185,6 @@ def prewhitened_disturbance(
     """
     tel = disturbance_from_telemetry(measurements, commands, plant, fs=fs, method="prewhitened")
     return tel, tel.psd
-
-
-def calibration_seconds(scene: Scene, quick: bool = False) -> float:
-    """Length of the calibration run [s] (module constants; see above)."""
-    s, n = (_QUICK_CAL_SECONDS, _QUICK_CAL_FRAMES) if quick else (_CAL_SECONDS, _CAL_FRAMES)
-    return max(s, n / scene.stage2.fs)
-
-
-def design_inputs(
-    scene: Scene,
-    scheme: str,
-    gain: float,
-    *,
-    seconds: float,
-    seed: int,
-    estimator: str = "prewhitened",
-    upstream: UpstreamRecord | None = None,
-) -> DesignInputs:
-    """Calibration run with the reference integrator and the PSDs of its telemetry.
-
-    Optical gains: the recorded measurements are those the controller received, after the
-    loop's compensation (the calibrated gains for ``"calibrated"`` and ``"two-pass"``, the
-    tracker's running estimate for ``"tracked"``), so the pseudo-open loop ``m + G u`` is
-    already rebuilt with the gains the loop applied (``optical_gain=`` of
-    :func:`aocontrol.synthesis.disturbance_from_telemetry` stays 1), as an instrument would
-    do. ``"none"`` (raw reconstructor): the designs see the unit-gain plant, not the loop's
-    ``og G`` (not wired: one plant for all modes). What the pseudo-open loop cannot
-    separate from the disturbance is the sensor's error beyond ``og e`` (aliasing of the
-    fitting error, non-linearity; coloured, re-injected through ``T``): the designs are
-    made on it as disturbance. The predicted residual of a diffractive stage 2 is not
-    (:class:`ResidualModel`, from :func:`_calibrate`): the error's PSD from the calibration
-    run's sensor output and modal residual, the loop's ``og`` for ``"none"``.
-
-    Parameters
-    ----------
-    scene : Scene
-    scheme : str
-        One of :data:`SCHEMES`.
-    gain : float
-        Reference integrator gain of the calibration run.
-    seconds : float
-        Length of the calibration run [s] (after the start-up).
-    seed : int
-        User seed; the run draws from its ``"calibration"`` stream
-        (:mod:`aocontrol.study._seeds`), independent of every exposure's.
-    estimator : {"prewhitened", "welch"}
-        Disturbance estimator (``method`` of
-        :func:`aocontrol.synthesis.disturbance_from_telemetry`).
-    upstream : UpstreamRecord, optional
-        Upstream of the calibration run, shared with the other scheme's (see
-        :func:`simulate_scene`).
-
-    Returns
-    -------
-    DesignInputs
-    """
-    return _calibrate(
-        scene, scheme, gain, seconds=seconds, seed=seed, estimator=estimator, upstream=upstream
-    )[0]
-
-
-def _calibrate(
-    scene: Scene,
-    scheme: str,
-    gain: float,
-    *,
-    seconds: float,
-    seed: int,
-    estimator: str = "prewhitened",
-    upstream: UpstreamRecord | None = None,
-) -> tuple[DesignInputs, ResidualModel | None]:
-    """:func:`design_inputs` and, for a diffractive stage 2, the :class:`ResidualModel` of
-    the predicted residual (``None`` for a linear one: its error is the white noise the
-    estimator's floor already holds).
-
-    Predicted / measured stage-2 residual of the reference integrator, in the same run
-    (quick scenes, one run each, ``benchmarks/bench_telemetry_design.py own --sensor
-    diffractive``): 0.42-0.89 from the design PSDs, where ``v`` counts as disturbance
-    through ``|S|^2``; 0.99-1.01 with the error apart (red 5 best standalone, calibrated /
-    tracked / none; the other cells in the benchmark). Between runs the calibration record
-    and the exposure are each one draw of the atmosphere: each cell carries both standard
-    errors (:meth:`Cell.ratio_interval`); bright 1 best, 0.5-s exposures: 1.15-1.19 predicted
-    / measured with 2-s.e. intervals [0.84-0.90, 1.40-1.50].
-    """
-    st = scene.stage2
-    ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
-    res = simulate_scene(
-        scene, ref, scheme, seconds, seed, "calibration", science=False, upstream=upstream
-    )
-    r2 = _stage2_result(res)
-    k = r2.settle_frames
-    m = np.asarray(r2.telemetry["measurements"][k:], dtype=float)
-    u = np.asarray(r2.telemetry["commands"][k:], dtype=float)
-    tel = disturbance_from_telemetry(m, u, st.plant, fs=st.fs, method=estimator)
-    model = None
-    if st.spec.sensor == "diffractive":
-        e = np.asarray(r2.telemetry["residuals"][k:], dtype=float)
-        raw = st.spec.optical_gain == "none"
-        model = ResidualModel.from_calibration(
-            m, u, e, st.plant, st.fs, optical_gain=st.optical_gain if raw else None,
-            estimator=estimator,
-        )  # fmt: skip
-    design = DesignInputs(
-        plant=st.plant,
-        freqs=tel.freqs,
-        psd=tel.psd,
-        noise_psd=tel.noise_psd,
-        fs=st.fs,
-        n_modes=st.n_modes,
-        reference_gain=float(gain),
-        telemetry=tel,
-        command_limit=st.modal_dm().command_bound,
-    )
-    return design, model
 
 
 def run_configuration(
@@ -582,7 +295,7 @@ def run_configuration(
         ),
         "quick": bool(quick),
         "scene": scene.settings(),
-        "version": _version(),
+        "version": __version__,
     }
     t0 = time.perf_counter()
     res = simulate_scene(
@@ -596,7 +309,7 @@ def run_configuration(
         metadata=settings,
         upstream=upstream,
     )
-    summary = _summary(res)
+    summary = run_summary(res)
     summary.update(design_seconds=t_design, run_seconds=time.perf_counter() - t0)
     return RunOutcome(res, settings, summary, ctrl, design)
 
@@ -636,11 +349,8 @@ def _predicted(
 def _save(outcome: RunOutcome, directory: str | None, name: str) -> str | None:
     if directory is None:
         return None
-    try:
-        from aocontrol.study.results import save_result
-    except ImportError:  # task E's module missing: results stay in memory
-        logger.warning("aocontrol.study.results unavailable: %s not written", name)
-        return None
+    from aocontrol.study.results import save_result  # h5py only when files are written
+
     os.makedirs(directory, exist_ok=True)
     path = os.path.join(directory, f"{name}.h5")
     return save_result(outcome.result, path, settings=outcome.settings)
@@ -707,7 +417,7 @@ def compare_case(
     grid = _scan_grid(scene, quick, gain_grid)
     # Stage 1 and the disturbance of each stream are the same for every stage-2 controller
     # and both schemes: each stream's upstream is computed once and replayed (bit for bit).
-    upstream = _UpstreamRecords(scene, enabled=c.stage2.optical_gain != "two-pass")
+    upstream = UpstreamRecords(scene, enabled=c.stage2.optical_gain != "two-pass")
     cells, gains, scans = [], {}, {}
     # Wall time per part [s]; "design" is the part of "runs" spent designing controllers.
     timing = {"scan": 0.0, "calibration": 0.0, "runs": 0.0, "design": 0.0}
@@ -737,7 +447,7 @@ def compare_case(
         timing["scan"] += time.perf_counter() - t0
         logger.info("%s %s: reference gain %.2f (scan %s)", c.name, scheme, best, scan)
         t0 = time.perf_counter()
-        design, model = _calibrate(
+        design, model = calibrate_scene(
             scene,
             scheme,
             best,
@@ -794,5 +504,5 @@ def compare_case(
             logger.info("%s %s %s: %s", c.name, scheme, name, out.summary)
     vib = None
     if c.vibration is not None:
-        vib = _vibration_report(scene, schemes[0], controllers, designs, ctrls, results)
+        vib = vibration_report(scene, schemes[0], controllers, designs, ctrls, results)
     return CaseComparison(c.name, tuple(cells), gains, scans, vib, timing, designs, models)

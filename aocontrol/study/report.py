@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from aocontrol._atomic import atomic_path
+from aocontrol._version import __version__
 from aocontrol.analysis import Margins, loop_response, margins, residual_variance
 
 __all__ = [
@@ -152,18 +153,9 @@ def _write(path: str | os.PathLike, title: str, sections: Sequence[tuple[str, li
     return path
 
 
-def _version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("aocontrol")
-    except Exception:  # pragma: no cover - not installed
-        return "unknown"
-
-
 def _stamp() -> dict:
     now = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    return {"written": now, "aocontrol": _version()}
+    return {"written": now, "aocontrol": __version__}
 
 
 # ----------------------------------------------------------------------------- shared parts

@@ -44,6 +44,7 @@ import h5py
 import numpy as np
 
 from aocontrol._atomic import atomic_path
+from aocontrol._version import __version__
 from aocontrol.sim import CascadeResult, LoopResult, ScienceResult
 
 __all__ = [
@@ -361,7 +362,6 @@ def save_result(
     TypeError
         If ``result`` is neither a loop nor a cascade result.
     """
-    from aocontrol import __version__
 
     cascade = isinstance(result, CascadeResult)
     if not cascade and not isinstance(result, LoopResult):

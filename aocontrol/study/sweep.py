@@ -65,12 +65,12 @@ import sys
 import time
 import traceback
 import uuid
-import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from aocontrol._atomic import atomic_path
+from aocontrol._deprecation import deprecated_function
 from aocontrol.study._cache import process_usage
 from aocontrol.study._sweep_place import _after_builds, _run_placement
 from aocontrol.study._sweep_spec import (
@@ -675,6 +675,11 @@ def _flat_item(prefix: str, key: str, value: Any, row: dict) -> None:
 _FIRST = ("hash", "status", "case", "controller", "scheme", "seed", "seconds", "quick")
 
 
+@deprecated_function(
+    "aocontrol.study.sweep.summary_table",
+    "sweep_table(out) of aocontrol.study.sweep (the name summary_table belongs to "
+    "aocontrol.study.results.summary_table(paths))",
+)
 def summary_table(
     out: str | os.PathLike,
     *,
@@ -703,12 +708,6 @@ def summary_table(
     DeprecationWarning
         Always, pointing to :func:`sweep_table`.
     """
-    warnings.warn(
-        "aocontrol.study.sweep.summary_table is deprecated: use sweep_table(out) (the name "
-        "summary_table belongs to aocontrol.study.results.summary_table(paths))",
-        DeprecationWarning,
-        stacklevel=2,
-    )
     return sweep_table(out, runner=runner, csv_path=csv_path)
 
 

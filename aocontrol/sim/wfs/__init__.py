@@ -9,8 +9,7 @@ sensor protocol (:class:`Sensor`, :mod:`aocontrol.sim.wfs.sensors`). ``LinearMod
 deprecated alias of :class:`LinearModalSensor`.
 """
 
-from typing import Any
-
+from aocontrol._deprecation import module_aliases
 from aocontrol.sim.wfs.calibration import (
     WFSCalibration,
     calibrate,
@@ -45,9 +44,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    if name == "LinearModalWFS":
-        from aocontrol.sim.wfs.sensors import deprecated_alias
-
-        return deprecated_alias(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# LinearModalWFS: deprecated alias of LinearModalSensor (warns on use).
+__getattr__ = module_aliases(
+    __name__, {"LinearModalWFS": "aocontrol.sim.wfs.sensors:LinearModalSensor"}
+)

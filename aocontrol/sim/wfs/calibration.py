@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol._deprecation import module_aliases
 from aocontrol._validation import check_finite_array, check_int, check_nonnegative, check_positive
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.turbulence import von_karman_psd
@@ -422,14 +423,11 @@ def calibrate(
     )
 
 
-def __getattr__(name: str) -> Any:
-    # The linear sensor moved to aocontrol.sim.wfs.sensors (former import path kept).
-    if name == "LinearModalSensor":
-        from aocontrol.sim.wfs.sensors import LinearModalSensor
-
-        return LinearModalSensor
-    if name == "LinearModalWFS":
-        from aocontrol.sim.wfs.sensors import deprecated_alias
-
-        return deprecated_alias(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+# Former import paths of the linear sensor (it lives in aocontrol.sim.wfs.sensors).
+__getattr__ = module_aliases(
+    __name__,
+    {
+        "LinearModalSensor": "aocontrol.sim.wfs.sensors:LinearModalSensor",
+        "LinearModalWFS": "aocontrol.sim.wfs.sensors:LinearModalSensor",
+    },
+)
