@@ -282,3 +282,36 @@ def test_subclass_implementing_step_hook_shares_the_policy():
     g.reset()
     assert g.n_rejected == 0
     np.testing.assert_array_equal(g.step([np.inf, 0.0]), [0.0, 0.0])
+
+
+def test_bank_row_operations_keep_filters_and_limits():
+    # The bank owns its row operations: taking rows keeps their command limits, replacing
+    # rows pads orders and keeps this bank's limits, choosing per mode is take-or-keep, and
+    # the parts of a bank reassemble it exactly.
+    a = IIRBank([[0.5, 0.0], [0.3, 0.1], [0.2, 0.0]], [[1.0, -1.0], [1.0, -0.9], [1.0, -1.0]],
+                fs=1000.0, command_limit=[1.0, 2.0, 3.0])  # fmt: skip
+    sub = a.rows([2, 0])
+    np.testing.assert_array_equal(sub.b, a.b[[2, 0]])
+    np.testing.assert_array_equal(sub.command_limit, [3.0, 1.0])
+    other = IIRBank.from_rows([[0.1, 0.2, 0.3]], [[1.0, -0.5, 0.1, 0.05]], 1000.0)
+    c = a.with_rows([1], other)
+    assert c.b.shape == (3, 3) and c.a.shape == (3, 4)
+    np.testing.assert_array_equal(c.b[1], [0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(c.b[0], [0.5, 0.0, 0.0])
+    np.testing.assert_array_equal(c.command_limit, a.command_limit)
+    # Impulse responses are those of the chosen filters (zero padding changes nothing).
+    for i, src in ((0, a), (1, other), (2, a)):
+        j = 0 if src is other else i
+        np.testing.assert_allclose(c.impulse_response(8)[:, i], src.impulse_response(8)[:, j])
+    w = a.where([True, False, True], c)
+    np.testing.assert_array_equal(w.b[:, :2], a.b)
+    whole = IIRBank.from_parts([([0, 2], a.rows([0, 2])), ([1], a.rows([1]))], 3)
+    np.testing.assert_array_equal(whole.b, a.b)
+    np.testing.assert_array_equal(whole.a, a.a)
+    np.testing.assert_array_equal(whole.command_limit, a.command_limit)
+    with pytest.raises(ValueError, match="do not cover modes \\[1\\]"):
+        IIRBank.from_parts([([0, 2], a.rows([0, 2]))], 3)
+    with pytest.raises(ValueError, match="mode indices in \\[0, 2\\]"):
+        a.rows([3])
+    with pytest.raises(ValueError, match="take must be a boolean array of shape \\(3,\\)"):
+        a.where([True], c)

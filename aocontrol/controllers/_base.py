@@ -27,6 +27,7 @@ import abc
 import functools
 import logging
 import math
+from collections.abc import Sequence
 
 import control
 import numpy as np
@@ -472,6 +473,132 @@ class IIRBank(ControllerBank):
         mode = self._check_mode(mode)
         return tf_from_z_inverse(self._b[mode], self._a[mode], 1.0 / self._fs)
 
+    # -- row operations -------------------------------------------------------------------
+    # The one home of a bank's row operations (take rows, replace rows, choose per mode,
+    # build from ragged rows): orders are padded with zeros, the command limit follows its
+    # rows.
+    @classmethod
+    def from_rows(
+        cls,
+        b_rows: Sequence[object],
+        a_rows: Sequence[object],
+        fs: float,
+        *,
+        command_limit: float | np.ndarray | None = None,
+    ) -> IIRBank:
+        """Bank from one coefficient row per mode, of any lengths (padded with zeros).
+
+        Parameters
+        ----------
+        b_rows, a_rows : sequence of array_like, each 1-D
+            Numerator and denominator of each mode in powers of ``z^-1``.
+        fs : float
+            Loop rate [Hz].
+        command_limit : float or array of shape (n_modes,), optional
+            As for :class:`IIRBank`.
+
+        Examples
+        --------
+        >>> bank = IIRBank.from_rows([[0.5], [0.2, 0.1]], [[1.0, -1.0], [1.0]], fs=1000.0)
+        >>> bank.b.tolist(), bank.a.tolist()
+        ([[0.5, 0.0], [0.2, 0.1]], [[1.0, -1.0], [1.0, 0.0]])
+        """
+        if len(b_rows) != len(a_rows) or len(b_rows) == 0:
+            raise ValueError(
+                f"b_rows and a_rows must hold one row per mode (at least one), got "
+                f"{len(b_rows)} and {len(a_rows)}"
+            )
+        return cls(_pad_rows("b_rows", b_rows), _pad_rows("a_rows", a_rows), fs,
+                   command_limit=command_limit)  # fmt: skip
+
+    @classmethod
+    def from_parts(cls, parts: Sequence[tuple[object, IIRBank]], n_modes: int) -> IIRBank:
+        """One bank from banks for disjoint sets of modes that together cover ``n_modes``.
+
+        Parameters
+        ----------
+        parts : sequence of (modes, IIRBank)
+            Mode indices and the bank of their filters, in that order (same rate). Each part's
+            command limits follow its rows (none if any part has none).
+        n_modes : int
+            Modes of the result; every one in exactly one part.
+        """
+        b_rows: list = [None] * n_modes
+        a_rows: list = [None] * n_modes
+        limit = np.full(n_modes, np.nan)
+        for modes, bank in parts:
+            idx = np.atleast_1d(np.asarray(modes, dtype=int))
+            if idx.size != bank.n_modes:
+                raise ValueError(f"a part has {idx.size} mode indices for {bank!r}")
+            for j, i in enumerate(idx):
+                if b_rows[i] is not None:
+                    raise ValueError(f"mode {i} is in two parts")
+                b_rows[i], a_rows[i] = bank.b[j], bank.a[j]
+            if bank.command_limit is not None:
+                limit[idx] = bank.command_limit
+        missing = [i for i, r in enumerate(b_rows) if r is None]
+        if missing:
+            raise ValueError(f"parts do not cover modes {missing[:10]} of {n_modes}")
+        fs = parts[0][1].fs
+        return cls.from_rows(
+            b_rows, a_rows, fs, command_limit=None if np.isnan(limit).any() else limit
+        )
+
+    def rows(self, modes: object) -> IIRBank:
+        """The filters of ``modes`` (indices or a boolean mask) as a bank of their own, with
+        their command limits."""
+        idx = self._mode_index("modes", modes)
+        limit = None if self._limit is None else self._limit[idx]
+        return IIRBank(self._b[idx], self._a[idx], self._fs, command_limit=limit)
+
+    def with_rows(self, modes: object, other: IIRBank) -> IIRBank:
+        """This bank with the filters of ``modes`` replaced by ``other``'s rows, in order.
+
+        ``other`` holds one filter per selected mode (its command limit is not used: the
+        limits stay this bank's).
+        """
+        idx = self._mode_index("modes", modes)
+        if not isinstance(other, IIRBank) or other.n_modes != idx.size:
+            raise ValueError(
+                f"other must be an IIRBank of {idx.size} modes (one per selected mode), got "
+                f"{other!r}"
+            )
+        if abs(other.fs - self._fs) > 1e-9 * self._fs:
+            raise ValueError(f"other runs at fs={other.fs!r} Hz, this bank at {self._fs!r} Hz")
+        nb = max(self._b.shape[1], other.b.shape[1])
+        na = max(self._a.shape[1], other.a.shape[1])
+        b, a = _pad(self._b, nb), _pad(self._a, na)
+        b[idx], a[idx] = _pad(other.b, nb), _pad(other.a, na)
+        return IIRBank(b, a, self._fs, command_limit=self._limit)
+
+    def where(self, take: object, other: IIRBank) -> IIRBank:
+        """Per mode, ``other``'s filter where ``take`` is True, this bank's elsewhere.
+
+        Parameters
+        ----------
+        take : array_like of bool, shape (n_modes,)
+        other : IIRBank
+            Same number of modes and rate.
+        """
+        take = np.asarray(take, dtype=bool)
+        if take.shape != (self._n,):
+            raise ValueError(f"take must be a boolean array of shape ({self._n},), got "
+                             f"{take.shape}")  # fmt: skip
+        return self.with_rows(np.flatnonzero(take), other.rows(take))
+
+    def _mode_index(self, name: str, modes: object) -> np.ndarray:
+        idx = np.asarray(modes)
+        if idx.dtype == bool:
+            if idx.shape != (self._n,):
+                raise ValueError(f"{name} as a mask must have shape ({self._n},), got "
+                                 f"{idx.shape}")  # fmt: skip
+            return np.flatnonzero(idx)
+        idx = np.atleast_1d(idx).astype(int, casting="unsafe").ravel()
+        if idx.size and (idx.min() < 0 or idx.max() >= self._n):
+            raise ValueError(f"{name} must be mode indices in [0, {self._n - 1}], got "
+                             f"{idx.tolist()[:10]}")  # fmt: skip
+        return idx
+
     # -- constructors ---------------------------------------------------------------------
     @classmethod
     @renamed_keyword("stroke", "command_limit", _LIMIT_NOTE)
@@ -495,17 +622,30 @@ class IIRBank(ControllerBank):
         if not all(isinstance(t, control.TransferFunction) for t in tfs):
             raise TypeError("tfs must all be control.TransferFunction (not FRD)")
         coeffs = [z_inverse_coefficients(t, f"tfs[{i}]") for i, t in enumerate(tfs)]
-        nb = max(c[0].size for c in coeffs)
-        na = max(c[1].size for c in coeffs)
-        b = np.zeros((len(tfs), nb))
-        a = np.zeros((len(tfs), na))
-        for i, (bi, ai) in enumerate(coeffs):
-            b[i, : bi.size] = bi
-            a[i, : ai.size] = ai
-        return cls(b, a, fs, command_limit=command_limit)
+        return cls.from_rows([c[0] for c in coeffs], [c[1] for c in coeffs], fs,
+                             command_limit=command_limit)  # fmt: skip
 
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(n_modes={self._n}, fs={self._fs}, "
             f"nb={self._b.shape[1]}, na={self._a.shape[1]})"
         )
+
+
+def _pad(x: np.ndarray, width: int) -> np.ndarray:
+    """Rows of ``x`` padded with zeros to ``width`` columns (a copy)."""
+    out = np.zeros((x.shape[0], width))
+    out[:, : x.shape[1]] = x
+    return out
+
+
+def _pad_rows(name: str, rows: Sequence[object]) -> np.ndarray:
+    """Ragged 1-D rows as one zero-padded 2-D array."""
+    arrs = [np.atleast_1d(np.asarray(r, dtype=float)) for r in rows]
+    for i, r in enumerate(arrs):
+        if r.ndim != 1 or r.size == 0:
+            raise ValueError(f"{name}[{i}] must be a non-empty 1-D row, got shape {r.shape}")
+    out = np.zeros((len(arrs), max(r.size for r in arrs)))
+    for i, r in enumerate(arrs):
+        out[i, : r.size] = r
+    return out

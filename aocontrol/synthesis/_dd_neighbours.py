@@ -61,20 +61,6 @@ def has_integrator(bank: IIRBank) -> np.ndarray:
     return np.abs(bank.a.sum(axis=1)) <= _INTEGRATOR_RTOL * scale
 
 
-def _rows(bank: IIRBank, idx: np.ndarray) -> IIRBank:
-    return IIRBank(bank.b[idx], bank.a[idx], bank.fs)
-
-
-def _stack(n_modes: int, fs: float, parts: list[tuple[np.ndarray, IIRBank]]) -> IIRBank:
-    nb = max(p.b.shape[1] for _, p in parts)
-    na = max(p.a.shape[1] for _, p in parts)
-    b, a = np.zeros((n_modes, nb)), np.zeros((n_modes, na))
-    for modes, p in parts:
-        b[modes, : p.b.shape[1]] = p.b
-        a[modes, : p.a.shape[1]] = p.a
-    return IIRBank(b, a, fs)
-
-
 def _design(*args, **kwargs) -> tuple[DataDrivenResult, dict[int, str]]:
     try:
         return datadriven(*args, **kwargs), {}
@@ -175,7 +161,7 @@ def datadriven_neighbours(
     cold, failed_cold = _design(plant, freqs, psd2[rep], noise_psd=noise[rep], **common, **options)
     near = nearest_designed(n, stride)
     rest = np.setdiff1d(np.arange(n), rep)
-    start = _rows(cold.controller, near)
+    start = cold.controller.rows(near)
     integral = has_integrator(start)
     warm_opts = {
         k: v
@@ -195,7 +181,7 @@ def datadriven_neighbours(
             freqs,
             psd2[modes],
             noise_psd=noise[modes],
-            initial=_rows(start, modes),
+            initial=start.rows(modes),
             fixed_denominator=fixed,
             **common,
             **warm_opts,
@@ -212,22 +198,22 @@ def datadriven_neighbours(
         res, bad = _design(plant, freqs, psd2[redo], noise_psd=noise[redo], **common, **options)
         results.append((redo, res, False))
         failed.update({int(redo[i]): msg for i, msg in bad.items()})
-    out = _merge(n, near, rep, results, cold)
+    out = _combine_results(n, near, rep, results, cold)
     if failed:
         raise DataDrivenError(dict(sorted(failed.items())), out)
     return out
 
 
 def _subset(res: DataDrivenResult, idx: np.ndarray) -> DataDrivenResult:
-    """The modes ``idx`` of a result (reports kept in order, indices fixed by _merge)."""
+    """The modes ``idx`` of a result (reports kept in order, indices fixed by _combine_results)."""
 
     def rows(x):
         return None if x is None else x[idx]
 
     return dataclasses.replace(
         res,
-        controller=_rows(res.controller, idx),
-        initial=_rows(res.initial, idx),
+        controller=res.controller.rows(idx),
+        initial=res.initial.rows(idx),
         reports=tuple(res.reports[i] for i in idx),
         residual_variance=rows(res.residual_variance),
         initial_residual_variance=rows(res.initial_residual_variance),
@@ -236,9 +222,8 @@ def _subset(res: DataDrivenResult, idx: np.ndarray) -> DataDrivenResult:
     )
 
 
-def _merge(n, near, rep, results, cold: DataDrivenResult) -> DataDrivenResult:
+def _combine_results(n, near, rep, results, cold: DataDrivenResult) -> DataDrivenResult:
     """One result over every mode from the per-subset results (mode indices restored)."""
-    fs = cold.controller.fs
     reports: list = [None] * n
     fields = {
         k: np.full(n, np.nan)
@@ -260,8 +245,8 @@ def _merge(n, near, rep, results, cold: DataDrivenResult) -> DataDrivenResult:
             if val is not None:
                 arr[modes] = val
     return DataDrivenResult(
-        controller=_stack(n, fs, [(m, r.controller) for m, r, _ in results]),
-        initial=_stack(n, fs, [(m, r.initial) for m, r, _ in results]),
+        controller=IIRBank.from_parts([(m, r.controller) for m, r, _ in results], n),
+        initial=IIRBank.from_parts([(m, r.initial) for m, r, _ in results], n),
         reports=tuple(reports),
         design_freqs=cold.design_freqs,
         verification=cold.verification,
