@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 
 from aocontrol.study._cli_common import (  # noqa: F401 - UserError is part of this module's API
-    RUN_CONTROLLERS,
     RUN_SCHEMES,
     RunFailed,
     UserError,
@@ -35,6 +34,7 @@ from aocontrol.study._cli_common import (  # noqa: F401 - UserError is part of t
     _out_dir,
     _plot_module,
     _valid_name,
+    run_controller_names,
 )
 from aocontrol.study._cli_design import _design, _design_report, read_telemetry  # noqa: F401
 
@@ -121,7 +121,7 @@ def _run(args: argparse.Namespace) -> int:
 
     compare = _compare_module()
     case = _check_case(args.case)
-    controller = _valid_name("controller", args.controller, compare.controller_names())
+    controller = _valid_name("controller", args.controller, run_controller_names())
     scheme = _valid_name("scheme", args.scheme, compare.SCHEMES)
     if args.seconds is not None and not args.seconds > 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
@@ -475,8 +475,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--controller",
         required=True,
-        metavar="{" + ",".join(RUN_CONTROLLERS) + "}",
-        help="controller of the (fast) stage",
+        metavar="{" + ",".join(run_controller_names()) + "}",
+        help="controller of the (fast) stage (aocontrol.synthesis.CONTROLLERS; integrator is "
+        "an alias of reference)",
     )
     p.add_argument(
         "--scheme",
