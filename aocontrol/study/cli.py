@@ -371,7 +371,9 @@ def _demo(args: argparse.Namespace) -> int:
         f"{demo.DEMO_SECONDS:g} s exposures, scheme {demo.DEMO_SCHEME}; about a minute):"
     )
     try:
-        comparison = demo.demo_comparison(_out_dir(args.output), case=case)
+        comparison = demo.demo_comparison(
+            _out_dir(args.output), case=case, progress=not args.no_progress
+        )
     except RuntimeError as exc:
         raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
     for line in write_comparison(comparison, args.output):
@@ -756,6 +758,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--noise-rms", type=float, default=2.0, help="modal measurement noise [nm RMS per frame]"
     )
+    no_progress(p)
     return parser
 
 

@@ -38,6 +38,7 @@ optical gains.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -375,6 +376,7 @@ def design_inputs(
     seed: int,
     estimator: str = "prewhitened",
     upstream: UpstreamRecord | None = None,
+    progress: bool = False,
 ) -> DesignInputs:
     """Calibration run with the reference integrator and the PSDs of its telemetry.
 
@@ -409,13 +411,22 @@ def design_inputs(
     upstream : UpstreamRecord, optional
         Upstream of the calibration run, shared with the other scheme's (see
         :func:`simulate_scene`).
+    progress : bool
+        Progress bar on the calibration run.
 
     Returns
     -------
     DesignInputs
     """
     return _calibrate(
-        scene, scheme, gain, seconds=seconds, seed=seed, estimator=estimator, upstream=upstream
+        scene,
+        scheme,
+        gain,
+        seconds=seconds,
+        seed=seed,
+        estimator=estimator,
+        upstream=upstream,
+        progress=progress,
     )[0]
 
 
@@ -428,6 +439,7 @@ def _calibrate(
     seed: int,
     estimator: str = "prewhitened",
     upstream: UpstreamRecord | None = None,
+    progress: bool = False,
 ) -> tuple[DesignInputs, ResidualModel | None]:
     """:func:`design_inputs` and, for a diffractive stage 2, the :class:`ResidualModel` of
     the predicted residual (``None`` for a linear one: its error is the white noise the
@@ -445,7 +457,15 @@ def _calibrate(
     st = scene.stage2
     ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
     res = simulate_scene(
-        scene, ref, scheme, seconds, seed, "calibration", science=False, upstream=upstream
+        scene,
+        ref,
+        scheme,
+        seconds,
+        seed,
+        "calibration",
+        science=False,
+        upstream=upstream,
+        progress=progress,
     )
     r2 = _stage2_result(res)
     k = r2.settle_frames
@@ -543,14 +563,14 @@ def run_configuration(
     base = load_case(case)
     overrides = dict(overrides or {}, **_sensor_overrides(sensor, optical_gain))
     c = apply_overrides(base, overrides)
-    scene = build_scene(c, quick=quick)
+    scene = build_scene(c, quick=quick, progress=progress)
     gain = c.stage2.gain
     if c.stage2.optical_gain == "two-pass":
         cal = calibration_seconds(scene, quick)
         scene = two_pass_scene(scene, scheme, gain, seconds=cal, seed=seed)
     if design is None and spec.needs_telemetry:
         cal = calibration_seconds(scene, quick)
-        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed)
+        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed, progress=progress)
     if design is None:
         st = scene.stage2
         design = DesignInputs(
@@ -562,6 +582,9 @@ def run_configuration(
             st.n_modes,
             float(gain),
         )
+    if progress and "progress" in spec.options and "progress" not in design.options:
+        # A bar over the modes of a long design (the data-driven bank: a minute at 540 modes).
+        design = dataclasses.replace(design, options={**design.options, "progress": True})
     t0 = time.perf_counter()
     ctrl = spec.design(design)
     t_design = time.perf_counter() - t0
@@ -700,7 +723,7 @@ def compare_case(
     for s in schemes:
         _check_names("reference", s)
     c = apply_overrides(load_case(case), _sensor_overrides(sensor, optical_gain))
-    scene = build_scene(c, quick=quick)
+    scene = build_scene(c, quick=quick, progress=progress)
     exposure = seconds if seconds is not None else (0.5 if quick else c.science.exposure)
     scan_s = _QUICK_SCAN_SECONDS if quick else _SCAN_SECONDS
     cal_s = calibration_seconds(scene, quick)
