@@ -9,7 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aocontrol.study.adapt import SCENARIOS, run_adapt, scenario_drift
+from aocontrol.sim.drift import Drift
+from aocontrol.study import adapt
+from aocontrol.study.adapt import SCENARIOS, AdaptRow, AdaptStudy, run_adapt, scenario_drift
 from aocontrol.study.cli import main
 
 
@@ -164,3 +166,80 @@ def test_window_rule_and_seed_summary():
 def test_measure_from_is_checked():
     with pytest.raises(ValueError, match=r"measure_from must be in \[0, duration=2\) s"):
         run_adapt("bright1-best", windows=(1.0,), duration=2.0, measure_from=2.0, quick=True)
+
+
+def _fake_run_adapt(calls):
+    def fake(case, **kw):
+        calls.append(kw)
+        rows = tuple(
+            AdaptRow(s, p, w, 1.0, 1.0, 3, 0, 0, 0.1, n_kept_modes=2)
+            for s in kw["strategies"]
+            for p in kw["periods"]
+            for w in kw["windows"]
+        )
+        return AdaptStudy("bright1-best", kw["scenario"], kw["duration"], rows, {})
+
+    return fake
+
+
+def test_adapt_command_defaults_are_the_recommended_configuration(tmp_path, monkeypatch, capsys):
+    # Issue 33: with no option the command runs the documented configuration, T = 2 s,
+    # W = T, latency 0.5 s, and the study's design settings (quick: order 2, 24 points), and
+    # --help says so; the designs kept worse than the running controller are one line.
+    calls = []
+    monkeypatch.setattr(adapt, "run_adapt", _fake_run_adapt(calls))
+    argv = ["adapt", "bright1-best", "--quick", "--seconds", "20", "--strategies", "adaptive"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    (kw,) = calls
+    assert kw["periods"] == (2.0,) and kw["windows"] == (2.0,) and kw["latency"] == 0.5
+    assert kw["order"] == 2 and kw["design_options"] == {"n_grid": 24}
+    out = capsys.readouterr().out
+    assert "2 mode redesign(s) were worse than the running controller" in out
+    # W = T at several periods: one window per period, not every pair.
+    calls.clear()
+    assert main([*argv, "--period", "1,5", "--out", str(tmp_path)]) == 0
+    assert [(k["periods"], k["windows"]) for k in calls] == [((1.0,), (1.0,)), ((5.0,), (5.0,))]
+    assert main([*argv[:2], "--seconds", "20", "--out", str(tmp_path)]) == 0
+    assert calls[-1]["order"] == 5 and calls[-1]["design_options"] == {}
+    with pytest.raises(SystemExit):
+        main(["adapt", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for default in ("(default 2)", "(default T:", "(default 0.5;", "default 2 with --quick"):
+        assert default in text, default
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--seconds", "-5"], "--seconds must be > 0"),
+        (["--scenario", "case"], "needs a case with an [atmosphere.drift]"),
+        (["--strategies", "adaptive,pid"], "unknown strategy 'pid'"),
+        (["--seconds", "1"], "window must be in (0, duration=1)"),
+    ],
+)
+def test_adapt_command_checks_everything_before_creating_its_folder(tmp_path, argv, words, capsys):
+    out = tmp_path / "never"
+    assert main(["adapt", "bright1-best", "--quick", *argv, "--out", str(out)]) == 2
+    assert words in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_run_adapt_takes_a_drift_of_several_knots():
+    # Two paths that must agree: the named scenario and the same history given as a Drift
+    # (the API a drift of several knots takes); a different drift changes the residual.
+    kw = dict(
+        periods=(0.2,),
+        windows=(0.2,),
+        duration=1.0,
+        strategies=("modal-gain",),
+        latency=0.05,
+        quick=True,
+    )
+    named = run_adapt("bright1-best", scenario="wind-doubles", **kw)
+    same = run_adapt("bright1-best", scenario=Drift.ramp(0.2, 0.5, wind=2.0), **kw)
+    assert same.row("modal-gain").residual == named.row("modal-gain").residual
+    knots = Drift([0.1, 0.3, 0.6, 0.6], [1.0, 1.0, 1.0, 1.5], [1.0, 2.0, 2.0, 2.0], name="mix")
+    mixed = run_adapt("bright1-best", scenario=knots, **kw)
+    assert mixed.scenario == "mix" and mixed.settings["drift"][0] == [0.1, 0.3, 0.6, 0.6]
+    assert mixed.row("modal-gain").residual > 1.05 * named.row("modal-gain").residual

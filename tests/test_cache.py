@@ -192,7 +192,7 @@ def test_scene_geometry_goes_through_the_disk_cache(cache_dir, monkeypatch):
     # A fresh process (here: the memory cache cleared) reads the geometry that an earlier one
     # built; cache=False builds it anew. A cheap stand-in for the calibrations.
     build = Counter()
-    monkeypatch.setattr(scene, "_build_geometry", lambda c, quick, rng: build())
+    monkeypatch.setattr(scene, "_build_geometry", lambda c, quick, rng, *progress: build())
     case = scene.load_case("bright1-best")
     scene.clear_scene_cache()
     try:
@@ -345,3 +345,31 @@ def test_sweep_places_calibrated_runs_where_their_scene_is_in_memory(cache_dir):
             raise OSError("no answer")
 
     assert _run_placement(_Blind(), runs) == {}  # cannot ask: plain scheduling
+
+
+# A tiny scene (32-pixel pupil, 9x9 DMs, 20 + 10 modes): its calibrations take about 2 s.
+TINY = {
+    "simulation.n_pix": 32,
+    "science.field_of_view": 12.0,
+    "stage1.n_actuators": 9,
+    "stage1.n_subapertures": 8,
+    "stage1.n_modes": 20,
+    "stage2.n_actuators": 9,
+    "stage2.n_subapertures": 8,
+    "stage2.n_modes": 10,
+}
+
+
+def test_a_calibration_built_says_what_it_builds_and_where_it_is_cached(cache_dir, capsys):
+    # Issue 33: the first use of a scene builds its calibrations (minutes at full scale): a
+    # progress bar names the case, the steps and the cache folder; from the cache, no bar.
+    scene.clear_scene_cache()
+    scene.build_scene("bright1-best", overrides=TINY, progress=True)
+    err = capsys.readouterr().err
+    assert f"calibrating bright1-best (once: cached in {cache_dir})" in err
+    for step in ("KL bases (20 + 10 modes)", "pyramid interaction matrix", "5/5 steps"):
+        assert step in err, step
+    assert len(_entries(cache_dir)) == 1
+    scene.clear_scene_cache()
+    scene.build_scene("bright1-best", overrides=TINY, progress=True)
+    assert "calibrating" not in capsys.readouterr().err

@@ -77,6 +77,21 @@ def test_every_command_has_help(command, capsys):
     assert f"aocontrol {command}" in capsys.readouterr().out
 
 
+def test_run_help_lists_the_registrys_controller_names(capsys):
+    # One list of names everywhere (issue 33): run's --help shows every registered name and
+    # alias ("reference", which the README uses, included), the same list the sweep checks.
+    from aocontrol.study.sweep import default_runner
+    from aocontrol.synthesis import controller_names
+
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    out = capsys.readouterr().out
+    listed = out.split("--controller {", 1)[1].split("}", 1)[0].split(",")
+    assert listed == list(controller_names())
+    assert "reference" in listed and "integrator" in listed
+    assert tuple(listed) == tuple(default_runner().valid["controllers"])
+
+
 def test_python_dash_m_entry_point_help():
     proc = subprocess.run(
         [sys.executable, "-m", "aocontrol", "--help"], capture_output=True, text=True, timeout=120

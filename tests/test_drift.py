@@ -226,6 +226,43 @@ def test_case_names_a_drift(tmp_path):
     assert load_case(stoch).atmosphere.drift.build(0.4).times[-1] >= 60.0
 
 
+KNOTS = (
+    '[atmosphere.drift]\nkind = "knots"\ntimes = ["10 s", "20 s", "40 s", "40 s"]\n'
+    "wind = [1.0, 2.0, 2.0, 2.0]\nseeing = [1.0, 1.0, 1.0, 1.5]\n"
+)
+
+
+def test_case_names_a_drift_of_several_knots(tmp_path):
+    # A wind ramp (10 to 20 s, to 2x) and a seeing step at another time (40 s, to 1.5x): the
+    # "knots" kind is the piecewise-linear history itself (issue 33).
+    spec = load_case(_case_with(tmp_path, KNOTS)).atmosphere.drift
+    assert spec.kind == "knots" and spec.times == (10.0, 20.0, 40.0, 40.0)
+    d = spec.build(0.4)
+    # Oracle: linear interpolation between knots, the end values outside, the value after a
+    # step from its time on.
+    for t, wind, seeing in [(0, 1, 1), (15, 1.5, 1), (30, 2, 1), (39.9, 2, 1), (40, 2, 1.5)]:
+        assert d.wind_at(float(t), 1)[0] == pytest.approx(wind), t
+        assert float(d.seeing_at(float(t))) == pytest.approx(seeing), t
+    assert d.direction.tolist() == [0.0] * 4  # missing: no direction change
+
+
+BAD_KNOTS = [
+    ('times = ["5 s", "2 s"]', "atmosphere.drift.times", "non-decreasing"),
+    ('times = ["5 s", "6 s"]\nwind = [1.0]', "atmosphere.drift.wind", "one value per knot"),
+    ('times = ["5 s"]\nseeing = [0.0]', "atmosphere.drift.seeing", "> 0"),
+    ('times = ["-5 s"]', "atmosphere.drift.times", ">= 0"),
+    ('times = ["5 s"]\nat = "5 s"', "atmosphere.drift.at", "unknown key"),
+]
+
+
+@pytest.mark.parametrize(("body", "key", "reason"), BAD_KNOTS, ids=[b[1] + b[2] for b in BAD_KNOTS])
+def test_bad_knots_name_the_key(tmp_path, body, key, reason):
+    path = _case_with(tmp_path, '[atmosphere.drift]\nkind = "knots"\n' + body + "\n")
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    assert info.value.key == key and reason in info.value.reason, str(info.value)
+
+
 BAD_DRIFT = [
     ('kind = "step"\nat = "5 s"\nseeing = -1.5', "atmosphere.drift.seeing", "> 0"),
     ('kind = "step"\nat = "5 s"\nwind = -2.0', "atmosphere.drift.wind", ">= 0"),

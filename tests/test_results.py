@@ -127,6 +127,27 @@ def test_xarray_opens_the_file_with_dimensions_and_units(tmp_path):
         np.testing.assert_array_equal(ds["residual_variance"].values, res.residual_variance)
 
 
+def test_without_telemetry_the_file_still_has_the_readmes_four_dimensions(tmp_path):
+    # The README: xarray.open_dataset("run.h5") opens a file written without telemetry with
+    # the named dimensions frame, mode, frequency and radius (issue 33).
+    res = _loop(n_frames=400, n_modes=4)
+    path = save_result(res, tmp_path / "run.h5", settings=SETTINGS)
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        assert {"frame", "mode", "frequency", "radius"} <= set(ds.sizes)
+        assert ds.sizes["frame"] == 400 and ds["residual_rms"].dims == ("frame",)
+        assert ds["residual_rms"].attrs["units"] == "nm"
+        assert not any(name.startswith("telemetry_") for name in ds.variables)
+        # Oracle: each frame's RMS is the root of the sum of squares of its modal residual.
+        e = res.telemetry["residuals"].astype(float)
+        np.testing.assert_allclose(
+            ds["residual_rms"].values, np.sqrt((e**2).sum(axis=1)), rtol=1e-6
+        )
+        d = res.telemetry["disturbance"].astype(float)
+        np.testing.assert_allclose(
+            ds["disturbance_rms"].values, np.sqrt((d**2).sum(axis=1)), rtol=1e-6
+        )
+
+
 def test_plain_h5py_reads_it(tmp_path):
     res = _loop()
     path = save_result(res, tmp_path / "run.h5", settings=SETTINGS)

@@ -51,6 +51,9 @@ class Redesign:
     selected : ndarray of bool, shape (n_modes,) or None
         Modes that were redesigned (``None``: all; see ``select`` of
         :class:`AdaptiveController`).
+    kept : ndarray of bool, shape (n_modes,) or None
+        Modes whose new design was worse than their controller, which stayed (``None``:
+        none; :attr:`Proposal.kept`).
     """
 
     frame: int
@@ -62,6 +65,7 @@ class Redesign:
     disturbance_variance: np.ndarray
     noise_variance: np.ndarray
     selected: np.ndarray | None = None
+    kept: np.ndarray | None = None
 
     @property
     def switched(self) -> bool:
@@ -123,6 +127,12 @@ class AdaptiveRun:
                 r.certified.size if r.selected is None else r.selected.sum() for r in self.redesigns
             )
         )
+
+    @property
+    def n_kept_modes(self) -> int:
+        """Mode designs worse than the mode's running controller, which stayed (summed over
+        redesigns; the synthesis never proposes a design worse than its start)."""
+        return int(sum(0 if r.kept is None else r.kept.sum() for r in self.redesigns))
 
     @property
     def switch_frames(self) -> list[int]:
@@ -440,6 +450,7 @@ class AdaptiveController(ControllerBank):
                 disturbance_variance=np.trapezoid(tel.psd, tel.freqs, axis=-1),
                 noise_variance=tel.noise_variance,
                 selected=up.selected,
+                kept=up.kept,
             )
         )
 

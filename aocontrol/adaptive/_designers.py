@@ -13,6 +13,7 @@ from aocontrol.adaptive._redesign import Designer, Proposal, _join, _rows, _subs
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis import (
+    REJECTED_WORSE,
     DataDrivenError,
     DataDrivenResult,
     InitialPoleRadiusError,
@@ -40,6 +41,12 @@ def _certified(res: DataDrivenResult) -> np.ndarray:
     for a failed mode), passed on so that the adaptive layer does not certify them again."""
     ok = res.ok & res.stable
     return np.where(ok, res.modulus_margin, np.nan)
+
+
+def _kept(res: DataDrivenResult) -> tuple[int, ...]:
+    """Modes whose design was worse than their start, replaced by it (the synthesis' reports:
+    :data:`aocontrol.synthesis.REJECTED_WORSE` in ``start``)."""
+    return tuple(r.mode for r in res.reports if r.ok and r.start == REJECTED_WORSE)
 
 
 def datadriven_designer(
@@ -117,8 +124,8 @@ def datadriven_designer(
                 res = datadriven(plant, psd.freqs, psd.psd, initial=initial, **kw)
             except DataDrivenError as exc:
                 res = exc.result
-                return Proposal(res.controller, dict(exc.failed), _certified(res))
-            return Proposal(res.controller, margin=_certified(res))
+                return Proposal(res.controller, dict(exc.failed), _certified(res), kept=_kept(res))
+            return Proposal(res.controller, margin=_certified(res), kept=_kept(res))
 
         if current.a.shape[1] - 1 < order:
             return run(tel, None)  # the loop's first bank: a cold design

@@ -65,12 +65,17 @@ class Proposal:
         exact transfer function is an ill-conditioned recursion); ``controller`` still
         holds their transfer functions (certified from it). ``None``: every mode in
         Direct-Form I.
+    kept : tuple of int, default ()
+        Modes (indices into the proposal) whose new design was worse than the current
+        controller, so that the designer proposes the current one again (the synthesis'
+        "never worse than its start"): counted, not an error.
     """
 
     controller: IIRBank
     failed: dict[int, str] = field(default_factory=dict)
     margin: np.ndarray | None = None
     realisation: StateSpaceRows | None = None
+    kept: tuple[int, ...] = ()
 
 
 Designer = Callable[[TelemetryPSD, control.TransferFunction, IIRBank], Proposal]
@@ -437,6 +442,9 @@ class Update:
     realisation : StateSpaceRows or None
         State-space realisations of the replaced modes that run in state space (rows of all
         modes; ``used`` only where certified), ``None`` if none.
+    kept : ndarray of bool, shape (n_modes,) or None
+        Modes whose new design was worse than their controller, which the designer proposed
+        again (:attr:`Proposal.kept`; ``None``: none).
     """
 
     bank: IIRBank
@@ -446,6 +454,7 @@ class Update:
     selected: np.ndarray | None
     ratio: np.ndarray | None
     realisation: StateSpaceRows | None = None
+    kept: np.ndarray | None = None
 
 
 def redesign(
@@ -557,4 +566,8 @@ def redesign(
     if rows is not None and (rows.used & ok_s).any():
         taken = dataclasses.replace(rows, used=rows.used & ok_s)
         realised = taken.expand(modes, n)
-    return Update(_merge(current, full, ok), ok, margin, reasons, selected, ratio, realised)
+    kept = None
+    if proposal.kept:
+        kept = np.zeros(n, dtype=bool)
+        kept[modes[np.asarray(proposal.kept, dtype=int)]] = True
+    return Update(_merge(current, full, ok), ok, margin, reasons, selected, ratio, realised, kept)

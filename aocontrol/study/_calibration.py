@@ -46,6 +46,7 @@ def design_inputs(
     seed: int,
     estimator: str = "prewhitened",
     upstream: UpstreamRecord | None = None,
+    progress: bool = False,
 ) -> DesignInputs:
     """Calibration run with the reference integrator and the PSDs of its telemetry.
 
@@ -80,13 +81,22 @@ def design_inputs(
     upstream : UpstreamRecord, optional
         Upstream of the calibration run, shared with the other scheme's (see
         :func:`simulate_scene`).
+    progress : bool
+        Progress bar on the calibration run.
 
     Returns
     -------
     DesignInputs
     """
     return calibrate_scene(
-        scene, scheme, gain, seconds=seconds, seed=seed, estimator=estimator, upstream=upstream
+        scene,
+        scheme,
+        gain,
+        seconds=seconds,
+        seed=seed,
+        estimator=estimator,
+        upstream=upstream,
+        progress=progress,
     )[0]
 
 
@@ -99,6 +109,7 @@ def calibrate_scene(
     seed: int,
     estimator: str = "prewhitened",
     upstream: UpstreamRecord | None = None,
+    progress: bool = False,
 ) -> tuple[DesignInputs, ResidualModel | None]:
     """:func:`design_inputs` and, for a diffractive stage 2, the :class:`ResidualModel` of
     the predicted residual (``None`` for a linear one: its error is the white noise the
@@ -112,7 +123,15 @@ def calibrate_scene(
     st = scene.stage2
     ref = Integrator(gain, fs=st.fs, n_modes=st.n_modes)
     res = simulate_scene(
-        scene, ref, scheme, seconds, seed, "calibration", science=False, upstream=upstream
+        scene,
+        ref,
+        scheme,
+        seconds,
+        seed,
+        "calibration",
+        science=False,
+        upstream=upstream,
+        progress=progress,
     )
     r2 = stage2_result(res)
     k = r2.settle_frames

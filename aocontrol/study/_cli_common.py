@@ -10,8 +10,6 @@ from typing import Any
 
 import numpy as np
 
-#: Controller names of ``run`` (the registry of :mod:`aocontrol.study.compare` is the truth).
-RUN_CONTROLLERS = ("integrator", "omgi", "datadriven", "lqg", "mpc")
 #: Cascade schemes of ``run``.
 RUN_SCHEMES = ("single", "standalone", "dcao")
 # Fewest telemetry frames for a PSD estimate worth designing on (8 Welch segments of 16).
@@ -26,6 +24,15 @@ class UserError(Exception):
 
 class RunFailed(Exception):
     """A run that started and failed (e.g. a diverging loop): exit status 1."""
+
+
+def run_controller_names() -> tuple[str, ...]:
+    """The controller names ``run`` (and ``compare``, sweeps) accept: the registry's, then its
+    aliases (:func:`aocontrol.synthesis.controller_names`, the one list), read when asked, so
+    that a controller registered later is listed too."""
+    from aocontrol.synthesis import controller_names
+
+    return controller_names()
 
 
 def _valid_name(kind: str, value: str, valid: Iterable[str]) -> str:

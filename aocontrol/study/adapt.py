@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import os
 import re
 from collections.abc import Sequence
@@ -201,6 +202,10 @@ class AdaptRow:
         of the ratio.
     transient_p : float
         One-sided Mann-Whitney p-value that the switches' ratios exceed the reference's.
+    n_kept_modes : int
+        Mode redesigns whose new design was worse than the running controller, which stayed
+        (:attr:`aocontrol.adaptive.AdaptiveRun.n_kept_modes`; the synthesis' policy, not a
+        failure).
     """
 
     strategy: str
@@ -218,6 +223,7 @@ class AdaptRow:
     reference_median: float = float("nan")
     reference_worst: float = float("nan")
     transient_p: float = float("nan")
+    n_kept_modes: int = 0
 
 
 @dataclass(frozen=True)
@@ -304,6 +310,59 @@ class AdaptStudy:
         return "\n".join(lines)
 
 
+def _check_settings(
+    *,
+    scenario: str | Drift,
+    periods: Sequence[float],
+    windows: Sequence[float],
+    duration: float,
+    strategies: Sequence[str],
+    latency: float | None,
+    measure_from: float | None = None,
+) -> None:
+    """The checks of :func:`run_adapt` that need no scene (the command line runs them before
+    it creates its output folder); raises ValueError naming the argument."""
+    if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
+        raise ValueError(f"duration must be a finite number of seconds > 0, got {duration!r}")
+    bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS]
+    if bad:
+        raise ValueError(f"strategies must be among {list(STRATEGIES + DIAGNOSTICS)}, got {bad}")
+    if not isinstance(scenario, Drift) and scenario not in SCENARIOS:
+        raise ValueError(f"scenario must be one of {list(SCENARIOS)} or a Drift, got {scenario!r}")
+    for p in periods:
+        if not p > 0:
+            raise ValueError(f"periods must be > 0 s, got {p!r} s")
+    for w in windows:
+        if not 0 < w < duration:
+            raise ValueError(f"window must be in (0, duration={duration:g}) s, got {w!r} s")
+    if measure_from is not None and not 0 <= measure_from < duration:
+        raise ValueError(
+            f"measure_from must be in [0, duration={duration:g}) s, got {measure_from!r} s"
+        )
+    # Checked before any run: ``fixed`` designs once, a window in (its period is the window).
+    delayed = set(strategies) - {"adaptive-nolatency", "oracle-prophet"}
+    served = [("period", p) for p in periods if delayed - {"fixed"}]
+    served += [("window", w) for w in windows if "fixed" in delayed]
+    for name, t in served:
+        if latency is not None and latency >= t:
+            raise ValueError(
+                f"latency must be shorter than every {name} (the {name} of the "
+                f"{'fixed' if name == 'window' else 'redesigning'} strategies), got "
+                f"latency={latency!r} s and {name}={t!r} s"
+            )
+
+
+def _drift_key(drift: Drift) -> list:
+    """A drift's knots as plain lists (the disturbance cache's key)."""
+    return [
+        drift.name,
+        drift.times.tolist(),
+        drift.seeing.tolist(),
+        drift.wind.tolist(),
+        drift.direction.tolist(),
+    ]
+
+
 def run_adapt(
     case: str,
     *,
@@ -329,11 +388,14 @@ def run_adapt(
     ----------
     case : str
         Case name or TOML path.
-    scenario : str
-        One of :data:`SCENARIOS`.
+    scenario : str or Drift
+        One of :data:`SCENARIOS`, or a :class:`~aocontrol.sim.drift.Drift` of any number of
+        knots (e.g. a wind ramp and a seeing step at another time; the study's scenario
+        label is its ``name``).
     periods, windows : sequence of float
         Update periods ``T`` and telemetry windows ``W`` [s]; every pair is run (the fixed
-        design once per window, the oracle once per period).
+        design once per window, the oracle once per period). The recommendation (docs,
+        "Recommended update period"): ``T = 2 s``, ``W = T`` (:func:`window_rule`).
     duration : float
         Simulated time [s]; each window must be shorter than the run.
     strategies : sequence of str
@@ -370,41 +432,31 @@ def run_adapt(
     Raises
     ------
     ValueError
-        Unknown scenario or strategy, a window not shorter than the run, a period (or, with
-        ``fixed``, a window) not longer than the latency, ``measure_from`` outside
-        ``[0, duration)``: all before any run.
+        A duration that is not positive, an unknown scenario or strategy, a window not
+        shorter than the run, a period (or, with ``fixed``, a window) not longer than the
+        latency, ``measure_from`` outside ``[0, duration)``: all before any run.
     """
-    bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS]
-    if bad:
-        raise ValueError(f"strategies must be among {list(STRATEGIES + DIAGNOSTICS)}, got {bad}")
-    if scenario not in SCENARIOS:
-        raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {scenario!r}")
-    for w in windows:
-        if not 0 < w < duration:
-            raise ValueError(f"window must be in (0, duration={duration:g}) s, got {w!r} s")
-    if measure_from is not None and not 0 <= measure_from < duration:
-        raise ValueError(
-            f"measure_from must be in [0, duration={duration:g}) s, got {measure_from!r} s"
-        )
-    # Checked before any run: ``fixed`` designs once, a window in (its period is the window).
-    delayed = set(strategies) - {"adaptive-nolatency", "oracle-prophet"}
-    served = [("period", p) for p in periods if delayed - {"fixed"}]
-    served += [("window", w) for w in windows if "fixed" in delayed]
-    for name, t in served:
-        if latency is not None and latency >= t:
-            raise ValueError(
-                f"latency must be shorter than every {name} (the {name} of the "
-                f"{'fixed' if name == 'window' else 'redesigning'} strategies), got "
-                f"latency={latency!r} s and {name}={t!r} s"
-            )
+    _check_settings(
+        scenario=scenario,
+        periods=periods,
+        windows=windows,
+        duration=duration,
+        strategies=strategies,
+        latency=latency,
+        measure_from=measure_from,
+    )
     scene = build_scene(case, quick=quick, overrides=overrides)
     c = scene.case
-    drift = scenario_drift(
-        scenario, duration, c.atmosphere.seeing, seed=seed, case_drift=c.atmosphere.drift
-    )
+    if isinstance(scenario, Drift):
+        drift, label = scenario, scenario.name
+    else:
+        drift = scenario_drift(
+            scenario, duration, c.atmosphere.seeing, seed=seed, case_drift=c.atmosphere.drift
+        )
+        label = scenario
     st = scene.stage2
     n = int(round(duration * st.fs))
-    key = json.dumps([case, quick, overrides, scenario, duration, seed], default=str)
+    key = json.dumps([str(case), quick, overrides, _drift_key(drift), duration, seed], default=str)
 
     def disturbance(s: int) -> np.ndarray:
         # Kept for the next call on the same run (a study calls once per period).
@@ -475,6 +527,7 @@ def run_adapt(
                     reference_median=tr.reference_median,
                     reference_worst=tr.reference_worst,
                     transient_p=tr.p_value,
+                    n_kept_modes=run.n_kept_modes,
                 )
             )
             logger.info("%s", rows[-1])
@@ -482,7 +535,8 @@ def run_adapt(
         st, latency, order, modulus_margin, quick, seed, design_options, adaptive_options
     )
     settings["measure_from"] = measure_from
-    return AdaptStudy(c.name, scenario, float(duration), tuple(rows), settings)
+    settings["drift"] = _drift_key(drift)[1:]  # times, seeing, wind, direction
+    return AdaptStudy(c.name, label, float(duration), tuple(rows), settings)
 
 
 _RULE = re.compile(r"^max\(\s*T\s*,\s*([0-9.eE+-]+)\s*\)$")

@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 
 from aocontrol.study._cli_common import (  # noqa: F401 - UserError is part of this module's API
-    RUN_CONTROLLERS,
     RUN_SCHEMES,
     RunFailed,
     UserError,
@@ -35,6 +34,7 @@ from aocontrol.study._cli_common import (  # noqa: F401 - UserError is part of t
     _out_dir,
     _plot_module,
     _valid_name,
+    run_controller_names,
 )
 from aocontrol.study._cli_design import _design, _design_report, read_telemetry  # noqa: F401
 
@@ -121,7 +121,7 @@ def _run(args: argparse.Namespace) -> int:
 
     compare = _compare_module()
     case = _check_case(args.case)
-    controller = _valid_name("controller", args.controller, compare.controller_names())
+    controller = _valid_name("controller", args.controller, run_controller_names())
     scheme = _valid_name("scheme", args.scheme, compare.SCHEMES)
     if args.seconds is not None and not args.seconds > 0:
         raise UserError(f"--seconds must be > 0, got {args.seconds}")
@@ -373,7 +373,9 @@ def _demo(args: argparse.Namespace) -> int:
         f"{demo.DEMO_SECONDS:g} s exposures, scheme {demo.DEMO_SCHEME}; about a minute):"
     )
     try:
-        comparison = demo.demo_comparison(_out_dir(args.output), case=case)
+        comparison = demo.demo_comparison(
+            _out_dir(args.output), case=case, progress=not args.no_progress
+        )
     except RuntimeError as exc:
         raise RunFailed(f"{type(exc).__name__}: {exc}") from exc
     for line in write_comparison(comparison, args.output):
@@ -392,45 +394,115 @@ def _floats(name: str, text: str) -> tuple[float, ...]:
     return values
 
 
+#: The adaptive study's settings (docs/adaptive.md, "Recommended update period"): update
+#: period T [s], window rule, design latency [s], data-driven order and design grid (quick
+#: scene, full scene).
+ADAPT_PERIOD, ADAPT_WINDOW, ADAPT_LATENCY = "2", "T", 0.5
+ADAPT_ORDER = {True: 2, False: 5}
+ADAPT_N_GRID = {True: 24, False: None}
+
+
+def _adapt_pairs(periods: tuple[float, ...], rules: list[str]) -> list[tuple[float, tuple]]:
+    """(period, windows) of each call of ``run_adapt``: one call for numeric windows (every
+    pair run), one per period when a window is a rule of the period (``T``, ``max(T, x)``)."""
+    from aocontrol.study.adapt import window_rule
+
+    try:
+        if not any("T" in r for r in rules):
+            return [(periods, tuple(window_rule(r, periods[0]) for r in rules))]
+        return [((p,), tuple(dict.fromkeys(window_rule(r, p) for r in rules))) for p in periods]
+    except ValueError:
+        text = ",".join(rules)
+        raise UserError(
+            f"--window must be comma-separated seconds > 0, 'T' or 'max(T, x)', got {text!r}"
+        ) from None
+
+
 def _adapt(args: argparse.Namespace) -> int:
-    from aocontrol.study.adapt import STRATEGIES, run_adapt
+    from aocontrol.study.adapt import (
+        DIAGNOSTICS,
+        STRATEGIES,
+        AdaptStudy,
+        _check_settings,
+        run_adapt,
+        scenario_drift,
+    )
+    from aocontrol.study.cases import load_case
     from aocontrol.study.plot import plot_adapt, use_file_backend
 
+    # Every argument is checked before anything is written or run.
+    if not args.seconds > 0:
+        raise UserError(f"--seconds must be > 0 [s], got {args.seconds:g}")
     periods = _floats("--period", args.period)
-    windows = _floats("--window", args.window)
+    calls = _adapt_pairs(periods, args.window.split(","))
     strategies = tuple(args.strategies.split(",")) if args.strategies else STRATEGIES
+    for name in strategies:
+        _valid_name("strategy", name, STRATEGIES + DIAGNOSTICS)
     latency = None if args.latency < 0 else args.latency
     if latency is not None and latency >= min(periods):
         raise UserError(f"--latency {latency:g} s must be shorter than every --period")
-    design = {k: v for k, v in (("n_grid", args.n_grid), ("max_iter", args.max_iter)) if v}
+    order = ADAPT_ORDER[bool(args.quick)] if args.order is None else args.order
+    n_grid = ADAPT_N_GRID[bool(args.quick)] if args.n_grid is None else args.n_grid
+    design = {k: v for k, v in (("n_grid", n_grid), ("max_iter", args.max_iter)) if v}
     adaptive = {} if args.select is None else {"select": args.select}
-    os.makedirs(args.out, exist_ok=True)
+    case = _check_case(args.case)
+    c = load_case(case)
+    scenarios = args.scenario.split(",")
+    for scenario in scenarios:
+        scenario_drift(
+            scenario, args.seconds, c.atmosphere.seeing, case_drift=c.atmosphere.drift
+        )  # a case without a drift, for "case"
+        for ps, ws in calls:
+            _check_settings(
+                scenario=scenario,
+                periods=ps,
+                windows=ws,
+                duration=args.seconds,
+                strategies=strategies,
+                latency=latency,
+                measure_from=args.measure_from,
+            )
+    out = _out_dir(args.out)
     tables = {}
-    for scenario in args.scenario.split(","):
-        study = run_adapt(
-            _check_case(args.case),
-            scenario=scenario,
-            periods=periods,
-            windows=windows,
-            duration=args.seconds,
-            strategies=strategies,
-            latency=latency,
-            order=args.order,
-            quick=args.quick,
-            seed=args.seed,
-            n_jobs=args.jobs,
-            design_options=design,
-            adaptive_options=adaptive,
-        )
+    for scenario in scenarios:
+        rows, settings, study = [], {}, None
+        for ps, ws in calls:
+            study = run_adapt(
+                case,
+                scenario=scenario,
+                periods=ps,
+                windows=ws,
+                duration=args.seconds,
+                strategies=strategies,
+                latency=latency,
+                order=order,
+                quick=args.quick,
+                seed=args.seed,
+                n_jobs=args.jobs,
+                design_options=design,
+                adaptive_options=adaptive,
+                measure_from=args.measure_from,
+            )
+            seen = {(r.strategy, r.period, r.window) for r in rows}
+            rows += [r for r in study.rows if (r.strategy, r.period, r.window) not in seen]
+            settings = study.settings
+        study = AdaptStudy(study.case, study.scenario, study.duration, tuple(rows), settings)
         table = study.table()
         print(table)
-        stem = os.path.join(args.out, f"adapt_{study.case}_{study.scenario}")
+        stem = os.path.join(out, f"adapt_{study.case}_{study.scenario}")
         with open(stem + ".txt", "w") as fh:
             fh.write(table + "\n")
-        print(f"table: {stem}.txt, results: {study.save(stem + '.h5')}")
+        path = study.save(stem + ".h5")
+        print(f"table: {stem}.txt, results: {path}")
+        n_kept = sum(r.n_kept_modes for r in study.rows)
+        if n_kept:
+            print(
+                f"{n_kept} mode redesign(s) were worse than the running controller, which "
+                f"stayed (per row: n_kept_modes in {path})"
+            )
         tables[scenario] = [dataclasses.asdict(r) for r in study.rows]
     use_file_backend()
-    png = os.path.join(args.out, f"adapt_{study.case}.png")
+    png = os.path.join(out, f"adapt_{study.case}.png")
     plot_adapt(tables, title=f"{study.case}, {args.seconds:g} s", path=png)
     print(f"plot: {png}")
     return 0
@@ -477,8 +549,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--controller",
         required=True,
-        metavar="{" + ",".join(RUN_CONTROLLERS) + "}",
-        help="controller of the (fast) stage",
+        metavar="{" + ",".join(run_controller_names()) + "}",
+        help="controller of the (fast) stage (aocontrol.synthesis.CONTROLLERS; integrator is "
+        "an alias of reference)",
     )
     p.add_argument(
         "--scheme",
@@ -584,15 +657,32 @@ def _parser() -> argparse.ArgumentParser:
         _adapt,
         "adaptive control under drifting turbulence: residual against update period and window",
     )
+    p.epilog = (
+        "Defaults are the study's recommended configuration (docs/adaptive.md): T = 2 s, "
+        "W = T, design latency 0.5 s, order 2 and a 24-point design grid with --quick (order 5 "
+        "and the synthesis' grid otherwise). A multi-knot drift: a case file's "
+        '[atmosphere.drift] kind = "knots" with --scenario case. Cost: a 60-s quick run '
+        "(24 modes, five strategies) takes a few CPU minutes per scenario."
+    )
     p.add_argument("case", help="science case name (see 'aocontrol cases') or a case .toml")
     p.add_argument(
         "--scenario",
         default="wind-doubles",
-        help="wind-doubles, seeing-worsens, stochastic, or case (the case's [atmosphere.drift]);"
-        " comma-separated for several",
+        help="wind-doubles, seeing-worsens, stochastic, or case (the case file's "
+        "[atmosphere.drift], any number of knots); comma-separated for several "
+        "(default wind-doubles)",
     )
-    p.add_argument("--period", default="1", help="update periods T [s], comma-separated")
-    p.add_argument("--window", default="1", help="telemetry windows W [s], comma-separated")
+    p.add_argument(
+        "--period",
+        default=ADAPT_PERIOD,
+        help=f"update periods T [s], comma-separated (default {ADAPT_PERIOD})",
+    )
+    p.add_argument(
+        "--window",
+        default=ADAPT_WINDOW,
+        help="telemetry windows W: seconds, 'T' (the period) or 'max(T, x)', comma-separated "
+        f"(default {ADAPT_WINDOW}: each redesign from all the telemetry since the last)",
+    )
     p.add_argument("--seconds", type=float, default=60.0, help="simulated time [s] (default 60)")
     p.add_argument(
         "--strategies",
@@ -602,22 +692,55 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--latency",
         type=float,
-        default=0.5,
-        help="design latency [s] (default 0.5; negative: the measured compute time)",
+        default=ADAPT_LATENCY,
+        help=f"design latency [s] (default {ADAPT_LATENCY:g}; negative: the measured compute time)",
     )
-    p.add_argument("--order", type=int, default=5, help="data-driven controller order")
+    p.add_argument(
+        "--order",
+        type=int,
+        default=None,
+        help=f"data-driven controller order (default {ADAPT_ORDER[True]} with --quick, "
+        f"{ADAPT_ORDER[False]} otherwise)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes of each design")
-    p.add_argument("--quick", action="store_true", help="reduced modes and pupil (smoke runs)")
+    p.add_argument(
+        "--jobs", type=int, default=1, help="worker processes of each design (default 1)"
+    )
+    p.add_argument(
+        "--quick", action="store_true", help="reduced modes and pupil (24 stage-2 modes)"
+    )
     p.add_argument(
         "--select",
         type=float,
         default=None,
-        help="redesign only the modes covering this share of the residual shift (e.g. 0.9)",
+        help="redesign only the modes covering this share of the residual shift, e.g. 0.9 "
+        "(default: every mode)",
     )
-    p.add_argument("--n-grid", type=int, default=None, help="data-driven design grid size")
-    p.add_argument("--max-iter", type=int, default=None, help="data-driven iterations (cold)")
-    p.add_argument("--out", default="adapt-output", help="folder of the table, HDF5 and plot")
+    p.add_argument(
+        "--n-grid",
+        type=int,
+        default=None,
+        help=f"data-driven design grid size (default {ADAPT_N_GRID[True]} with --quick, the "
+        "synthesis' own otherwise)",
+    )
+    p.add_argument(
+        "--max-iter",
+        type=int,
+        default=None,
+        help="data-driven iterations of a cold design (default: the synthesis' own)",
+    )
+    p.add_argument(
+        "--measure-from",
+        type=float,
+        default=None,
+        help="time [s] from which every row's residual is averaged (default: each row's own "
+        "window; the study's tables use 6 s of 60)",
+    )
+    p.add_argument(
+        "--out",
+        default="adapt-output",
+        help="folder of the table, HDF5 and plot (default adapt-output)",
+    )
 
     p = add(
         "demo",
@@ -637,6 +760,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--noise-rms", type=float, default=2.0, help="modal measurement noise [nm RMS per frame]"
     )
+    no_progress(p)
     return parser
 
 

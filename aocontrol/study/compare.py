@@ -38,6 +38,7 @@ optical gains.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -256,14 +257,14 @@ def run_configuration(
     base = load_case(case)
     overrides = dict(overrides or {}, **_sensor_overrides(sensor, optical_gain))
     c = apply_overrides(base, overrides)
-    scene = build_scene(c, quick=quick)
+    scene = build_scene(c, quick=quick, progress=progress)
     gain = c.stage2.gain
     if c.stage2.optical_gain == "two-pass":
         cal = calibration_seconds(scene, quick)
         scene = two_pass_scene(scene, scheme, gain, seconds=cal, seed=seed)
     if design is None and spec.needs_telemetry:
         cal = calibration_seconds(scene, quick)
-        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed)
+        design = design_inputs(scene, scheme, gain, seconds=cal, seed=seed, progress=progress)
     if design is None:
         st = scene.stage2
         design = DesignInputs(
@@ -275,6 +276,9 @@ def run_configuration(
             st.n_modes,
             float(gain),
         )
+    if progress and "progress" in spec.options and "progress" not in design.options:
+        # A bar over the modes of a long design (the data-driven bank: a minute at 540 modes).
+        design = dataclasses.replace(design, options={**design.options, "progress": True})
     t0 = time.perf_counter()
     ctrl = spec.design(design)
     t_design = time.perf_counter() - t0
@@ -410,7 +414,7 @@ def compare_case(
     for s in schemes:
         _check_names("reference", s)
     c = apply_overrides(load_case(case), _sensor_overrides(sensor, optical_gain))
-    scene = build_scene(c, quick=quick)
+    scene = build_scene(c, quick=quick, progress=progress)
     exposure = seconds if seconds is not None else (0.5 if quick else c.science.exposure)
     scan_s = _QUICK_SCAN_SECONDS if quick else _SCAN_SECONDS
     cal_s = calibration_seconds(scene, quick)

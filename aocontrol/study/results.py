@@ -20,6 +20,9 @@ it with named dimensions and ``units``, and plain h5py reads it as ordinary HDF5
       actuator_saturation (actuator)       frames (only with a DM stroke per actuator)
       frequency (frequency)                Hz
       residual_psd, disturbance_psd (mode, frequency)   nm^2/Hz, one-sided (Welch, density)
+      frame (frame)                        frame index (whenever the run recorded telemetry)
+      residual_rms, disturbance_rms (frame)  nm, float32: each frame's modal RMS (square
+                                           root of the sum over modes), settling included
       telemetry_<name> (frame, mode)       nm, float32, only with ``telemetry=True``
       radius (radius), contrast_profile (radius), strehl, mean_contrast_4_6   (science)
     attrs: fs [Hz], n_frames, settle_frames, residual_rms_nm, metadata_json
@@ -85,6 +88,9 @@ _RESERVED = {
     "settle_frames",
 }
 _PSD_SOURCES = {"residuals": "residual_psd", "disturbance": "disturbance_psd"}
+# Per-frame RMS series written whenever the run recorded the telemetry (dimension ``frame``,
+# a few kB per second of run, against ``n_modes`` times that for the telemetry itself).
+_RMS_SERIES = {"residuals": "residual_rms", "disturbance": "disturbance_rms"}
 # Fields of the result types that the file layout stores (a test checks them against the
 # dataclasses, so a new field cannot be silently lost by a round trip).
 _LOOP_FIELDS = frozenset(
@@ -267,7 +273,8 @@ def _write_loop(group: Any, loop: LoopResult, *, telemetry: bool) -> None:
                 "nm^2/Hz",
                 long_name=f"one-sided Welch PSD of the {key} after settling",
             )
-    if telemetry and loop.telemetry:
+    series = {k: v for k, v in _RMS_SERIES.items() if k in loop.telemetry}
+    if series or (telemetry and loop.telemetry):
         group.dimensions["frame"] = int(loop.n_frames)
         _write_variable(
             group,
@@ -277,6 +284,18 @@ def _write_loop(group: Any, loop: LoopResult, *, telemetry: bool) -> None:
             None,
             long_name=f"frame index (frame period {1.0 / loop.fs:.6g} s)",
         )
+        for key, name in series.items():
+            x = np.asarray(loop.telemetry[key], dtype=float)
+            _write_variable(
+                group,
+                name,
+                ("frame",),
+                np.sqrt(np.sum(x * x, axis=1)).astype(np.float32),
+                "nm",
+                long_name=f"RMS of the modal {key} of each frame (square root of the sum "
+                "over modes), settling frames included",
+            )
+    if telemetry and loop.telemetry:
         for key, value in loop.telemetry.items():
             _write_variable(group, f"telemetry_{key}", ("frame", "mode"), value, "nm")
     _write_science(group, loop.science)

@@ -383,6 +383,7 @@ def build_scene(
     quick: bool = False,
     cache: bool = True,
     rng: int = 0,
+    progress: bool = False,
 ) -> Scene:
     """Build (or fetch from the in-memory cache) the scene of a case.
 
@@ -399,6 +400,10 @@ def build_scene(
     rng : int
         Seed of the residual screens of the optical-gain calibration (its
         ``"optical_gain_screens"`` stream, :mod:`aocontrol.study._seeds`).
+    progress : bool
+        When the calibrations must be built (neither in memory nor in the disk cache), a
+        progress bar over their steps that says what is built and where it is cached (a
+        full-scale case takes minutes the first time, a second or two from the cache).
 
     Returns
     -------
@@ -413,7 +418,7 @@ def build_scene(
     key = json.dumps([c.to_dict(), bool(quick), int(rng)], sort_keys=True, default=str)
     if cache and key in _CACHE:
         return _CACHE[key]
-    geo = _geometry(c, bool(quick), int(rng), cache)
+    geo = _geometry(c, bool(quick), int(rng), cache, progress)
     s1 = _stage_scene(c, c.stage1, c.star.G, geo["stage1"])
     s2 = _stage_scene(c, c.stage2, c.star.J, geo["stage2"])
     layers = tuple(
@@ -461,27 +466,77 @@ def geometry_cache_key(c: Case, quick: bool, rng: int = 0) -> str:
     return "scene geometry " + _geometry_key(c, quick, rng)
 
 
-def _geometry(c: Case, quick: bool, rng: int, cache: bool) -> dict:
+def _geometry(c: Case, quick: bool, rng: int, cache: bool, progress: bool = False) -> dict:
     """Pupil, DMs, KL bases, projection and WFS calibrations (cached; see the module notes)."""
     key = _geometry_key(c, quick, rng)
     if cache and key in _GEOMETRY_CACHE:
         return _GEOMETRY_CACHE[key]
     if cache:  # the disk cache, shared by processes and later runs (aocontrol.study._cache)
-        out = disk_cached(geometry_cache_key(c, quick, rng), lambda: _build_geometry(c, quick, rng))
+        from aocontrol.study._cache import cache_dir
+
+        where = cache_dir()
+        note = f"once: cached in {where}" if where is not None else "the disk cache is off"
+        out = disk_cached(
+            geometry_cache_key(c, quick, rng),
+            lambda: _build_geometry(c, quick, rng, _Steps(c.name, note, progress)),
+        )
         _GEOMETRY_CACHE[key] = out
         return out
-    return _build_geometry(c, quick, rng)
+    return _build_geometry(c, quick, rng, _Steps(c.name, "not cached", progress))
 
 
-def _build_geometry(c: Case, quick: bool, rng: int) -> dict:
+class _Steps:
+    """The calibration's progress: a bar over its steps (``progress``), and a log line each."""
+
+    def __init__(self, name: str, note: str, progress: bool) -> None:
+        self.name, self.note, self.progress, self.bar = name, note, progress, None
+
+    def __call__(self, what: str, total: int) -> None:
+        """Announce the next step ``what`` of ``total``."""
+        logger.info("calibrating %s: %s", self.name, what)
+        if not self.progress:
+            return
+        if self.bar is None:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(
+                total=total,
+                desc=f"calibrating {self.name} ({self.note})",
+                unit="step",
+                bar_format="{desc}: {n_fmt}/{total_fmt} steps, {elapsed}{postfix}",
+            )
+        else:
+            self.bar.update(1)
+        self.bar.set_postfix_str(what)
+
+    def close(self) -> None:
+        """Complete and close the bar."""
+        if self.bar is not None:
+            self.bar.update(self.bar.total - self.bar.n)
+            self.bar.set_postfix_str("done")
+            self.bar.close()
+
+
+def _build_geometry(c: Case, quick: bool, rng: int, steps: _Steps | None = None) -> dict:
+    steps = steps or _Steps(c.name, "", False)
+    try:
+        return _calibrations(c, quick, rng, steps)
+    finally:
+        steps.close()
+
+
+def _calibrations(c: Case, quick: bool, rng: int, steps: _Steps) -> dict:
     sim = c.simulation
     pupil = Pupil(diameter=sim.diameter, n_pix=sim.n_pix, obstruction=sim.obstruction)
     r0 = r0_from_seeing(c.atmosphere.seeing)
     n1, n2 = c.stage1.n_modes, c.stage2.n_modes
     if quick:
         n1, n2 = min(n1, QUICK_MODES[0]), min(n2, QUICK_MODES[1])
+    total = 5
+    steps("deformable mirrors", total)
     dm1 = DeformableMirror(pupil, n_actuators=c.stage1.n_actuators)
     dm2 = DeformableMirror(pupil, n_actuators=c.stage2.n_actuators)
+    steps(f"KL bases ({n1} + {n2} modes)", total)
     b1 = kl_basis(dm1, n1, r0=r0, L0=c.atmosphere.L0)
     b2 = kl_basis(dm2, n2, r0=r0, L0=c.atmosphere.L0)
     # Residual no stage corrects: fitting error of the basis with more modes.
@@ -489,8 +544,14 @@ def _build_geometry(c: Case, quick: bool, rng: int) -> dict:
     fit_rms = math.sqrt(fitting_error(finer, r0, c.atmosphere.L0))
     cutoff = (max(c.stage1.n_actuators, c.stage2.n_actuators) - 1) / (2 * sim.diameter)
     gen = np.random.default_rng(seed_sequence(rng, "optical_gain_screens"))
+    steps("projection between the stage bases", total)
     out = {"pupil": pupil, "r0": r0, "projection": projection_matrix(b1, b2)}
     for name, spec, dm, basis in (("stage1", c.stage1, dm1, b1), ("stage2", c.stage2, dm2, b2)):
+        steps(
+            f"{name} {spec.wfs} interaction matrix"
+            + (" and optical gains" if spec.wfs == "pyramid" else ""),
+            total,
+        )
         if spec.wfs == "pyramid":
             wfs = PyramidWFS(
                 pupil,

@@ -15,6 +15,7 @@ from aocontrol.synthesis._datadriven import (
     ModeReport,
     datadriven,
 )
+from aocontrol.synthesis._dd_assemble import REJECTED_WORSE
 from aocontrol.synthesis._dd_neighbours import datadriven_neighbours, has_integrator
 from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
@@ -52,6 +53,7 @@ from aocontrol.synthesis._telemetry import (
 
 __all__ = [
     "BOUNDS",
+    "REJECTED_WORSE",
     "CONTROLLERS",
     "CONTROLLER_ALIASES",
     "controller_names",

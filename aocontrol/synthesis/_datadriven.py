@@ -379,6 +379,7 @@ class _Setup:
     ctx: _Context
     items: list
     init_bank: IIRBank
+    user_initial: bool = False
 
 
 def _prepare(
@@ -582,4 +583,4 @@ def _prepare(
         (i, psd2[i], noise2[i], b0s[i], a0s[i], fixed_modes[i], bool(use_bound[i]))
         for i in range(n_modes)
     ]
-    return _Setup(plant, fs_, freqs, psd2, noise2, ctx, items, init_bank)
+    return _Setup(plant, fs_, freqs, psd2, noise2, ctx, items, init_bank, initial is not None)

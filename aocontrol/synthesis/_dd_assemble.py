@@ -18,6 +18,9 @@ from aocontrol.synthesis._dd_results import DataDrivenError, DataDrivenResult, M
 
 logger = logging.getLogger(__name__)
 
+#: ``ModeReport.start`` of a mode whose design was worse than its start, which replaced it.
+REJECTED_WORSE = "initial (design rejected: worse)"
+
 
 def _assemble(setup, outcomes: list) -> DataDrivenResult:
     """Bank, reports and predicted residuals; raises DataDrivenError if a mode failed.
@@ -51,7 +54,11 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
     fine, fine0 = fine_residual(plant, (bank, init_bank), freqs, psd2, noise2, fs, peaks)
     worse = designed & ((var > var0 * (1 + _WORSE_TOL)) | (fine > fine0 * (1 + _WORSE_TOL)))
     if worse.any():
-        logger.warning(
+        # Keeping a user's start (a warm redesign: the adaptive loop's running controller) is
+        # the promise "never worse than its start", reported per mode and logged as
+        # information; a cold design worse than the default integrator is a warning.
+        logger.log(
+            logging.INFO if setup.user_initial else logging.WARNING,
             "%d mode(s) designed worse than their starting controller on the input grid or the "
             "fine check: the starting controller is kept for them (modes %s)",
             int(worse.sum()),
@@ -74,7 +81,7 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         margin, method, start = r["margin"], r["certificate"], r["start"]
         if worse[i]:
             cert = modulus_certificate(plant, init_bank, fs=fs, mode=i)
-            margin, method, start = cert.value, cert.method, "initial (design rejected: worse)"
+            margin, method, start = cert.value, cert.method, REJECTED_WORSE
         reports.append(
             ModeReport(
                 i,

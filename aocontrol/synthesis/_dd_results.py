@@ -107,8 +107,9 @@ class ModeReport:
     start : str
         ``"initial"`` (the initial controller) or ``"previous mode"`` (the design of the
         previous mode of the same chunk, used when it is feasible and better for this mode);
-        ``"initial (design rejected: worse)"`` when the design was worse than its start on
-        the input grid or the fine check and the start was returned instead.
+        ``"initial (design rejected: worse)"`` (:data:`REJECTED_WORSE`) when the design was
+        worse than its start on the input grid or the fine check and the start was returned
+        instead.
     certificate : str
         How ``modulus_margin`` was certified (exact over the circle for a rational plant).
     pole_radius : float

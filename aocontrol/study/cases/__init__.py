@@ -23,10 +23,22 @@ A drifting atmosphere (:mod:`aocontrol.sim.drift`) is named by an optional sub-t
 ``[atmosphere.drift]`` with ``kind = "step"`` (keys ``at``, ``seeing``, ``wind``,
 ``direction``), ``"ramp"`` (``start``, ``stop``, ``seeing``, ``wind``, ``direction``) or
 ``"stochastic"`` (``duration``, ``seed``, optional ``knot_interval``, ``seeing_timescale``,
-``seeing_rms_change_1h``, ``wind_timescale``, ``wind_log_sigma``). ``seeing`` and ``wind`` are
-factors on the case's values (> 0 and >= 0), ``direction`` an offset in degrees, times with a
-unit (``at = "20 s"``). Negative factors or times, ``stop < start`` and unknown keys are refused
-naming the key.
+``seeing_rms_change_1h``, ``wind_timescale``, ``wind_log_sigma``) or ``"knots"``: the history
+itself, any number of knots, ``times`` (an array of times with a unit) and, one value per knot,
+``seeing``, ``wind`` and ``direction`` (arrays; missing ones hold 1, 1 and 0), linear between
+knots, two knots at one time make a step. E.g. a wind ramp to twice the speed between 10 and
+20 s and a seeing step to 1.5 times at 40 s::
+
+    [atmosphere.drift]
+    kind = "knots"
+    times = ["10 s", "20 s", "40 s", "40 s"]
+    wind = [1.0, 2.0, 2.0, 2.0]
+    seeing = [1.0, 1.0, 1.0, 1.5]
+
+``seeing`` and ``wind`` are factors on the case's values (> 0 and >= 0), ``direction`` an
+offset in degrees, times with a unit (``at = "20 s"``). Negative factors or times, ``stop <
+start``, decreasing knot times, arrays of another length than ``times`` and unknown keys are
+refused naming the key.
 """
 
 from __future__ import annotations
@@ -243,10 +255,12 @@ def _check_range(source: str, key: str, value: float, rkey: str) -> None:
                 )
 
 
-def _parse_table(source: str, name: str, table: Any) -> dict[str, Any]:
+def _parse_table(
+    source: str, name: str, table: Any, schema: dict[str, tuple[str, bool]] | None = None
+) -> dict[str, Any]:
     if not isinstance(table, dict):
         raise CaseError(source, name, f"expected a table [{name}], got {table!r}")
-    schema = _SCHEMA[name]
+    schema = _SCHEMA[name] if schema is None else schema
     unknown = sorted(set(table) - set(schema))
     if unknown:
         raise CaseError(
@@ -446,13 +460,61 @@ _DRIFT_KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 }
 
 
+# The "knots" drift: the piecewise-linear history itself (aocontrol.sim.drift.Drift), one value
+# per knot; any number of knots, two at one time make a step.
+_DRIFT_KNOTS_SCHEMA: dict[str, tuple[str, bool]] = {
+    "kind": ("str", True),
+    "times": ("list:q:time", True),
+    "seeing": ("list:float", False),
+    "wind": ("list:float", False),
+    "direction": ("list:float", False),
+}
+
+
+def _drift_knots(source: str, table: dict) -> DriftSpec:
+    """Parse and check a ``kind = "knots"`` drift."""
+    d = _parse_table(source, "atmosphere.drift", table, _DRIFT_KNOTS_SCHEMA)
+    times = d["times"]
+
+    def bad(key: str, reason: str) -> CaseError:
+        return CaseError(source, f"atmosphere.drift.{key}", reason)
+
+    if any(t < 0 for t in times):
+        raise bad("times", f"must be >= 0 s, got {[f'{t:g} s' for t in times]}")
+    if any(b < a for a, b in zip(times[:-1], times[1:], strict=True)):
+        raise bad(
+            "times",
+            f"must be non-decreasing (two equal times make a step), got "
+            f"{[f'{t:g} s' for t in times]}",
+        )
+    for key in ("seeing", "wind", "direction"):
+        if key in d and len(d[key]) != len(times):
+            raise bad(key, f"must have one value per knot ({len(times)} times), got {len(d[key])}")
+    if any(v <= 0 for v in d.get("seeing", ())):
+        raise bad("seeing", f"must be factors > 0 on the case's seeing, got {list(d['seeing'])}")
+    if any(v < 0 for v in d.get("wind", ())):
+        raise bad("wind", f"must be factors >= 0 on the case's wind speeds, got {list(d['wind'])}")
+    n = len(times)
+    return DriftSpec(
+        kind="knots",
+        times=tuple(times),
+        seeing=d.get("seeing", (1.0,) * n),
+        wind=d.get("wind", (1.0,) * n),
+        direction=d.get("direction", (0.0,) * n),
+    )
+
+
 def _drift(source: str, table: Any) -> DriftSpec:
     """Parse and check ``[atmosphere.drift]``."""
+    if isinstance(table, dict) and table.get("kind") == "knots":
+        return _drift_knots(source, table)
     d = _parse_table(source, "atmosphere.drift", table)
     kind = d["kind"]
     if kind not in _DRIFT_KINDS:
         raise CaseError(
-            source, "atmosphere.drift.kind", f"must be one of {sorted(_DRIFT_KINDS)}, got {kind!r}"
+            source,
+            "atmosphere.drift.kind",
+            f"must be one of {sorted([*_DRIFT_KINDS, 'knots'])}, got {kind!r}",
         )
     required, allowed = _DRIFT_KINDS[kind]
     for key in d:

@@ -33,13 +33,13 @@ class DriftSpec:
     Parameters
     ----------
     kind : str
-        ``"step"``, ``"ramp"`` or ``"stochastic"``.
-    seeing : float
-        Seeing factor reached (step, ramp), > 0.
-    wind : float
-        Wind-speed factor reached (step, ramp), >= 0.
-    direction : float
-        Wind-direction offset reached [deg] (step, ramp).
+        ``"step"``, ``"ramp"``, ``"stochastic"`` or ``"knots"``.
+    seeing : float or tuple of float
+        Seeing factor reached (step, ramp), > 0; one per knot (knots).
+    wind : float or tuple of float
+        Wind-speed factor reached (step, ramp), >= 0; one per knot (knots).
+    direction : float or tuple of float
+        Wind-direction offset reached [deg] (step, ramp); one per knot (knots).
     at : float
         Time of a step [s].
     start, stop : float
@@ -54,12 +54,14 @@ class DriftSpec:
         RMS seeing change over one hour [arcsec] (``None``: 0.16, Paranal).
     wind_log_sigma : float
         Log-standard deviation of the wind factor (0: no wind drift).
+    times : tuple of float
+        Knot times [s] (knots), non-decreasing.
     """
 
     kind: str
-    seeing: float = 1.0
-    wind: float = 1.0
-    direction: float = 0.0
+    seeing: float | tuple[float, ...] = 1.0
+    wind: float | tuple[float, ...] = 1.0
+    direction: float | tuple[float, ...] = 0.0
     at: float = 0.0
     start: float = 0.0
     stop: float = 0.0
@@ -70,6 +72,7 @@ class DriftSpec:
     seeing_rms_change_1h: float | None = None
     wind_timescale: float | None = None
     wind_log_sigma: float = 0.0
+    times: tuple[float, ...] = ()
 
     def build(self, base_seeing: float) -> Any:
         """The :class:`aocontrol.sim.drift.Drift` of this scenario.
@@ -81,6 +84,8 @@ class DriftSpec:
         """
         from aocontrol.sim.drift import Drift
 
+        if self.kind == "knots":
+            return Drift(self.times, self.seeing, self.wind, self.direction, name="case knots")
         if self.kind == "step":
             return Drift.step(self.at, seeing=self.seeing, wind=self.wind, direction=self.direction)
         if self.kind == "ramp":
