@@ -24,7 +24,13 @@ import numpy as np
 from aocontrol.controllers import Integrator
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.loop import Stage, run_cascade
-from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller, _settings
+from aocontrol.study._adapt_parts import (
+    _INDEPENDENT_SEED,
+    SCENARIOS,
+    _controller,
+    _settings,
+    scenario_drift,
+)
 from aocontrol.study.scene import Scene, build_scene
 
 logger = logging.getLogger(__name__)
@@ -231,7 +237,6 @@ def run_adapt_cascade(
         Unknown scenario, strategy or scheme, a window not shorter than the run, a latency
         not shorter than a period or the window: before any run.
     """
-    from aocontrol.study.adapt import SCENARIOS, scenario_drift
 
     bad = [s for s in strategies if s not in CASCADE_STRATEGIES]
     if bad:

@@ -15,6 +15,7 @@ from aocontrol.adaptive import (
     modal_gain_designer,
 )
 from aocontrol.controllers import Integrator
+from aocontrol.sim.drift import Drift
 from aocontrol.study.scene import Scene
 from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry
 
@@ -137,3 +138,46 @@ def _settings(
         design_options=dict(design_options or {}),
         adaptive_options=dict(adaptive_options or {}),
     )
+
+
+#: Named drift scenarios of the adaptive study (:func:`scenario_drift`).
+SCENARIOS = ("wind-doubles", "seeing-worsens", "stochastic", "case")
+# Fractions of the run between which the scripted scenarios ramp.
+_RAMP = (0.2, 0.5)
+
+
+def scenario_drift(
+    name: str, duration: float, base_seeing: float, *, seed: int = 0, case_drift: object = None
+) -> Drift:
+    """The :class:`~aocontrol.sim.drift.Drift` of a named scenario.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`SCENARIOS`.
+    duration : float
+        Run length [s] (the ramps span 20 % to 50 % of it).
+    base_seeing : float
+        The case's seeing [arcsec] (median of the stochastic model).
+    seed : int
+        Seed of the stochastic model.
+    case_drift : DriftSpec, optional
+        The case's ``[atmosphere.drift]`` (scenario ``case``).
+
+    Raises
+    ------
+    ValueError
+        Unknown scenario, or ``case`` for a case without a drift.
+    """
+    start, stop = _RAMP[0] * duration, _RAMP[1] * duration
+    if name == "wind-doubles":
+        return Drift.ramp(start, stop, wind=2.0)
+    if name == "seeing-worsens":
+        return Drift.ramp(start, stop, seeing=1.5)
+    if name == "stochastic":
+        return Drift.stochastic(duration, seed, base_seeing=base_seeing)
+    if name == "case":
+        if case_drift is None:
+            raise ValueError("scenario 'case' needs a case with an [atmosphere.drift] table")
+        return case_drift.build(base_seeing)
+    raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {name!r}")

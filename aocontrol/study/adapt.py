@@ -59,7 +59,13 @@ from aocontrol.study._adapt_cascade import (
     CascadeRow,
     run_adapt_cascade,
 )
-from aocontrol.study._adapt_parts import _INDEPENDENT_SEED, _controller, _settings
+from aocontrol.study._adapt_parts import (
+    _INDEPENDENT_SEED,
+    SCENARIOS,
+    _controller,
+    _settings,
+    scenario_drift,
+)
 from aocontrol.study.scene import Scene, build_scene
 
 __all__ = [
@@ -81,7 +87,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-SCENARIOS = ("wind-doubles", "seeing-worsens", "stochastic", "case")
 STRATEGIES = ("fixed", "adaptive", "oracle", "modal-gain", "lqg")
 #: Strategies that decompose the adaptive / oracle gap: the adaptive loop with no design
 #: latency; the adaptive loop designing from the true disturbance of its window (no
@@ -90,45 +95,6 @@ STRATEGIES = ("fixed", "adaptive", "oracle", "modal-gain", "lqg")
 DIAGNOSTICS = ("adaptive-nolatency", "adaptive-truth", "oracle-prophet")
 # The last disturbances generated ((key, seed) -> array), at most two.
 _DISTURBANCES: dict = {}
-# Fractions of the run between which the scripted scenarios ramp.
-_RAMP = (0.2, 0.5)
-
-
-def scenario_drift(
-    name: str, duration: float, base_seeing: float, *, seed: int = 0, case_drift: object = None
-) -> Drift:
-    """The :class:`~aocontrol.sim.drift.Drift` of a named scenario.
-
-    Parameters
-    ----------
-    name : str
-        One of :data:`SCENARIOS`.
-    duration : float
-        Run length [s] (the ramps span 20 % to 50 % of it).
-    base_seeing : float
-        The case's seeing [arcsec] (median of the stochastic model).
-    seed : int
-        Seed of the stochastic model.
-    case_drift : DriftSpec, optional
-        The case's ``[atmosphere.drift]`` (scenario ``case``).
-
-    Raises
-    ------
-    ValueError
-        Unknown scenario, or ``case`` for a case without a drift.
-    """
-    start, stop = _RAMP[0] * duration, _RAMP[1] * duration
-    if name == "wind-doubles":
-        return Drift.ramp(start, stop, wind=2.0)
-    if name == "seeing-worsens":
-        return Drift.ramp(start, stop, seeing=1.5)
-    if name == "stochastic":
-        return Drift.stochastic(duration, seed, base_seeing=base_seeing)
-    if name == "case":
-        if case_drift is None:
-            raise ValueError("scenario 'case' needs a case with an [atmosphere.drift] table")
-        return case_drift.build(base_seeing)
-    raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {name!r}")
 
 
 def drifting_disturbance(
