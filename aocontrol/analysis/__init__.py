@@ -33,8 +33,8 @@ from aocontrol.analysis._margins import (
     is_stable,
     margins,
     winding_stability,
+    winding_zeros,
 )
-from aocontrol.analysis._margins import _winding_zeros as winding_zeros
 from aocontrol.analysis._psd import welch_psd
 from aocontrol.analysis._residual import (
     mean_square_sampling_variance,

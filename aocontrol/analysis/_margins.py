@@ -61,6 +61,7 @@ __all__ = [
     "is_stable",
     "closed_loop_poles",
     "winding_stability",
+    "winding_zeros",
     "DELAY_SEARCH_FRAMES",
 ]
 
@@ -495,7 +496,7 @@ def _measured_margins(plant: control.FRD, K: control.TransferFunction, fs: float
 
     def verdict(P: np.ndarray) -> bool | None:
         try:
-            return _winding_zeros(P) == 0
+            return winding_zeros(P) == 0
         except ValueError:
             return None
 
@@ -663,10 +664,10 @@ def winding_stability(
         mid = 0.5 * (freqs[:-1][big] + freqs[1:][big])
         freqs = np.sort(np.concatenate([freqs, mid]))
         P = char(freqs)
-    return _winding_zeros(P) == 0
+    return winding_zeros(P) == 0
 
 
-def _winding_zeros(P: np.ndarray) -> int:
+def winding_zeros(P: np.ndarray) -> int:
     """Zeros inside the unit disc of ``P(w)``, ``w = z^-1``, from its values on [0, fs/2].
 
     ``P`` is a real-coefficient polynomial (or analytic function) sampled on a grid covering

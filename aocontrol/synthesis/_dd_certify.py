@@ -20,8 +20,8 @@ from aocontrol.analysis import (
     modulus_certificate,
     polynomial_certificate,
     winding_stability,
+    winding_zeros,
 )
-from aocontrol.analysis import winding_zeros as _winding_zeros
 from aocontrol.plant import frequency_response_unchecked, tf_from_z_inverse
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, Certifier, Check, GridData
@@ -145,7 +145,7 @@ def _stable(ctx: _Context, dense: GridData, v: np.ndarray) -> bool:
     # the dense grid covers [0, fs/2] (checked in _prepare). A grid too coarse to follow the
     # phase certifies nothing: the iterate is refused.
     try:
-        return _winding_zeros(dense.A @ v + dense.F) == 0
+        return winding_zeros(dense.A @ v + dense.F) == 0
     except ValueError:
         return False
 
