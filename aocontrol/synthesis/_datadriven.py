@@ -247,24 +247,26 @@ def datadriven(
         Fixed factor ``F`` of the denominator, coefficients in powers of ``z^-1``, e.g.
         ``[1, -1]`` (integral action) or ``[1, -(1 - leak)]``.
     initial : IIRBank or control.TransferFunction, optional
-        Starting controller(s) (1 or ``n_modes`` modes); must stabilise the plant and have
-        its free poles inside ``max_pole_radius``. Default: the optimal modal-gain integrator
-        (leaky if ``F = [1, -(1 - leak)]``; see ``max_pole_radius``).
+        Starting controller(s) (1 or ``n_modes`` modes); must stabilise the plant and have its
+        free poles strictly inside ``max_pole_radius``. Default: the optimal modal-gain
+        integrator (leaky if ``F = [1, -(1 - leak)]``; see ``max_pole_radius``).
     max_pole_radius : float or None, default 0.9999
-        Every free controller pole (the fixed factor ``F`` apart) stays inside this radius, in
-        (0, 1], so that the controller survives an open loop (a WFS dropout, a DM clipping at
+        Every free controller pole (the fixed factor ``F`` apart) stays strictly inside this
+        radius, in (0, 1] (about ``1e-4`` of it inside: the convexified constraint keeps the
+        scaled denominator off zero on the circle; 1.0 allows poles up to just inside the unit
+        circle), so that the controller survives an open loop (a WFS dropout, a DM clipping at
         its stroke) instead of running away. ``None`` allows unstable controllers (explicit
         only). With the default ``fixed_denominator=None`` the structure is chosen per mode:
         every pole free, starting from the leaky integrator whose pole lies just inside the
         radius, or, where the integrator starts at least 10 % better (low-order modes whose
         power spans decades below the loop bandwidth), ``F = 1 - z^-1`` with the integrator's
-        pole at z = 1 fixed (integral action). The default 0.9999 (a 3.3 s time constant at
-        3 kHz: an open loop's command decays, where an integrator's holds) was chosen on
-        the 60 lowest of 540 synthetic turbulence modes at 3 kHz, 0.83 frame, order 5
-        (``benchmarks/bench_synthesis.py`` settings, one serial run): median residual /
-        Wiener bound 1.044 at 0.9999 (90th percentile 1.094), 1.045 at 0.9995, 1.047 at
-        0.999, 1.103 at 0.995 (tip/tilt 1.59), 1.060 unconstrained (``None``: tip/tilt 1.16
-        against 1.21, the other modes worse, 5.7x the CPU).
+        pole at z = 1 fixed (integral action). The default 0.9999 (a 3.3 s time constant at 3
+        kHz: an open loop's command decays, where an integrator's holds) was chosen on the 60
+        lowest of 540 synthetic turbulence modes at 3 kHz, 0.83 frame, order 5
+        (``benchmarks/bench_synthesis.py`` settings, one serial run): median residual / Wiener
+        bound 1.044 at 0.9999 (90th percentile 1.094), 1.045 at 0.9995, 1.047 at 0.999, 1.103 at
+        0.995 (tip/tilt 1.59), 1.060 unconstrained (``None``: tip/tilt 1.16 against 1.21, the
+        other modes worse, 5.7x the CPU).
     bound_start : bool or None, default None
         Also start from the margin-constrained bound, reduced to the design's order: the
         sensitivity of :func:`aocontrol.analysis.constrained_bound` (FIR Youla parameter of
@@ -421,7 +423,7 @@ def _prepare(
         order = _check_bounded_int("order", order, 1, MAX_ORDER)
     if max_pole_radius is not None:
         max_pole_radius = check_in_range(
-            "max_pole_radius", max_pole_radius, 0.0, 1.0, low_inclusive=False
+            "max_pole_radius", max_pole_radius, 0.0, 1.0, low_inclusive=False, high_inclusive=True
         )
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
     use_bound = bound_start_modes(bound_start, plant, freqs, psd2, noise2)
@@ -519,7 +521,9 @@ def _prepare(
             if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a0s[i]))):
                 continue  # outside the parameter set: the design starts from its response
             r = np.abs(np.roots(quot)) if quot.size > 1 else np.zeros(1)
-            if r.size and r.max() > max_pole_radius * (1 + 1e-12):
+            # Strictly inside: the convexified radius constraint needs the start's scaled
+            # denominator nonzero on the circle (a start pole on the radius has none).
+            if r.size and r.max() >= max_pole_radius * (1 - 1e-12):
                 outside[i] = float(r.max())
         if outside:
             raise InitialPoleRadiusError(outside, max_pole_radius)

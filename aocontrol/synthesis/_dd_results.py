@@ -43,7 +43,7 @@ class DataDrivenError(PerModeError):
 
 
 class InitialPoleRadiusError(ValueError):
-    """The initial controller has free poles outside ``max_pole_radius``.
+    """The initial controller has free poles on or outside ``max_pole_radius``.
 
     Raised by :func:`aocontrol.synthesis.datadriven` before any design, e.g. for an
     integrator (pole at ``z = 1``) given as ``initial`` with every pole free
@@ -53,7 +53,7 @@ class InitialPoleRadiusError(ValueError):
     Parameters
     ----------
     radii : dict[int, float]
-        Mode index -> largest free pole radius of its initial controller (> the radius).
+        Mode index -> largest free pole radius of its initial controller (>= the radius).
     max_pole_radius : float
         The radius asked for.
 
@@ -66,10 +66,10 @@ class InitialPoleRadiusError(ValueError):
     def __init__(self, radii: dict[int, float], max_pole_radius: float) -> None:
         first = list(radii.items())[:5]
         super().__init__(
-            f"initial has free controller poles outside max_pole_radius={max_pole_radius} "
-            f"(mode: radius {first}{' ...' if len(radii) > 5 else ''}); give an initial "
-            "controller inside the radius, or max_pole_radius=None to allow unstable "
-            "controllers"
+            f"initial has free controller poles on or outside max_pole_radius="
+            f"{max_pole_radius} (mode: radius {first}{' ...' if len(radii) > 5 else ''}); give "
+            "an initial controller strictly inside the radius, or max_pole_radius=None to "
+            "allow unstable controllers"
         )
         self.radii = dict(radii)
         self.max_pole_radius = max_pole_radius
