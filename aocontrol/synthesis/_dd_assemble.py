@@ -7,6 +7,7 @@ check, the fallback to the start for a design worse than it, and the per-mode re
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 
@@ -67,9 +68,9 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         i = r["mode"]
         if r["error"]:
             failed[i] = r["error"]
-            reports.append(
-                ModeReport(i, False, r["error"], np.empty(0), 0, False, np.nan, False, 0, "")
-            )
+            empty = (np.empty(0), 0, False, np.nan, False, 0, "")
+            bound_error = r.get("bound_error", "")
+            reports.append(ModeReport(i, False, r["error"], *empty, bound_start_error=bound_error))
             continue
         margin, method, start = r["margin"], r["certificate"], r["start"]
         if worse[i]:
@@ -90,7 +91,18 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
                 certificate=method,
                 pole_radius=_bank_pole_radius(bank, i, r["fixed"]),
                 order=int(r.get("order", ctx.nq + ctx.fixed.size - 1)),
+                bound_start_error=r.get("bound_error", ""),
             )
+        )
+    no_bound = {r.mode: r.bound_start_error for r in reports if r.bound_start_error}
+    if no_bound:
+        first = next(iter(no_bound.items()))
+        warnings.warn(
+            f"bound start not available for {len(no_bound)} mode(s) {list(no_bound)[:10]}: "
+            f"{first[1]} (mode {first[0]}); they started from the integrator "
+            "(ModeReport.bound_start_error)",
+            UserWarning,
+            stacklevel=4,
         )
     result = DataDrivenResult(
         bank,

@@ -115,6 +115,10 @@ class ModeReport:
         Largest modulus of the controller's free poles (the fixed factor apart).
     order : int
         Controller order (the degree of ``Y``; chosen per mode with ``order="auto"``).
+    bound_start_error : str
+        Why the reduced-bound start asked for this mode (``bound_start``) is missing: the
+        failure of :func:`aocontrol.analysis.constrained_bound` (then the mode started from
+        its other starts, with a warning); empty when not asked or computed.
     """
 
     mode: int
@@ -130,6 +134,7 @@ class ModeReport:
     certificate: str = ""
     pole_radius: float = float("nan")
     order: int = 0
+    bound_start_error: str = ""
 
 
 @dataclass(frozen=True)
