@@ -244,10 +244,11 @@ def test_a_bound_that_fails_is_reported_in_the_design(monkeypatch):
     assert sorted(rep.bound_failures) == [0, 1]
     assert "injected failure" in rep.bound_failures[0]
     assert np.isnan(rep.constrained_variance).all()
+    fine = np.linspace(0.0, FS / 2, 400)  # a grid that resolves the PSD (no grid warning)
     with pytest.warns(UserWarning, match=r"bound start not available for 1 mode"):
         dd = datadriven(
-            plant, f, psd, noise_psd=noise, order=2, modulus_margin=0.525, bound_start=True,
-            max_iter=2, n_jobs=1, progress=False,
+            plant, fine, np.interp(fine, f, psd), noise_psd=noise, order=2,
+            modulus_margin=0.525, bound_start=True, max_iter=2, n_jobs=1, progress=False,
         )  # fmt: skip
     assert "injected failure" in dd.reports[0].bound_start_error
     # Twin: without the injected failure nothing is reported.

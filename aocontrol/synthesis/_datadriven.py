@@ -15,6 +15,7 @@ PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the varianc
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 
 import control
@@ -50,19 +51,24 @@ from aocontrol.synthesis._dd_grids import (
     _dense_grid,
     _design_indices,
     _trapezoid_weights,
+    unresolved_intervals,
 )
 from aocontrol.synthesis._dd_mode import _MARGIN_SAFETY, _START_LEAK_MARGIN, _run
 from aocontrol.synthesis._dd_results import (
+    GRID_DISAGREEMENT,
     DataDrivenError,
     DataDrivenResult,
+    GridResolutionWarning,
     InitialPoleRadiusError,
     ModeReport,
 )
 from aocontrol.synthesis._dd_starts import bound_start_modes
 
 __all__ = [
+    "GRID_DISAGREEMENT",
     "DataDrivenError",
     "DataDrivenResult",
+    "GridResolutionWarning",
     "InitialPoleRadiusError",
     "ModeReport",
     "datadriven",
@@ -326,13 +332,25 @@ def datadriven(
         Invalid inputs (named in the message), or an initial controller that does not
         stabilise the plant.
     InitialPoleRadiusError
-        (A ValueError.) ``initial`` has free poles outside ``max_pole_radius`` (e.g. an
+        (A ValueError.) ``initial`` has free poles on or outside ``max_pole_radius`` (e.g. an
         integrator with ``fixed_denominator=[1]``); ``.radii`` maps the modes to their radii.
     DataDrivenError
         Some modes failed (infeasible convexified problem, no verified controller, or any
         numerical failure of that mode's design: solver, linear algebra, floating point); the
         message lists them and ``error.result`` holds every mode (failed ones keep the
         initial controller).
+
+    Warns
+    -----
+    GridResolutionWarning
+        ``freqs`` does not resolve the PSD (an interval holding over 25 % of its integral
+        across which it changes over 100x, e.g. the first nonzero point above a turbulence
+        knee), or the residual on ``freqs`` and on the fine check disagree by more than
+        ``GRID_DISAGREEMENT`` (2x): the message gives the interval or the figures and the fix
+        (a denser or log-spaced grid).
+    UserWarning
+        The bound start was asked for but :func:`aocontrol.analysis.constrained_bound` failed
+        (:attr:`ModeReport.bound_start_error`).
 
     Examples
     --------
@@ -412,6 +430,19 @@ def _prepare(
     check_psd("psd", psd, freqs.size, allow_all_zero=False)
     psd2, noise2, _ = mode_psds(psd, noise_psd, freqs.size)
     n_modes = psd2.shape[0]
+    unresolved = unresolved_intervals(freqs, psd2)
+    if unresolved:
+        i, (f_lo, f_hi, ratio, share) = next(iter(unresolved.items()))
+        warnings.warn(
+            f"freqs does not resolve the PSD of {len(unresolved)} mode(s) "
+            f"{list(unresolved)[:10]}: between {f_lo:.4g} and {f_hi:.4g} Hz (mode {i}) the PSD "
+            f"changes {ratio:.3g}x and that interval holds {100 * share:.0f} % of its "
+            "integral, so the design weighs it with two points (e.g. a turbulence knee below "
+            "the first nonzero frequency); give a denser or log-spaced grid there, e.g. "
+            f"np.concatenate([[0.0], np.geomspace({fs_ * 1e-5:.3g}, {fs_ / 2:g}, 500)])",
+            GridResolutionWarning,
+            stacklevel=4,
+        )
     if isinstance(order, str):
         if order != "auto":
             raise ValueError(

@@ -15,7 +15,13 @@ from aocontrol.analysis import modulus_certificate, residual_psd
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis._dd_certify import _Context
 from aocontrol.synthesis._dd_grids import fine_residual
-from aocontrol.synthesis._dd_results import DataDrivenError, DataDrivenResult, ModeReport
+from aocontrol.synthesis._dd_results import (
+    GRID_DISAGREEMENT,
+    DataDrivenError,
+    DataDrivenResult,
+    GridResolutionWarning,
+    ModeReport,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -63,6 +69,7 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         a[worse, : init_bank.a.shape[1]] = init_bank.a[worse]
         bank = IIRBank(b, a, fs)
         var[worse], fine[worse] = var0[worse], fine0[worse]
+    _warn_disagreement(var, fine, designed, fs)
     reports, failed = [], {}
     for r in outcomes:
         i = r["mode"]
@@ -123,6 +130,28 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         int(np.median(result.solves)),
     )
     return result
+
+
+def _warn_disagreement(var: np.ndarray, fine: np.ndarray, designed: np.ndarray, fs: float) -> None:
+    """Warn when the residual on the input grid and on the fine check disagree by more than
+    ``GRID_DISAGREEMENT`` (:class:`GridResolutionWarning`: the grid does not resolve the PSD
+    or the loop's ``|S|``, so the design optimised figures that are not the residual)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.maximum(fine / var, var / fine)
+    bad = np.flatnonzero(designed & (factor > GRID_DISAGREEMENT))
+    if not bad.size:
+        return
+    i = int(bad[np.argmax(factor[bad])])
+    warnings.warn(
+        f"the residual on the input grid and on the fine check disagree by more than "
+        f"{GRID_DISAGREEMENT:g}x for {bad.size} mode(s) {bad[:10].tolist()} (mode {i}: "
+        f"{var[i]:.4g} on the grid, {fine[i]:.4g} on the fine check, PSDs interpolated "
+        "linearly): the grid does not resolve the PSD or the loop, and the design optimised "
+        "figures that are not the residual; give a denser or log-spaced grid, e.g. "
+        f"np.concatenate([[0.0], np.geomspace({fs * 1e-5:.3g}, {fs / 2:g}, 500)])",
+        GridResolutionWarning,
+        stacklevel=5,
+    )
 
 
 # A design is "worse" than its start beyond this relative tolerance (the solver's accuracy).

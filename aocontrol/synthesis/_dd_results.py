@@ -9,7 +9,14 @@ import numpy as np
 from aocontrol._validation import PerModeError
 from aocontrol.controllers import IIRBank
 
-__all__ = ["DataDrivenError", "DataDrivenResult", "InitialPoleRadiusError", "ModeReport"]
+__all__ = [
+    "GRID_DISAGREEMENT",
+    "DataDrivenError",
+    "DataDrivenResult",
+    "GridResolutionWarning",
+    "InitialPoleRadiusError",
+    "ModeReport",
+]
 
 
 class DataDrivenError(PerModeError):
@@ -40,6 +47,24 @@ class DataDrivenError(PerModeError):
             operation="data-driven synthesis",
             note=". The other modes are in this error's .result",
         )
+
+
+class GridResolutionWarning(UserWarning):
+    """A frequency grid that does not resolve the PSD: the figures on it are not the residual.
+
+    Warned by :func:`aocontrol.synthesis.datadriven` when an interval of the input grid holds
+    much of the PSD's integral while the PSD changes across it by orders of magnitude (e.g.
+    the first nonzero point above a turbulence knee), or when the residual on the input grid
+    and on the fine check (:attr:`DataDrivenResult.residual_variance_fine`) disagree by more
+    than ``GRID_DISAGREEMENT``. The message gives the reason and the fix: a denser or
+    log-spaced grid.
+    """
+
+
+#: Factor between the residual on the input grid and on the fine check beyond which
+#: :func:`aocontrol.synthesis.datadriven` warns (:class:`GridResolutionWarning`). On a grid that
+#: resolves the PSD they agree to a few per cent (the fine check's linear interpolation).
+GRID_DISAGREEMENT = 2.0
 
 
 class InitialPoleRadiusError(ValueError):
