@@ -206,6 +206,26 @@ def test_pole_radius_none_is_explicit_and_radius_is_enforced():
     assert free.size and np.max(np.abs(free)) <= 0.98 * (1 + 1e-12)
 
 
+def test_pole_radius_one_is_accepted_as_documented():
+    # Issue 30: the docstring says (0, 1], the code refused 1.0. With 1.0 the free poles stay
+    # strictly inside the unit circle (the controller survives an open loop); the twin below
+    # shows the upper end is still checked, and a start with a pole on the radius (an
+    # integrator with every pole free) is refused by name instead of failing in the solver.
+    fs, G, f, psd, noise = _issue_case()
+    res = datadriven(
+        G, f, psd, noise_psd=noise, order=4, max_pole_radius=1.0, n_jobs=1, progress=False
+    )
+    assert res.ok.all() and res.stable.all()
+    assert 0.0 < res.pole_radius[0] < 1.0
+    with pytest.raises(ValueError, match=r"max_pole_radius must be in \(0.0, 1.0\]"):
+        datadriven(G, f, psd, max_pole_radius=1.0 + 1e-9, n_jobs=1, progress=False)
+    with pytest.raises(InitialPoleRadiusError, match="on or outside max_pole_radius=1.0"):
+        datadriven(
+            G, f, psd, initial=Integrator(0.3, fs=fs), fixed_denominator=[1.0],
+            max_pole_radius=1.0, n_jobs=1, progress=False,
+        )  # fmt: skip
+
+
 @pytest.mark.parametrize("value", [0.0, -0.5, 1.5, np.nan])
 def test_bad_pole_radius_is_refused_naming_it(value):
     fs, G, f, psd, noise = _issue_case()

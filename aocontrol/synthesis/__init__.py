@@ -9,8 +9,10 @@ PSDs are one-sided [units^2/Hz]; telemetry is shaped ``(n_frames, n_modes)``.
 from aocontrol.synthesis._arfit import fit_disturbance_model
 from aocontrol.synthesis._armodel import DisturbanceModel, ar2_variance
 from aocontrol.synthesis._datadriven import (
+    GRID_DISAGREEMENT,
     DataDrivenError,
     DataDrivenResult,
+    GridResolutionWarning,
     InitialPoleRadiusError,
     ModeReport,
     datadriven,
@@ -73,6 +75,8 @@ __all__ = [
     "DataDrivenError",
     "DataDrivenResult",
     "DisturbanceModel",
+    "GRID_DISAGREEMENT",
+    "GridResolutionWarning",
     "InitialPoleRadiusError",
     "ModalGainError",
     "ModeReport",

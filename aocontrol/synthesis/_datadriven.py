@@ -15,6 +15,7 @@ PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the varianc
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 
 import control
@@ -50,19 +51,24 @@ from aocontrol.synthesis._dd_grids import (
     _dense_grid,
     _design_indices,
     _trapezoid_weights,
+    unresolved_intervals,
 )
 from aocontrol.synthesis._dd_mode import _MARGIN_SAFETY, _START_LEAK_MARGIN, _run
 from aocontrol.synthesis._dd_results import (
+    GRID_DISAGREEMENT,
     DataDrivenError,
     DataDrivenResult,
+    GridResolutionWarning,
     InitialPoleRadiusError,
     ModeReport,
 )
 from aocontrol.synthesis._dd_starts import bound_start_modes
 
 __all__ = [
+    "GRID_DISAGREEMENT",
     "DataDrivenError",
     "DataDrivenResult",
+    "GridResolutionWarning",
     "InitialPoleRadiusError",
     "ModeReport",
     "datadriven",
@@ -247,24 +253,26 @@ def datadriven(
         Fixed factor ``F`` of the denominator, coefficients in powers of ``z^-1``, e.g.
         ``[1, -1]`` (integral action) or ``[1, -(1 - leak)]``.
     initial : IIRBank or control.TransferFunction, optional
-        Starting controller(s) (1 or ``n_modes`` modes); must stabilise the plant and have
-        its free poles inside ``max_pole_radius``. Default: the optimal modal-gain integrator
-        (leaky if ``F = [1, -(1 - leak)]``; see ``max_pole_radius``).
+        Starting controller(s) (1 or ``n_modes`` modes); must stabilise the plant and have its
+        free poles strictly inside ``max_pole_radius``. Default: the optimal modal-gain
+        integrator (leaky if ``F = [1, -(1 - leak)]``; see ``max_pole_radius``).
     max_pole_radius : float or None, default 0.9999
-        Every free controller pole (the fixed factor ``F`` apart) stays inside this radius, in
-        (0, 1], so that the controller survives an open loop (a WFS dropout, a DM clipping at
+        Every free controller pole (the fixed factor ``F`` apart) stays strictly inside this
+        radius, in (0, 1] (about ``1e-4`` of it inside: the convexified constraint keeps the
+        scaled denominator off zero on the circle; 1.0 allows poles up to just inside the unit
+        circle), so that the controller survives an open loop (a WFS dropout, a DM clipping at
         its stroke) instead of running away. ``None`` allows unstable controllers (explicit
         only). With the default ``fixed_denominator=None`` the structure is chosen per mode:
         every pole free, starting from the leaky integrator whose pole lies just inside the
         radius, or, where the integrator starts at least 10 % better (low-order modes whose
         power spans decades below the loop bandwidth), ``F = 1 - z^-1`` with the integrator's
-        pole at z = 1 fixed (integral action). The default 0.9999 (a 3.3 s time constant at
-        3 kHz: an open loop's command decays, where an integrator's holds) was chosen on
-        the 60 lowest of 540 synthetic turbulence modes at 3 kHz, 0.83 frame, order 5
-        (``benchmarks/bench_synthesis.py`` settings, one serial run): median residual /
-        Wiener bound 1.044 at 0.9999 (90th percentile 1.094), 1.045 at 0.9995, 1.047 at
-        0.999, 1.103 at 0.995 (tip/tilt 1.59), 1.060 unconstrained (``None``: tip/tilt 1.16
-        against 1.21, the other modes worse, 5.7x the CPU).
+        pole at z = 1 fixed (integral action). The default 0.9999 (a 3.3 s time constant at 3
+        kHz: an open loop's command decays, where an integrator's holds) was chosen on the 60
+        lowest of 540 synthetic turbulence modes at 3 kHz, 0.83 frame, order 5
+        (``benchmarks/bench_synthesis.py`` settings, one serial run): median residual / Wiener
+        bound 1.044 at 0.9999 (90th percentile 1.094), 1.045 at 0.9995, 1.047 at 0.999, 1.103 at
+        0.995 (tip/tilt 1.59), 1.060 unconstrained (``None``: tip/tilt 1.16 against 1.21, the
+        other modes worse, 5.7x the CPU).
     bound_start : bool or None, default None
         Also start from the margin-constrained bound, reduced to the design's order: the
         sensitivity of :func:`aocontrol.analysis.constrained_bound` (FIR Youla parameter of
@@ -324,13 +332,25 @@ def datadriven(
         Invalid inputs (named in the message), or an initial controller that does not
         stabilise the plant.
     InitialPoleRadiusError
-        (A ValueError.) ``initial`` has free poles outside ``max_pole_radius`` (e.g. an
+        (A ValueError.) ``initial`` has free poles on or outside ``max_pole_radius`` (e.g. an
         integrator with ``fixed_denominator=[1]``); ``.radii`` maps the modes to their radii.
     DataDrivenError
         Some modes failed (infeasible convexified problem, no verified controller, or any
         numerical failure of that mode's design: solver, linear algebra, floating point); the
         message lists them and ``error.result`` holds every mode (failed ones keep the
         initial controller).
+
+    Warns
+    -----
+    GridResolutionWarning
+        ``freqs`` does not resolve the PSD (an interval holding over 25 % of its integral
+        across which it changes over 100x, e.g. the first nonzero point above a turbulence
+        knee), or the residual on ``freqs`` and on the fine check disagree by more than
+        ``GRID_DISAGREEMENT`` (2x): the message gives the interval or the figures and the fix
+        (a denser or log-spaced grid).
+    UserWarning
+        The bound start was asked for but :func:`aocontrol.analysis.constrained_bound` failed
+        (:attr:`ModeReport.bound_start_error`).
 
     Examples
     --------
@@ -411,6 +431,19 @@ def _prepare(
     check_psd("psd", psd, freqs.size, allow_all_zero=False)
     psd2, noise2, _ = mode_psds(psd, noise_psd, freqs.size)
     n_modes = psd2.shape[0]
+    unresolved = unresolved_intervals(freqs, psd2)
+    if unresolved:
+        i, (f_lo, f_hi, ratio, share) = next(iter(unresolved.items()))
+        warnings.warn(
+            f"freqs does not resolve the PSD of {len(unresolved)} mode(s) "
+            f"{list(unresolved)[:10]}: between {f_lo:.4g} and {f_hi:.4g} Hz (mode {i}) the PSD "
+            f"changes {ratio:.3g}x and that interval holds {100 * share:.0f} % of its "
+            "integral, so the design weighs it with two points (e.g. a turbulence knee below "
+            "the first nonzero frequency); give a denser or log-spaced grid there, e.g. "
+            f"np.concatenate([[0.0], np.geomspace({fs_ * 1e-5:.3g}, {fs_ / 2:g}, 500)])",
+            GridResolutionWarning,
+            stacklevel=4,
+        )
     if isinstance(order, str):
         if order != "auto":
             raise ValueError(
@@ -422,7 +455,7 @@ def _prepare(
         order = _check_bounded_int("order", order, 1, MAX_ORDER)
     if max_pole_radius is not None:
         max_pole_radius = check_in_range(
-            "max_pole_radius", max_pole_radius, 0.0, 1.0, low_inclusive=False
+            "max_pole_radius", max_pole_radius, 0.0, 1.0, low_inclusive=False, high_inclusive=True
         )
     mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, low_inclusive=False)
     use_bound = bound_start_modes(bound_start, plant, freqs, psd2, noise2)
@@ -520,7 +553,9 @@ def _prepare(
             if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a0s[i]))):
                 continue  # outside the parameter set: the design starts from its response
             r = np.abs(np.roots(quot)) if quot.size > 1 else np.zeros(1)
-            if r.size and r.max() > max_pole_radius * (1 + 1e-12):
+            # Strictly inside: the convexified radius constraint needs the start's scaled
+            # denominator nonzero on the circle (a start pole on the radius has none).
+            if r.size and r.max() >= max_pole_radius * (1 - 1e-12):
                 outside[i] = float(r.max())
         if outside:
             raise InitialPoleRadiusError(outside, max_pole_radius)

@@ -7,6 +7,7 @@ check, the fallback to the start for a design worse than it, and the per-mode re
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 
@@ -14,7 +15,13 @@ from aocontrol.analysis import modulus_certificate, residual_psd
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis._dd_certify import _Context
 from aocontrol.synthesis._dd_grids import fine_residual
-from aocontrol.synthesis._dd_results import DataDrivenError, DataDrivenResult, ModeReport
+from aocontrol.synthesis._dd_results import (
+    GRID_DISAGREEMENT,
+    DataDrivenError,
+    DataDrivenResult,
+    GridResolutionWarning,
+    ModeReport,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -69,14 +76,15 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         a[worse, : init_bank.a.shape[1]] = init_bank.a[worse]
         bank = IIRBank(b, a, fs)
         var[worse], fine[worse] = var0[worse], fine0[worse]
+    _warn_disagreement(var, fine, designed, fs)
     reports, failed = [], {}
     for r in outcomes:
         i = r["mode"]
         if r["error"]:
             failed[i] = r["error"]
-            reports.append(
-                ModeReport(i, False, r["error"], np.empty(0), 0, False, np.nan, False, 0, "")
-            )
+            empty = (np.empty(0), 0, False, np.nan, False, 0, "")
+            bound_error = r.get("bound_error", "")
+            reports.append(ModeReport(i, False, r["error"], *empty, bound_start_error=bound_error))
             continue
         margin, method, start = r["margin"], r["certificate"], r["start"]
         if worse[i]:
@@ -97,7 +105,18 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
                 certificate=method,
                 pole_radius=_bank_pole_radius(bank, i, r["fixed"]),
                 order=int(r.get("order", ctx.nq + ctx.fixed.size - 1)),
+                bound_start_error=r.get("bound_error", ""),
             )
+        )
+    no_bound = {r.mode: r.bound_start_error for r in reports if r.bound_start_error}
+    if no_bound:
+        first = next(iter(no_bound.items()))
+        warnings.warn(
+            f"bound start not available for {len(no_bound)} mode(s) {list(no_bound)[:10]}: "
+            f"{first[1]} (mode {first[0]}); they started from the integrator "
+            "(ModeReport.bound_start_error)",
+            UserWarning,
+            stacklevel=4,
         )
     result = DataDrivenResult(
         bank,
@@ -118,6 +137,28 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         int(np.median(result.solves)),
     )
     return result
+
+
+def _warn_disagreement(var: np.ndarray, fine: np.ndarray, designed: np.ndarray, fs: float) -> None:
+    """Warn when the residual on the input grid and on the fine check disagree by more than
+    ``GRID_DISAGREEMENT`` (:class:`GridResolutionWarning`: the grid does not resolve the PSD
+    or the loop's ``|S|``, so the design optimised figures that are not the residual)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.maximum(fine / var, var / fine)
+    bad = np.flatnonzero(designed & (factor > GRID_DISAGREEMENT))
+    if not bad.size:
+        return
+    i = int(bad[np.argmax(factor[bad])])
+    warnings.warn(
+        f"the residual on the input grid and on the fine check disagree by more than "
+        f"{GRID_DISAGREEMENT:g}x for {bad.size} mode(s) {bad[:10].tolist()} (mode {i}: "
+        f"{var[i]:.4g} on the grid, {fine[i]:.4g} on the fine check, PSDs interpolated "
+        "linearly): the grid does not resolve the PSD or the loop, and the design optimised "
+        "figures that are not the residual; give a denser or log-spaced grid, e.g. "
+        f"np.concatenate([[0.0], np.geomspace({fs * 1e-5:.3g}, {fs / 2:g}, 500)])",
+        GridResolutionWarning,
+        stacklevel=5,
+    )
 
 
 # A design is "worse" than its start beyond this relative tolerance (the solver's accuracy).

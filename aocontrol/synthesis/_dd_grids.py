@@ -23,6 +23,36 @@ def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
     return t
 
 
+# A grid does not resolve the PSD when one of its intervals holds more than this share of the
+# PSD's trapezoid integral while the PSD changes across it by more than this factor (e.g. a
+# turbulence knee below the first nonzero point: the trapezoid there is a triangle whose area
+# the design, seeing two points, cannot weigh; issue 30: a 4.7-Hz first point above a 0.42-Hz
+# knee made the design a near-zero-gain integrator).
+UNRESOLVED_SHARE, UNRESOLVED_RATIO = 0.25, 100.0
+
+
+def unresolved_intervals(freqs: np.ndarray, psd: np.ndarray) -> dict[int, tuple]:
+    """Modes whose PSD the grid does not resolve: ``{mode: (f_lo, f_hi, ratio, share)}``.
+
+    For each mode, the worst interval ``[f_lo, f_hi]`` of ``freqs`` [Hz] across which the PSD
+    (``psd`` of shape ``(n_modes, n_freqs)``, one-sided) changes by more than
+    ``UNRESOLVED_RATIO`` (``ratio``) and which holds more than ``UNRESOLVED_SHARE`` of the
+    row's trapezoid integral (``share``).
+    """
+    out: dict[int, tuple] = {}
+    area = 0.5 * (psd[:, 1:] + psd[:, :-1]) * np.diff(freqs)
+    total = area.sum(axis=1)
+    lo, hi = psd[:, :-1], psd[:, 1:]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.maximum(lo, hi) / np.minimum(lo, hi)
+        share = area / total[:, None]
+    bad = (ratio > UNRESOLVED_RATIO) & (share > UNRESOLVED_SHARE)
+    for i in np.flatnonzero(bad.any(axis=1)):
+        k = int(np.argmax(np.where(bad[i], share[i], -1.0)))
+        out[int(i)] = (float(freqs[k]), float(freqs[k + 1]), float(ratio[i, k]), float(share[i, k]))
+    return out
+
+
 def _design_indices(freqs: np.ndarray, psd: np.ndarray, n_grid: int) -> np.ndarray:
     """Indices of the input grid used for design: log + linear spread and the PSD peaks.
 

@@ -268,8 +268,10 @@ def _design_items(ctx: _Context, items: list) -> list:
     out = []
     warm = None
     g = frequency_response(ctx.plant, ctx.freqs, ctx.fs)
-    targets = bound_targets(ctx, items, min(ctx.mu * (1 + _MARGIN_SAFETY), 0.999))
-    for (mode, psd, noise, b0, a0, fixed, _), target in zip(items, targets, strict=True):
+    targets, why = bound_targets(ctx, items, min(ctx.mu * (1 + _MARGIN_SAFETY), 0.999))
+    for (mode, psd, noise, b0, a0, fixed, _), target, bound_error in zip(
+        items, targets, why, strict=True
+    ):
         try:
             ctx_m = ctx
             if not np.array_equal(fixed, ctx.fixed):
@@ -278,6 +280,7 @@ def _design_items(ctx: _Context, items: list) -> list:
             res = _design_orders(ctx_m, g, psd, noise, b0, a0, warm, target)
             res["fixed"] = fixed
             res["mode"], res["error"] = mode, ""
+            res["bound_error"] = bound_error
             warm = (res["b"], res["a"])
         except Exception as exc:
             # A numerical failure of this mode (solver, linear algebra, floating point, a
@@ -293,7 +296,7 @@ def _design_items(ctx: _Context, items: list) -> list:
                     "the initial controller; lower modulus_margin or give another initial)"
                 )
             logger.debug("mode %d failed", mode, exc_info=True)
-            res = {"mode": mode, "error": msg}
+            res = {"mode": mode, "error": msg, "bound_error": bound_error}
         out.append(res)
     return out
 

@@ -9,7 +9,14 @@ import numpy as np
 from aocontrol._validation import PerModeError
 from aocontrol.controllers import IIRBank
 
-__all__ = ["DataDrivenError", "DataDrivenResult", "InitialPoleRadiusError", "ModeReport"]
+__all__ = [
+    "GRID_DISAGREEMENT",
+    "DataDrivenError",
+    "DataDrivenResult",
+    "GridResolutionWarning",
+    "InitialPoleRadiusError",
+    "ModeReport",
+]
 
 
 class DataDrivenError(PerModeError):
@@ -42,8 +49,26 @@ class DataDrivenError(PerModeError):
         )
 
 
+class GridResolutionWarning(UserWarning):
+    """A frequency grid that does not resolve the PSD: the figures on it are not the residual.
+
+    Warned by :func:`aocontrol.synthesis.datadriven` when an interval of the input grid holds
+    much of the PSD's integral while the PSD changes across it by orders of magnitude (e.g.
+    the first nonzero point above a turbulence knee), or when the residual on the input grid
+    and on the fine check (:attr:`DataDrivenResult.residual_variance_fine`) disagree by more
+    than ``GRID_DISAGREEMENT``. The message gives the reason and the fix: a denser or
+    log-spaced grid.
+    """
+
+
+#: Factor between the residual on the input grid and on the fine check beyond which
+#: :func:`aocontrol.synthesis.datadriven` warns (:class:`GridResolutionWarning`). On a grid that
+#: resolves the PSD they agree to a few per cent (the fine check's linear interpolation).
+GRID_DISAGREEMENT = 2.0
+
+
 class InitialPoleRadiusError(ValueError):
-    """The initial controller has free poles outside ``max_pole_radius``.
+    """The initial controller has free poles on or outside ``max_pole_radius``.
 
     Raised by :func:`aocontrol.synthesis.datadriven` before any design, e.g. for an
     integrator (pole at ``z = 1``) given as ``initial`` with every pole free
@@ -53,7 +78,7 @@ class InitialPoleRadiusError(ValueError):
     Parameters
     ----------
     radii : dict[int, float]
-        Mode index -> largest free pole radius of its initial controller (> the radius).
+        Mode index -> largest free pole radius of its initial controller (>= the radius).
     max_pole_radius : float
         The radius asked for.
 
@@ -66,10 +91,10 @@ class InitialPoleRadiusError(ValueError):
     def __init__(self, radii: dict[int, float], max_pole_radius: float) -> None:
         first = list(radii.items())[:5]
         super().__init__(
-            f"initial has free controller poles outside max_pole_radius={max_pole_radius} "
-            f"(mode: radius {first}{' ...' if len(radii) > 5 else ''}); give an initial "
-            "controller inside the radius, or max_pole_radius=None to allow unstable "
-            "controllers"
+            f"initial has free controller poles on or outside max_pole_radius="
+            f"{max_pole_radius} (mode: radius {first}{' ...' if len(radii) > 5 else ''}); give "
+            "an initial controller strictly inside the radius, or max_pole_radius=None to "
+            "allow unstable controllers"
         )
         self.radii = dict(radii)
         self.max_pole_radius = max_pole_radius
@@ -116,6 +141,10 @@ class ModeReport:
         Largest modulus of the controller's free poles (the fixed factor apart).
     order : int
         Controller order (the degree of ``Y``; chosen per mode with ``order="auto"``).
+    bound_start_error : str
+        Why the reduced-bound start asked for this mode (``bound_start``) is missing: the
+        failure of :func:`aocontrol.analysis.constrained_bound` (then the mode started from
+        its other starts, with a warning); empty when not asked or computed.
     """
 
     mode: int
@@ -131,6 +160,7 @@ class ModeReport:
     certificate: str = ""
     pole_radius: float = float("nan")
     order: int = 0
+    bound_start_error: str = ""
 
 
 @dataclass(frozen=True)

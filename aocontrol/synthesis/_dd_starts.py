@@ -158,7 +158,7 @@ def bound_sensitivities(
     mu: float,
     n_taps: int | None = None,
 ) -> list:
-    """``S_b = 1 - G Q`` of the margin-constrained bound on ``freqs``, per mode (None: failed).
+    """``S_b = 1 - G Q`` of the margin-constrained bound on ``freqs``, per mode (str: failed).
 
     Parameters
     ----------
@@ -175,7 +175,8 @@ def bound_sensitivities(
 
     Returns
     -------
-    list of (ndarray of complex, shape (n_freqs,)) or None
+    list of (ndarray of complex, shape (n_freqs,)) or str
+        Per mode, ``S_b``, or the bound's failure message (a ``str``) for a mode it failed.
     """
     from aocontrol.analysis import constrained_bound
     from aocontrol.plant import frequency_response
@@ -189,7 +190,7 @@ def bound_sensitivities(
     for i in range(psd.shape[0]):
         if not res.ok[i]:
             logger.debug("bound start: the bound failed for a mode (%s)", res.messages[i])
-            out.append(None)
+            out.append(res.messages[i] or "failed")
             continue
         out.append(1.0 - g * np.polyval(res.q[i][::-1], w))
     return out
@@ -325,28 +326,36 @@ def bound_start_modes(
     return has_lines(freqs, psd, model=True) | has_lines(freqs, psd + noise)
 
 
-def bound_targets(ctx, items: list, mu_d: float) -> list:
-    """The bound's sensitivity on the input grid for the items asking for it (else None).
+def bound_targets(ctx, items: list, mu_d: float) -> tuple[list, list]:
+    """The bound's sensitivity on the input grid for the items asking for it (else None), and
+    why it is missing for an item that asked (else "").
 
     One :func:`aocontrol.analysis.constrained_bound` call for the chunk's modes (its problem
     compiled once), with the design grid's margin ``mu_d`` (a little above the margin), so the
     reduced start keeps some room for the design grid's margin. A failure of the bound leaves
-    the modes with their other starts.
+    the modes with their other starts; the reason goes to the mode's report
+    (:attr:`ModeReport.bound_start_error`).
     """
     asked = [k for k, item in enumerate(items) if item[6]]
     out: list = [None] * len(items)
+    why: list = [""] * len(items)
     if not asked:
-        return out
+        return out, why
     psd = np.array([items[k][1] for k in asked])
     noise = np.array([items[k][2] for k in asked])
     try:
         found = bound_sensitivities(ctx.plant, ctx.freqs, psd, noise, mu_d)
     except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
         logger.warning("bound start: constrained_bound failed (%s); not used", exc)
-        return out
+        for k in asked:
+            why[k] = f"constrained_bound failed: {exc}"
+        return out, why
     for k, s_b in zip(asked, found, strict=True):
-        out[k] = s_b
-    return out
+        if isinstance(s_b, str):
+            why[k] = f"constrained_bound failed: {s_b}"
+        else:
+            out[k] = s_b
+    return out, why
 
 
 def start_certified(ctx, cert, dense, v: np.ndarray) -> bool:

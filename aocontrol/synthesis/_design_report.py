@@ -82,6 +82,9 @@ class TelemetryDesign:
         Design options passed to the registry's design (``order``, ...).
     timings : dict
         Wall-clock seconds of the steps (``estimate``, ``design``, ``margins``, ``bounds``).
+    bound_failures : dict of int to str
+        Modes whose constrained bound could not be computed, with the reason (their
+        :attr:`constrained_variance` is ``nan``); empty when every asked bound was computed.
     """
 
     controller_name: str
@@ -101,6 +104,7 @@ class TelemetryDesign:
     details: Any = None
     options: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
+    bound_failures: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = self.controller.n_modes

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import Any
@@ -124,7 +125,7 @@ def design_from_telemetry(
        grid; the Wiener bound (any causal linear controller) and the constrained bound
        (linear controllers with ``modulus_margin``, FIR Youla of ``n_taps`` taps), each
        when named in ``bounds`` (``nan`` otherwise; a mode whose constrained bound fails is
-       ``nan`` and logged).
+       ``nan``, its reason in :attr:`TelemetryDesign.bound_failures`, with a warning).
 
     Parameters
     ----------
@@ -259,6 +260,7 @@ def design_from_telemetry(
     nan = np.full(est.n_modes, np.nan)
     wiener = nan.copy()
     constrained = nan.copy()
+    bound_failures: dict[int, str] = {}
     if "wiener" in bounds:
         wiener = np.atleast_1d(wiener_bound(plant, est.freqs, est.psd, est.noise_psd))
     if "constrained" in bounds:
@@ -272,9 +274,15 @@ def design_from_telemetry(
             raise_on_failure=False,
         )
         constrained = np.where(cb.ok, cb.variance, np.nan)
-        if not cb.ok.all():
-            logger.warning(
-                "constrained bound failed for modes %s", np.flatnonzero(~cb.ok)[:10].tolist()
+        bound_failures = {int(i): cb.messages[i] for i in np.flatnonzero(~cb.ok)}
+        if bound_failures:
+            first = next(iter(bound_failures.items()))
+            warnings.warn(
+                f"constrained bound not computed for {len(bound_failures)} mode(s) "
+                f"{list(bound_failures)[:10]}: {first[1]} (mode {first[0]}); reported as nan "
+                "(TelemetryDesign.bound_failures)",
+                UserWarning,
+                stacklevel=3,
             )
     timings["bounds"] = time.perf_counter() - t0
     return TelemetryDesign(
@@ -295,4 +303,5 @@ def design_from_telemetry(
         details=details,
         options=dict(opts),
         timings=timings,
+        bound_failures=bound_failures,
     )
