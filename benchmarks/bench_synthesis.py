@@ -67,7 +67,6 @@ import argparse
 import os
 import time
 import warnings
-from dataclasses import replace
 
 import cvxpy as cp
 import numpy as np
@@ -79,7 +78,7 @@ from aocontrol.controllers import Integrator
 from aocontrol.disturbance import synthetic_turbulence_psd
 from aocontrol.synthesis import _datadriven as dd
 from aocontrol.synthesis import _socp
-from aocontrol.synthesis._dd_certify import _grid_data, _ModeCertifier, _p_of, _to_v
+from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._dd_mode import _design_chunk
 from aocontrol.synthesis._modal_gain import integrator_gain_limit, optimal_modal_gain
@@ -98,26 +97,30 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
     no Parameters, no extrapolation, no dense-grid refinement. Returns (objective, solves,
     verified: stable and modulus margin met on the dense grid).
     """
-    _, psd_row, noise_row, b0, a0, fixed, _ = item
-    ctx = replace(setup.ctx, fixed=fixed, nq=setup.ctx.nq + setup.ctx.fixed.size - fixed.size)
-    H = _interp_matrix(ctx.f_h2, ctx.freqs)
-    pos = np.searchsorted(ctx.f_design, ctx.f_h2)
-    q1 = np.zeros(ctx.f_design.size)
-    qn = np.zeros(ctx.f_design.size)
-    q1[pos] = (psd_row * ctx.tw) @ H.T
-    qn[pos] = (noise_row * ctx.tw) @ H.T
-    mu_d = min(ctx.mu * (1 + dd._MARGIN_SAFETY), 0.999)
-    grid = _grid_data(ctx, ctx.f_design, ctx.g_design, mu_d)
-    wind = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu).take(ctx.wind_index)
+    psd_row, noise_row, b0, a0, fixed = item.psd, item.noise, item.b0, item.a0, item.fixed_factor
+    ctx = setup.ctx.with_structure(fixed, setup.ctx.free_order + setup.ctx.fixed_factor.size - 1)
+    H = _interp_matrix(ctx.h2_freqs, ctx.input_freqs)
+    pos = np.searchsorted(ctx.design_freqs, ctx.h2_freqs)
+    q1 = np.zeros(ctx.design_freqs.size)
+    qn = np.zeros(ctx.design_freqs.size)
+    q1[pos] = (psd_row * ctx.input_weights) @ H.T
+    qn[pos] = (noise_row * ctx.input_weights) @ H.T
+    mu_d = ctx.design_margin
+    grid = ctx.grid_data(ctx.design_freqs, ctx.design_response, mu_d)
+    wind = ctx.grid_data(ctx.dense_freqs, ctx.dense_response, ctx.modulus_margin).take(
+        ctx.winding_index
+    )
     total = q1 + qn
-    _, P0 = _p_of(ctx, ctx.f_design, ctx.g_design, b0, a0)
-    Y0 = P0 - ctx.g_design * np.polyval(b0[::-1], np.exp(-2j * np.pi * ctx.f_design / FS))
+    _, P0 = _p_of(ctx, ctx.design_freqs, ctx.design_response, b0, a0)
+    Y0 = P0 - ctx.design_response * np.polyval(
+        b0[::-1], np.exp(-2j * np.pi * ctx.design_freqs / FS)
+    )
     v_ref = float(np.sum((q1 * np.abs(Y0) ** 2 + qn * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2))
     with np.errstate(invalid="ignore", divide="ignore"):
         r1 = np.where(total > 0, np.sqrt(q1 / total), 0.0)
         rn = np.where(total > 0, np.sqrt(qn / total), 0.0)
     h = total / v_ref
-    vc = _to_v(ctx, b0, a0)
+    vc = ctx.to_v(b0, a0)
     J, Pc = _socp.true_objective(grid, vc, r1, rn, h)
     history = [J]
     solves = 0
@@ -181,7 +184,7 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
             past = history[-1 - _socp.PATIENCE]
             if past - J <= ctx.tol * past:
                 break
-    dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
+    dense = ctx.grid_data(ctx.dense_freqs, ctx.dense_response, ctx.modulus_margin)
     cert = _ModeCertifier(ctx, psd_row, noise_row, v_ref, b0, a0, dense, mu_d)
     return J, solves, cert.check_final(vc) is not None
 
@@ -245,22 +248,7 @@ def serial_cpu(freqs, psd, noise, checkout: str | None = None) -> dict:
 
 def _setup(plant, freqs, psd, noise, hinf_weight: float) -> dd._Setup:
     """The synthesis set-up of ``datadriven``'s defaults (order ORDER), for per-mode timing."""
-    return dd._prepare(
-        plant,
-        freqs,
-        psd,
-        order=ORDER,
-        noise_psd=noise,
-        modulus_margin=0.5,
-        hinf_weight=hinf_weight,
-        fixed_denominator=None,
-        initial=None,
-        max_pole_radius=dd.DEFAULT_POLE_RADIUS,
-        max_iter=60,
-        tol=1e-3,
-        n_grid=64,
-        fs=None,
-    )
+    return dd._prepare(plant, freqs, psd, order=ORDER, noise_psd=noise, hinf_weight=hinf_weight)
 
 
 def resonant_part(plant, noise: float, n_modes: int = 6) -> None:
@@ -395,7 +383,7 @@ def main() -> None:
         t0 = time.perf_counter()
         for item in st.items:
             _design_chunk(st.ctx, [item])
-        est[name] = (st.ctx.f_design.size, (time.perf_counter() - t0) / len(subset))
+        est[name] = (st.ctx.design_freqs.size, (time.perf_counter() - t0) / len(subset))
 
     # (c) Convergence against a tightly converged reference, each mode alone (same start: the
     # optimal-gain integrator), and the bank's value (which may come from a continuation start).

@@ -7,8 +7,6 @@ definition of a seed (a local minimum of ``|1 + G K|`` with ``|S| > 1``).
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from numpy.polynomial import polynomial as poly
@@ -17,7 +15,7 @@ from aocontrol import loop_plant
 from aocontrol.analysis import polynomial_certificate
 from aocontrol.analysis._certificate import _newton_polish, rational_modulus_minima
 from aocontrol.synthesis import _datadriven as dd
-from aocontrol.synthesis._dd_certify import _from_v, _grid_data, _ModeCertifier, _to_v, _warm_v
+from aocontrol.synthesis._dd_certify import _ModeCertifier
 
 # Newton converges quadratically to the stationary point: the value agrees with the brute
 # force to round-off, far below this (the issue asks 1e-9 relative).
@@ -103,36 +101,26 @@ def test_seeds_are_the_start_s_peaks_inside_the_input_range():
     plant = loop_plant(fs, 0.83)
     f = np.concatenate([[0.0], np.geomspace(0.01, fs / 2, 400)])
     psd = 1.0 / (1.0 + (f / 20.0) ** 2) ** (11 / 6)
-    setup = dd._prepare(
-        plant,
-        f,
-        psd[None, :],
-        order=5,
-        noise_psd=1e-6,
-        modulus_margin=0.5,
-        hinf_weight=1e-3,
-        fixed_denominator=None,
-        initial=None,
-        max_iter=60,
-        tol=1e-3,
-        n_grid=64,
-        fs=None,
-    )
+    # The same preparation as the public call below (datadriven's defaults, order 5).
+    setup = dd._prepare(plant, f, psd[None, :], order=5, noise_psd=1e-6)
     res = dd.datadriven(plant, f, psd, order=5, noise_psd=1e-6, n_jobs=1, progress=False)
-    ctx = setup.ctx
-    _, psd_row, noise_row, b0, a0, fixed, _ = setup.items[0]
-    ctx = replace(ctx, fixed=fixed, nq=5 - (fixed.size - 1))
-    dense = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
-    cert = _ModeCertifier(ctx, psd_row, noise_row, 1.0, b0, a0, dense, 0.525)
-    v = _to_v(ctx, res.controller.b[0], res.controller.a[0])
+    item = setup.items[0]
+    ctx = setup.ctx.with_structure(item.fixed_factor, 5)
+    dense = ctx.grid_data(ctx.dense_freqs, ctx.dense_response, ctx.modulus_margin)
+    # v_ref = 1: the objective's normalisation does not move the seeds (|S| peaks).
+    cert = _ModeCertifier(
+        ctx, item.psd, item.noise, v_ref=1.0, b0=item.b0, a0=item.a0, dense=dense,
+        mu_d=ctx.design_margin,
+    )  # fmt: skip
+    v = ctx.to_v(res.controller.b[0], res.controller.a[0])
     assert v is not None
     seeds = cert.seeds(v)
-    full = polynomial_certificate(*ctx.plant_poly, *_from_v(ctx, v), fs)
+    full = polynomial_certificate(*ctx.plant_coefficients, *ctx.from_v(v), fs)
     # Oracle: every local minimum of |1 + G K| below 1 inside (f[0], f[-1]) off the H2 grid,
     # worst first, at most 4; they become H2 points.
     m = full.minima
     want = (m < 1.0) & (full.minima_hz > f[0]) & (full.minima_hz < f[-1])
-    want &= ~np.isin(full.minima_hz, ctx.f_h2)
+    want &= ~np.isin(full.minima_hz, ctx.h2_freqs)
     expected = full.minima_hz[want][np.argsort(m[want])][:4]
     assert seeds.size >= 1  # a loop with a margin has |S| > 1 somewhere (waterbed)
     np.testing.assert_array_equal(seeds, expected)
@@ -145,33 +133,21 @@ def test_warm_start_with_integral_action_becomes_leaky_in_the_free_structure():
     fs = 3000.0
     plant = loop_plant(fs, 0.83)
     f = np.linspace(0.0, fs / 2, 200)
-    setup = dd._prepare(
-        plant,
-        f,
-        (1.0 / (1.0 + (f / 50.0) ** 2))[None, :],
-        order=5,
-        noise_psd=1e-3,
-        modulus_margin=0.5,
-        hinf_weight=1e-3,
-        fixed_denominator=[1.0],
-        initial=None,
-        max_iter=60,
-        tol=1e-3,
-        n_grid=64,
-        fs=None,
-    )
+    # Every pole free (fixed_denominator [1]) inside the default radius.
+    psd = (1.0 / (1.0 + (f / 50.0) ** 2))[None, :]
+    setup = dd._prepare(plant, f, psd, noise_psd=1e-3, fixed_denominator=[1.0])
     ctx = setup.ctx
     rest = np.convolve([1.0, -0.5], [1.0, 0.2])  # the other poles: 0.5 and -0.2
     a = np.convolve([1.0, -1.0], rest)
     b = np.array([0.3, -0.1, 0.05])
-    assert _to_v(ctx, b, a) is not None  # in the set, but its pole at 1 is outside
+    assert ctx.to_v(b, a) is not None  # in the set, but its pole at 1 is outside
     leak = 1e-3
-    v = _warm_v(ctx, b, a, leak)
-    b2, a2 = _from_v(ctx, v)
+    v = ctx.warm_v(b, a, leak)
+    b2, a2 = ctx.from_v(v)
     np.testing.assert_allclose(b2[: b.size], b, rtol=1e-12)
     expected = np.convolve([1.0, -(1.0 - leak)], rest)
     np.testing.assert_allclose(a2[: expected.size], expected, rtol=1e-12, atol=1e-15)
     assert np.all(np.abs(a2[expected.size :]) < 1e-15)
     # A design already inside the radius is kept as it is.
     inside = np.convolve([1.0, -0.9], rest)
-    np.testing.assert_array_equal(_warm_v(ctx, b, inside, leak), _to_v(ctx, b, inside))
+    np.testing.assert_array_equal(ctx.warm_v(b, inside, leak), ctx.to_v(b, inside))

@@ -14,6 +14,7 @@ PSDs are one-sided [units^2/Hz]: integrated over [0, fs/2] they give the varianc
 
 from __future__ import annotations
 
+import inspect
 import logging
 import warnings
 from dataclasses import dataclass
@@ -44,8 +45,11 @@ from aocontrol.plant import (
     z_inverse_coefficients,
 )
 from aocontrol.synthesis._dd_assemble import _assemble
-from aocontrol.synthesis._dd_certify import (
-    _Context,
+from aocontrol.synthesis._dd_context import (
+    DesignContext,
+    ModeItem,
+    design_margin,
+    exact_quotient,
 )
 from aocontrol.synthesis._dd_grids import (
     _dense_grid,
@@ -53,7 +57,7 @@ from aocontrol.synthesis._dd_grids import (
     _trapezoid_weights,
     unresolved_intervals,
 )
-from aocontrol.synthesis._dd_mode import _MARGIN_SAFETY, _START_LEAK_MARGIN, _run
+from aocontrol.synthesis._dd_mode import _START_LEAK_MARGIN, _run
 from aocontrol.synthesis._dd_results import (
     GRID_DISAGREEMENT,
     DataDrivenError,
@@ -387,6 +391,14 @@ def datadriven(
     return _assemble(setup, outcomes)
 
 
+# The preparation's options and their defaults: datadriven's keywords (one source).
+_PREPARE_DEFAULTS = {
+    name: p.default
+    for name, p in inspect.signature(datadriven).parameters.items()
+    if p.kind is inspect.Parameter.KEYWORD_ONLY and name not in ("n_jobs", "progress")
+}
+
+
 @dataclass(frozen=True)
 class _Setup:
     """Validated inputs, shared context and per-mode work items of one call."""
@@ -396,31 +408,30 @@ class _Setup:
     freqs: np.ndarray
     psd: np.ndarray
     noise: np.ndarray
-    ctx: _Context
+    ctx: DesignContext
     items: list
     init_bank: IIRBank
     user_initial: bool = False
 
 
-def _prepare(
-    plant,
-    freqs,
-    psd,
-    *,
-    order,
-    noise_psd,
-    modulus_margin,
-    hinf_weight,
-    fixed_denominator,
-    initial,
-    max_pole_radius=DEFAULT_POLE_RADIUS,
-    bound_start=False,
-    max_iter,
-    tol,
-    n_grid,
-    fs,
-) -> _Setup:
-    """Validate the inputs, build the grids and the initial controllers (see datadriven)."""
+def _prepare(plant, freqs, psd, **options) -> _Setup:
+    """Validate the inputs, build the grids and the initial controllers.
+
+    ``options`` are :func:`datadriven`'s keywords (its defaults where not given; ``n_jobs``
+    and ``progress`` are not options of the preparation).
+    """
+    unknown = set(options) - set(_PREPARE_DEFAULTS)
+    if unknown:
+        raise TypeError(f"_prepare got unknown options {sorted(unknown)}")
+    opts = {**_PREPARE_DEFAULTS, **options}
+    order, noise_psd, modulus_margin = opts["order"], opts["noise_psd"], opts["modulus_margin"]
+    hinf_weight, fixed_denominator = opts["hinf_weight"], opts["fixed_denominator"]
+    initial, max_pole_radius, bound_start = (
+        opts["initial"],
+        opts["max_pole_radius"],
+        opts["bound_start"],
+    )
+    max_iter, tol, n_grid, fs = opts["max_iter"], opts["tol"], opts["n_grid"], opts["fs"]
     fs_ = plant_fs(plant, fs)
     if isinstance(plant, control.FRD):
         # Every result is verified on [0, fs/2]: a measured plant must cover it.
@@ -498,7 +509,7 @@ def _prepare(
                 fixed.tolist(),
             )
         # With the design grid's margin (slightly above mu) it is feasible at every step.
-        mu_start = min(mu * (1 + _MARGIN_SAFETY), 0.999)
+        mu_start = design_margin(mu)
 
         def start(leak: float) -> IIRBank:
             try:
@@ -549,8 +560,8 @@ def _prepare(
     if max_pole_radius is not None:
         outside = {}
         for i in range(n_modes):
-            quot, rem = np.polynomial.polynomial.polydiv(np.trim_zeros(a0s[i], "b"), fixed_modes[i])
-            if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a0s[i]))):
+            quot = exact_quotient(a0s[i], fixed_modes[i])
+            if quot is None:
                 continue  # outside the parameter set: the design starts from its response
             r = np.abs(np.roots(quot)) if quot.size > 1 else np.zeros(1)
             # Strictly inside: the convexified radius constraint needs the start's scaled
@@ -586,20 +597,23 @@ def _prepare(
         [np.linspace(lo, hi, _N_WIND), np.geomspace(max(lo, hi * 2e-6), hi, _N_WIND // 8)]
     )
     wind_index = np.unique(np.clip(np.searchsorted(f_dense, wind_targets), 0, f_dense.size - 1))
-    ctx = _Context(
+    ctx = DesignContext(
         plant=plant,
         fs=fs_,
-        f_design=f_design,
-        g_design=g_design,
-        f_dense=f_dense,
-        g_dense=frequency_response(plant, f_dense, fs_),
-        fixed=fixed,
-        nq=order - (fixed.size - 1),
-        mu=mu,
+        input_freqs=freqs,
+        input_weights=tw,
+        h2_freqs=f_h2,
+        design_freqs=f_design,
+        design_response=g_design,
+        dense_freqs=f_dense,
+        dense_response=frequency_response(plant, f_dense, fs_),
+        winding_index=wind_index,
+        fixed_factor=fixed,
+        free_order=order - (fixed.size - 1),
+        modulus_margin=mu,
         hinf_weight=hinf_weight,
-        wind_index=wind_index,
-        g_scale=float(np.median(np.abs(g_design))),
-        plant_poly=(
+        response_scale=float(np.median(np.abs(g_design))),
+        plant_coefficients=(
             z_inverse_coefficients(plant, "plant")
             if isinstance(plant, control.TransferFunction)
             else None
@@ -607,15 +621,12 @@ def _prepare(
         max_iter=max_iter,
         tol=tol,
         extrapolate=True,
-        freqs=freqs,
-        tw=tw,
-        f_h2=f_h2,
-        pole_radius=max_pole_radius,
-        orders=orders,
+        max_pole_radius=max_pole_radius,
+        auto_orders=orders,
     )
 
     items = [
-        (i, psd2[i], noise2[i], b0s[i], a0s[i], fixed_modes[i], bool(use_bound[i]))
+        ModeItem(i, psd2[i], noise2[i], b0s[i], a0s[i], fixed_modes[i], bool(use_bound[i]))
         for i in range(n_modes)
     ]
     return _Setup(plant, fs_, freqs, psd2, noise2, ctx, items, init_bank, initial is not None)

@@ -13,7 +13,7 @@ import numpy as np
 
 from aocontrol.analysis import modulus_certificate, residual_psd
 from aocontrol.controllers import IIRBank
-from aocontrol.synthesis._dd_certify import _Context
+from aocontrol.synthesis._dd_context import DesignContext, exact_quotient
 from aocontrol.synthesis._dd_grids import fine_residual
 from aocontrol.synthesis._dd_results import (
     GRID_DISAGREEMENT,
@@ -104,7 +104,7 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
                 start,
                 certificate=method,
                 pole_radius=_bank_pole_radius(bank, i, r["fixed"]),
-                order=int(r.get("order", ctx.nq + ctx.fixed.size - 1)),
+                order=int(r.get("order", ctx.free_order + ctx.fixed_factor.size - 1)),
                 bound_start_error=r.get("bound_error", ""),
             )
         )
@@ -124,7 +124,7 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         tuple(reports),
         var,
         var0,
-        ctx.f_design,
+        ctx.design_freqs,
         residual_variance_fine=fine,
         initial_residual_variance_fine=fine0,
         verification=_verification_text(ctx),
@@ -167,15 +167,14 @@ _WORSE_TOL = 1e-6
 
 def _bank_pole_radius(bank: IIRBank, i: int, fixed: np.ndarray) -> float:
     """Largest modulus of mode ``i``'s free poles (the fixed factor's divided out if it can)."""
-    a = np.trim_zeros(bank.a[i], "b")
-    quot, rem = np.polynomial.polynomial.polydiv(a, fixed)
-    if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a))):
-        quot = a
+    quot = exact_quotient(bank.a[i], fixed)
+    if quot is None:
+        quot = np.trim_zeros(bank.a[i], "b")
     return float(np.max(np.abs(np.roots(quot)))) if quot.size > 1 else 0.0
 
 
-def _verification_text(ctx: _Context) -> str:
-    exact = ctx.plant_poly is not None
+def _verification_text(ctx: DesignContext) -> str:
+    exact = ctx.plant_coefficients is not None
     margin = (
         "modulus margin certified exactly over the whole unit circle (stationary points of "
         "|1 + G K| as polynomial roots, and minima on a grid refined around every pole near "
@@ -185,8 +184,8 @@ def _verification_text(ctx: _Context) -> str:
         "the controller's lightly damped poles (plant interpolated between measured points)"
     )
     poles = (
-        f"free controller poles inside radius {ctx.pole_radius} (roots)"
-        if ctx.pole_radius is not None
+        f"free controller poles inside radius {ctx.max_pole_radius} (roots)"
+        if ctx.max_pole_radius is not None
         else "controller poles unconstrained (max_pole_radius=None)"
     )
     return (

@@ -11,7 +11,6 @@ winding blocks.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,100 +22,15 @@ from aocontrol.analysis import (
     winding_zeros,
 )
 from aocontrol.plant import frequency_response_unchecked, tf_from_z_inverse
+from aocontrol.synthesis._dd_context import DesignContext
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, Certifier, Check, GridData
 
 logger = logging.getLogger(__name__)
 
 
-# ---------------------------------------------------------------------------------------------
-# Per-mode design (runs in worker processes)
-# ---------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class _Context:
-    """Data shared by every mode of one call (pickled once per chunk)."""
-
-    plant: object
-    fs: float
-    f_design: np.ndarray
-    g_design: np.ndarray
-    f_dense: np.ndarray
-    g_dense: np.ndarray
-    fixed: np.ndarray
-    nq: int
-    mu: float
-    hinf_weight: float
-    wind_index: np.ndarray
-    g_scale: float
-    plant_poly: tuple | None
-    max_iter: int
-    tol: float
-    extrapolate: bool
-    freqs: np.ndarray
-    tw: np.ndarray
-    f_h2: np.ndarray
-    pole_radius: float | None
-    orders: tuple = ()
-    auto_tol: float = 0.02
-
-
-def _grid_data(ctx: _Context, f: np.ndarray, g: np.ndarray, mu: float) -> GridData:
-    w = np.exp(-2j * np.pi * f / ctx.fs)
-    powers = w[:, None] ** np.arange(ctx.nq + 1)
-    F = np.polyval(ctx.fixed[::-1], w)
-    nv = 2 * ctx.nq + 1
-    AX = np.zeros((f.size, nv), complex)
-    AY = np.zeros((f.size, nv), complex)
-    AX[:, : ctx.nq + 1] = (g / ctx.g_scale)[:, None] * powers
-    AY[:, ctx.nq + 1 :] = F[:, None] * powers[:, 1:]
-    return GridData(AY, AX, F.astype(complex), mu, ctx.hinf_weight)
-
-
-def _to_v(ctx: _Context, b: np.ndarray, a: np.ndarray) -> np.ndarray | None:
-    """Parameter vector of ``K = b/a`` if it lies in the parameter set, else None."""
-    b = np.trim_zeros(np.asarray(b, float), "b")
-    a = np.trim_zeros(np.asarray(a, float), "b")
-    if b.size > ctx.nq + 1 or a.size > ctx.nq + ctx.fixed.size:
-        return None
-    quot, rem = np.polynomial.polynomial.polydiv(a, ctx.fixed)
-    if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a))):
-        return None
-    quot = np.concatenate([quot, np.zeros(ctx.nq + 1 - quot.size)])
-    x = np.concatenate([b, np.zeros(ctx.nq + 1 - b.size)]) * ctx.g_scale
-    return np.concatenate([x, quot[1:]])
-
-
-def _warm_v(ctx: _Context, b: np.ndarray, a: np.ndarray, leak: float) -> np.ndarray | None:
-    """Parameter vector of a warm start ``K = b/a`` (the previous mode's design), or None.
-
-    A design with integral action (a pole at z = 1) lies outside the radius of a mode whose
-    poles are all free: its integrator becomes the leaky one ``1 - (1 - leak)
-    z^-1`` of that mode's default start, the other poles kept. (Measured on the 20 lowest
-    turbulence modes at 3 kHz: the first free-structure mode after integral-action ones
-    started cold from the leaky integrator and took 52 solves.)
-    """
-    v = _to_v(ctx, b, a)
-    if ctx.fixed.size != 1 or ctx.pole_radius is None:
-        return v
-    if v is not None:
-        poles = _free_poles(ctx, v)
-        if not poles.size or np.max(np.abs(poles)) <= ctx.pole_radius:
-            return v
-    a = np.trim_zeros(np.asarray(a, float), "b")
-    quot, rem = np.polynomial.polynomial.polydiv(a, [1.0, -1.0])
-    if rem.size and np.max(np.abs(rem)) > 1e-10 * max(1.0, np.max(np.abs(a))):
-        return None
-    return _to_v(ctx, b, np.polynomial.polynomial.polymul(quot, [1.0, -(1.0 - leak)]))
-
-
-def _from_v(ctx: _Context, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    b = v[: ctx.nq + 1] / ctx.g_scale
-    a = np.polynomial.polynomial.polymul(ctx.fixed, np.concatenate([[1.0], v[ctx.nq + 1 :]]))
-    return b, a
-
-
 def _p_of(
-    ctx: _Context, f: np.ndarray, g: np.ndarray, b: np.ndarray, a: np.ndarray
+    ctx: DesignContext, f: np.ndarray, g: np.ndarray, b: np.ndarray, a: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """``Y`` and ``P = Y + G X`` of ``K = b/a`` at ``f`` [Hz] (plant response ``g``)."""
     w = np.exp(-2j * np.pi * f / ctx.fs)
@@ -124,20 +38,11 @@ def _p_of(
     return Y, Y + g * np.polyval(np.asarray(b)[::-1], w)
 
 
-def _free_poles(ctx: _Context, v: np.ndarray) -> np.ndarray:
-    """Controller poles that are free in the design (roots of ``Y'``, the fixed factor apart)."""
-    y = v[ctx.nq + 1 :]
-    if y.size == 0:
-        return np.empty(0, complex)
-    # Y'(w) = 1 + sum y_i w^i, w = z^-1: the z-plane poles are the roots of z^q + y_1 z^(q-1)...
-    return np.roots(np.concatenate([[1.0], y]))
-
-
-def _stable(ctx: _Context, dense: GridData, v: np.ndarray) -> bool:
+def _stable(ctx: DesignContext, dense: GridData, v: np.ndarray) -> bool:
     """Closed-loop stability of ``v``: poles (TF plant) or winding number of ``P`` (FRD)."""
-    b, a = _from_v(ctx, v)
-    if ctx.plant_poly is not None:
-        bg, ag = ctx.plant_poly
+    b, a = ctx.from_v(v)
+    if ctx.plant_coefficients is not None:
+        bg, ag = ctx.plant_coefficients
         pp = np.polynomial.polynomial
         char = np.trim_zeros(pp.polyadd(pp.polymul(ag, a), pp.polymul(bg, b)), "b")
         return bool(char.size <= 1 or np.max(np.abs(np.roots(char))) < 1.0 - 1e-9)
@@ -172,8 +77,8 @@ class _ModeCertifier(Certifier):
     def __init__(self, ctx, psd, noise, v_ref, b0, a0, dense, mu_d):
         self.ctx, self.psd, self.noise, self.v_ref = ctx, psd, noise, v_ref
         self.b0, self.a0, self.dense, self.mu_d = b0, a0, dense, mu_d
-        self.wind = dense.take(ctx.wind_index)
-        self.h2_f = ctx.f_h2
+        self.wind = dense.take(ctx.winding_index)
+        self.h2_f = ctx.h2_freqs
         self.h2_extra = np.empty(0)
         # Certificates already computed, by the bytes of ``v``: a candidate is certified once
         # (the start's seeds, the accepted iterate's final check and its peaks reuse it).
@@ -183,7 +88,7 @@ class _ModeCertifier(Certifier):
     # -- grid ---------------------------------------------------------------------------
     def rows(self, f: np.ndarray) -> GridData:
         g = frequency_response_unchecked(self.ctx.plant, f, self.ctx.fs)
-        return _grid_data(self.ctx, f, g, self.mu_d)
+        return self.ctx.grid_data(f, g, self.mu_d)
 
     def p_start(self, f: np.ndarray) -> np.ndarray:
         g = frequency_response_unchecked(self.ctx.plant, f, self.ctx.fs)
@@ -197,12 +102,12 @@ class _ModeCertifier(Certifier):
         (trapezoid rule on the input grid). Other points constrain the margin only.
         """
         ctx = self.ctx
-        is_h2 = np.isin(f, ctx.f_h2) | np.isin(f, self.h2_extra)
+        is_h2 = np.isin(f, ctx.h2_freqs) | np.isin(f, self.h2_extra)
         h2 = np.unique(f[is_h2])
         self.h2_f = h2
-        H = _interp_matrix(h2, ctx.freqs)
-        q1 = (self.psd * ctx.tw) @ H.T
-        qn = (self.noise * ctx.tw) @ H.T
+        H = _interp_matrix(h2, ctx.input_freqs)
+        q1 = (self.psd * ctx.input_weights) @ H.T
+        qn = (self.noise * ctx.input_weights) @ H.T
         t = q1 + qn
         with np.errstate(invalid="ignore", divide="ignore"):
             r1_h = np.where(t > 0, np.sqrt(q1 / t), 0.0)
@@ -216,11 +121,11 @@ class _ModeCertifier(Certifier):
     def winding(self, v: np.ndarray | None) -> list:
         ctx = self.ctx
         if v is None:
-            Pw = _p_of(ctx, ctx.f_dense[ctx.wind_index], self.wind_g, self.b0, self.a0)[1]
+            Pw = _p_of(ctx, ctx.dense_freqs[ctx.winding_index], self.wind_g, self.b0, self.a0)[1]
         else:
             Pw = self.wind.A @ v + self.wind.F
         blocks = [(self.wind.A, self.wind.F, Pw, _P_FLOOR)]
-        if ctx.pole_radius is not None:
+        if ctx.max_pole_radius is not None:
             A = self._pole_rows(v)
             Ys = A @ v + 1.0 if v is not None else np.ones(A.shape[0], complex)
             blocks.append((A, np.ones(A.shape[0], complex), Ys, POLE_FLOOR))
@@ -228,13 +133,13 @@ class _ModeCertifier(Certifier):
 
     @property
     def wind_g(self) -> np.ndarray:
-        return self.ctx.g_dense[self.ctx.wind_index]
+        return self.ctx.dense_response[self.ctx.winding_index]
 
     def _pole_rows(self, v: np.ndarray | None) -> np.ndarray:
         """Rows of ``Ys(u) = Y'(u / rho)`` on the unit circle: ``Ys = A v + 1``."""
-        ctx, rho = self.ctx, self.ctx.pole_radius
+        ctx, rho = self.ctx, self.ctx.max_pole_radius
         theta = [np.linspace(0.0, np.pi, _N_POLE_UNIFORM)]
-        poles = _free_poles(ctx, v) if v is not None else np.empty(0)
+        poles = ctx.free_poles(v) if v is not None else np.empty(0)
         poles = poles[np.argsort(-np.abs(poles))][:_POLE_FOCUS_POLES]
         for i in range(_POLE_FOCUS_POLES):
             if i < poles.size:
@@ -245,9 +150,9 @@ class _ModeCertifier(Certifier):
                 th0, width = 0.0, 1e-3
             theta.append(np.clip(th0 + width * np.linspace(-4, 4, _N_POLE_FOCUS), 0.0, np.pi))
         u = np.exp(-1j * np.concatenate(theta))
-        A = np.zeros((u.size, 2 * ctx.nq + 1), complex)
-        i = np.arange(1, ctx.nq + 1)
-        A[:, ctx.nq + 1 :] = (u[:, None] / rho) ** i
+        A = np.zeros((u.size, 2 * ctx.free_order + 1), complex)
+        i = np.arange(1, ctx.free_order + 1)
+        A[:, ctx.free_order + 1 :] = (u[:, None] / rho) ** i
         return A
 
     @property
@@ -265,7 +170,12 @@ class _ModeCertifier(Certifier):
         cert = self.margin(v)
         ctx = self.ctx
         f, m = cert.minima_hz, cert.minima
-        keep = (m < 1.0) & (f > ctx.freqs[0]) & (f < ctx.freqs[-1]) & ~np.isin(f, self.h2_f)
+        keep = (
+            (m < 1.0)
+            & (f > ctx.input_freqs[0])
+            & (f < ctx.input_freqs[-1])
+            & ~np.isin(f, self.h2_f)
+        )
         f = f[keep][np.argsort(m[keep])][:_MAX_SEEDS]
         self.h2_extra = np.union1d(self.h2_extra, f)
         return f
@@ -277,12 +187,12 @@ class _ModeCertifier(Certifier):
         cert = self._margins.get(key)
         if cert is None:
             ctx = self.ctx
-            b, a = _from_v(ctx, v)
-            if ctx.plant_poly is not None:
-                cert = polynomial_certificate(*ctx.plant_poly, b, a, ctx.fs)
+            b, a = ctx.from_v(v)
+            if ctx.plant_coefficients is not None:
+                cert = polynomial_certificate(*ctx.plant_coefficients, b, a, ctx.fs)
             else:
                 K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
-                cert = modulus_certificate(ctx.plant, K, fs=ctx.fs, extra_freqs=ctx.f_dense)
+                cert = modulus_certificate(ctx.plant, K, fs=ctx.fs, extra_freqs=ctx.dense_freqs)
             self._margins[key] = cert
         return cert
 
@@ -298,14 +208,14 @@ class _ModeCertifier(Certifier):
         """Pole radius, closed-loop stability, certified margin and |S| peaks of ``v``."""
         ctx = self.ctx
         empty = np.empty(0)
-        if ctx.pole_radius is not None:
-            poles = _free_poles(ctx, v)
-            if poles.size and np.max(np.abs(poles)) > ctx.pole_radius * (1 + 1e-12):
+        if ctx.max_pole_radius is not None:
+            poles = ctx.free_poles(v)
+            if poles.size and np.max(np.abs(poles)) > ctx.max_pole_radius * (1 + 1e-12):
                 return Check(False, empty, "poles")
         # The margin first: a closed-loop pole crossing the circle makes |1 + G K| vanish
         # there, so the certificate also locates a lost stability.
         cert = self.margin(v)
-        bad = cert.below(ctx.mu)
+        bad = cert.below(ctx.modulus_margin)
         if bad.size:
             logger.debug("margin certificate failed at %s Hz (min %.4g)", bad, cert.value)
             return Check(False, bad, "margin")
@@ -316,9 +226,9 @@ class _ModeCertifier(Certifier):
             if v_prev is not None:
                 Pb = self.dense.A @ v_prev + self.dense.F
             else:
-                Pb = _p_of(ctx, ctx.f_dense, ctx.g_dense, self.b0, self.a0)[1]
+                Pb = _p_of(ctx, ctx.dense_freqs, ctx.dense_response, self.b0, self.a0)[1]
             cos = (P * np.conj(Pb)).real / (np.abs(P) * np.abs(Pb) + 1e-300)
-            return Check(False, ctx.f_dense[np.argsort(cos)[:16]], "stability")
+            return Check(False, ctx.dense_freqs[np.argsort(cos)[:16]], "stability")
         peaks = self._misrepresented_peaks(cert, v)
         if peaks.size:
             # They join the grid as H2 points (margin cuts only constrain).
@@ -329,25 +239,25 @@ class _ModeCertifier(Certifier):
     def check_final(self, v: np.ndarray) -> tuple[float, str] | None:
         """``(certified margin, method)`` if ``v`` passes every certificate, else None."""
         ctx = self.ctx
-        if ctx.pole_radius is not None:
-            poles = _free_poles(ctx, v)
-            if poles.size and np.max(np.abs(poles)) > ctx.pole_radius * (1 + 1e-12):
+        if ctx.max_pole_radius is not None:
+            poles = ctx.free_poles(v)
+            if poles.size and np.max(np.abs(poles)) > ctx.max_pole_radius * (1 + 1e-12):
                 return None
-        if ctx.plant_poly is not None:
+        if ctx.plant_coefficients is not None:
             # The roots of the characteristic polynomial A_G A_K + B_G B_K (what
             # aocontrol.analysis.is_stable computes for a TF plant, same tolerance).
             stable = self.stable(v)
         else:
-            b, a = _from_v(ctx, v)
+            b, a = ctx.from_v(v)
             K = tf_from_z_inverse(b, a, 1.0 / ctx.fs)
             try:
                 # The winding number on the dense grid (the FRD's own grid may be too coarse
                 # to follow the phase of Y + G X near a sharp resonance of the controller).
-                stable = winding_stability(ctx.plant, K, fs=ctx.fs, freqs=ctx.f_dense)
+                stable = winding_stability(ctx.plant, K, fs=ctx.fs, freqs=ctx.dense_freqs)
             except ValueError:  # winding number not resolved by the grid
                 stable = False
         cert = self.margin(v)
-        if not stable or cert.value < ctx.mu * (1 - 1e-9):
+        if not stable or cert.value < ctx.modulus_margin * (1 - 1e-9):
             return None
         return cert.value, cert.method
 
@@ -363,7 +273,7 @@ class _ModeCertifier(Certifier):
             return np.empty(0)
         ctx, h2 = self.ctx, self.h2_f
         f, s2 = cert.minima_hz, 1.0 / np.maximum(cert.minima, 1e-300) ** 2
-        inside = (f > max(ctx.freqs[0], h2[0])) & (f < min(ctx.freqs[-1], h2[-1]))
+        inside = (f > max(ctx.input_freqs[0], h2[0])) & (f < min(ctx.input_freqs[-1], h2[-1]))
         inside &= (s2 > _PEAK_MIN_S**2) & ~np.isin(f, h2)
         if not inside.any():
             return np.empty(0)
@@ -372,7 +282,7 @@ class _ModeCertifier(Certifier):
         j = np.clip(np.searchsorted(h2, f) - 1, 0, h2.size - 2)
         nb = np.concatenate([h2[j], h2[j + 1]])
         g_nb = frequency_response_unchecked(ctx.plant, nb, ctx.fs)
-        Y, P = _p_of(ctx, nb, g_nb, *_from_v(ctx, v))
+        Y, P = _p_of(ctx, nb, g_nb, *ctx.from_v(v))
         s2_nb = np.abs(Y) ** 2 / np.abs(P) ** 2
         t = (f - h2[j]) / (h2[j + 1] - h2[j])
         interp = (1 - t) * s2_nb[: f.size] + t * s2_nb[f.size :]

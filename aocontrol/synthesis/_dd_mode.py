@@ -1,7 +1,7 @@
 """The per-mode engine of the data-driven synthesis: one mode's design, its orders, a chunk.
 
 :func:`aocontrol.synthesis.datadriven` (``_datadriven``) validates the input and prepares the
-shared context (:class:`~aocontrol.synthesis._dd_certify._Context`); this module designs the
+shared context (:class:`~aocontrol.synthesis._dd_certify.DesignContext`); this module designs the
 modes: each from its best certified start (``_design_mode``), at one order or each order of
 ``order="auto"`` (``_design_orders``), in chunks of neighbouring modes (``_design_chunk``) run
 serially or on a process pool (``_run``). A failure in one mode is returned for it, the others
@@ -12,22 +12,13 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from dataclasses import replace
 
 import numpy as np
 
 from aocontrol._validation import is_programming_error
 from aocontrol.plant import frequency_response
-from aocontrol.synthesis._dd_certify import (
-    _Context,
-    _free_poles,
-    _from_v,
-    _grid_data,
-    _ModeCertifier,
-    _p_of,
-    _to_v,
-    _warm_v,
-)
+from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
+from aocontrol.synthesis._dd_context import DesignContext
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._dd_starts import bound_candidate, bound_targets, start_certified
 from aocontrol.synthesis._socp import (
@@ -47,8 +38,6 @@ logger = logging.getLogger(__name__)
 _CHUNK = 32
 # Free grid slots for the constraint-only points added by the dense checks.
 _SPARE_SLOTS = 24
-# The design enforces the margin with this relative safety; the dense check enforces it exactly.
-_MARGIN_SAFETY = 0.05
 # A mode started from the previous mode's design (a neighbour, already converged) stops when
 # one iteration lowers the objective by less than ``tol`` (others: PATIENCE iterations).
 # Measured on 32 contiguous turbulence modes (3 kHz, order 5): 25 % less CPU, the same median
@@ -68,23 +57,30 @@ _DENSE_ROWS: OrderedDict = OrderedDict()
 _MAX_DENSE = 4
 
 
-def _dense_data(ctx: _Context) -> GridData:
-    """The rows of the dense grid ``ctx.f_dense`` at the margin ``ctx.mu`` (cached)."""
-    key = (id(ctx.f_dense), id(ctx.g_dense), ctx.nq, ctx.fixed.tobytes(), ctx.mu, ctx.fs)
-    key += (ctx.hinf_weight, ctx.g_scale)
+def _dense_data(ctx: DesignContext) -> GridData:
+    """The rows of the dense grid at the asked modulus margin (cached)."""
+    key = (
+        id(ctx.dense_freqs),
+        id(ctx.dense_response),
+        ctx.free_order,
+        ctx.fixed_factor.tobytes(),
+        ctx.modulus_margin,
+        ctx.fs,
+    )
+    key += (ctx.hinf_weight, ctx.response_scale)
     hit = _DENSE_ROWS.get(key)
-    if hit is not None and hit[0] is ctx.f_dense and hit[1] is ctx.g_dense:
+    if hit is not None and hit[0] is ctx.dense_freqs and hit[1] is ctx.dense_response:
         _DENSE_ROWS.move_to_end(key)
         return hit[2]
-    data = _grid_data(ctx, ctx.f_dense, ctx.g_dense, ctx.mu)
-    _DENSE_ROWS[key] = (ctx.f_dense, ctx.g_dense, data)
+    data = ctx.grid_data(ctx.dense_freqs, ctx.dense_response, ctx.modulus_margin)
+    _DENSE_ROWS[key] = (ctx.dense_freqs, ctx.dense_response, data)
     while len(_DENSE_ROWS) > _MAX_DENSE:
         _DENSE_ROWS.popitem(last=False)
     return data
 
 
 def _design_mode(
-    ctx: _Context,
+    ctx: DesignContext,
     psd: np.ndarray,
     noise: np.ndarray,
     b0: np.ndarray,
@@ -99,14 +95,14 @@ def _design_mode(
     (``start_certified``) and has a lower objective for this mode; the iterations never
     raise the objective, so the result is never worse than the best certified start.
     """
-    mu_d = min(ctx.mu * (1 + _MARGIN_SAFETY), 0.999)
-    f, g = ctx.f_design, ctx.g_design
-    H = _interp_matrix(ctx.f_h2, ctx.freqs)
-    pos = np.searchsorted(f, ctx.f_h2)
+    mu_d = ctx.design_margin
+    f, g = ctx.design_freqs, ctx.design_response
+    H = _interp_matrix(ctx.h2_freqs, ctx.input_freqs)
+    pos = np.searchsorted(f, ctx.h2_freqs)
     q1 = np.zeros(f.size)
     qn = np.zeros(f.size)
-    q1[pos] = (psd * ctx.tw) @ H.T
-    qn[pos] = (noise * ctx.tw) @ H.T
+    q1[pos] = (psd * ctx.input_weights) @ H.T
+    qn[pos] = (noise * ctx.input_weights) @ H.T
     Y0, P0 = _p_of(ctx, f, g, b0, a0)
     v_ref = float(np.sum((q1 * np.abs(Y0) ** 2 + qn * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2))
     if not v_ref > 1e-12 * np.sum(q1 + qn):
@@ -115,17 +111,19 @@ def _design_mode(
     cert = _ModeCertifier(ctx, psd, noise, v_ref, b0, a0, dense, mu_d)
     r1, rn, h = cert.weights(f)
     grid = cert.rows(f)
-    n_wind = ctx.wind_index.size + (cert.n_pole_rows if ctx.pole_radius is not None else 0)
+    n_wind = ctx.winding_index.size + (cert.n_pole_rows if ctx.max_pole_radius is not None else 0)
     # Up to _SPARE_SLOTS points added by the checks; each solve at the grid's size.
-    problem = get_problem(f.size + _SPARE_SLOTS, 2 * ctx.nq + 1, ctx.hinf_weight > 0, n_wind)
-    v0 = _to_v(ctx, b0, a0)
+    problem = get_problem(
+        f.size + _SPARE_SLOTS, 2 * ctx.free_order + 1, ctx.hinf_weight > 0, n_wind
+    )
+    v0 = ctx.to_v(b0, a0)
     start = "initial"
     J_best = true_objective(grid, v0, r1, rn, h)[0] if v0 is not None else np.inf
-    leak = 1.0 - ctx.pole_radius * (1.0 - _START_LEAK_MARGIN) if ctx.pole_radius else 0.0
+    leak = 1.0 - ctx.max_pole_radius * (1.0 - _START_LEAK_MARGIN) if ctx.max_pole_radius else 0.0
     for label, (bc, ac) in starts:
         # The previous mode's design enters a free structure with the default start's leak
         # in place of its integrator (_warm_v); the other candidates as they are.
-        vc = _warm_v(ctx, bc, ac, leak) if label == "previous mode" else _to_v(ctx, bc, ac)
+        vc = ctx.warm_v(bc, ac, leak) if label == "previous mode" else ctx.to_v(bc, ac)
         if vc is None:
             continue
         Jc, Pc_grid = true_objective(grid, vc, r1, rn, h)
@@ -137,11 +135,11 @@ def _design_mode(
         # accuracy); a reduced bound, fitted, may meet only the certified mu there: the design
         # grid's margin is then lowered to what it meets (at least mu, which the final
         # certificate enforces exactly), so that the start is feasible for the convex steps.
-        need = ctx.mu if label == "bound reduction" else mu_d
+        need = ctx.modulus_margin if label == "bound reduction" else mu_d
         if Jc < J_best and met >= need * (1 - 1e-4) and start_certified(ctx, cert, dense, vc):
-            (b0, a0), v0, P0, start, J_best = _from_v(ctx, vc), vc, Pc_grid, label, Jc
+            (b0, a0), v0, P0, start, J_best = ctx.from_v(vc), vc, Pc_grid, label, Jc
             cert.b0, cert.a0 = b0, a0
-            cert.mu_d = max(ctx.mu, min(mu_d, met * (1 - 1e-4)))
+            cert.mu_d = max(ctx.modulus_margin, min(mu_d, met * (1 - 1e-4)))
     J_start = float(
         np.sum(h * (r1**2 * np.abs(Y0) ** 2 + rn**2 * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2)
     )
@@ -176,8 +174,8 @@ def _design_mode(
             break
     else:
         raise RuntimeError("no iterate passed the certificates (margin, stability, pole radius)")
-    b, a = _from_v(ctx, v)
-    poles = _free_poles(ctx, v)
+    b, a = ctx.from_v(v)
+    poles = ctx.free_poles(v)
     cert_v = cert.margin(v)
     return {
         "peaks_hz": cert_v.minima_hz,
@@ -195,16 +193,18 @@ def _design_mode(
     }
 
 
-def _mode_residual(ctx: _Context, g: np.ndarray, psd, noise, b, a) -> float:
+def _mode_residual(ctx: DesignContext, g: np.ndarray, psd, noise, b, a) -> float:
     """Residual variance of ``K = b/a`` on the input grid (trapezoid), plant response ``g``."""
-    Y, P = _p_of(ctx, ctx.freqs, g, b, a)
+    Y, P = _p_of(ctx, ctx.input_freqs, g, b, a)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = (np.abs(Y) ** 2 * psd + np.abs(P - Y) ** 2 * noise) / np.abs(P) ** 2
-    return float(np.sum(r * ctx.tw))
+    return float(np.sum(r * ctx.input_weights))
 
 
-def _design_orders(ctx: _Context, g: np.ndarray, psd, noise, b0, a0, warm, target=None) -> dict:
-    """Design one mode at one order, or at each order of ``ctx.orders`` (``order="auto"``).
+def _design_orders(
+    ctx: DesignContext, g: np.ndarray, psd, noise, b0, a0, warm, target=None
+) -> dict:
+    """Design one mode at one order, or at each order of ``ctx.auto_orders`` (``order="auto"``).
 
     With several orders each design starts from the previous order's (a lower-order
     controller lies in the higher order's parameter set), and the lowest order whose residual
@@ -216,7 +216,7 @@ def _design_orders(ctx: _Context, g: np.ndarray, psd, noise, b0, a0, warm, targe
     order (:func:`aocontrol.synthesis._dd_starts.bound_candidate`).
     """
 
-    def starts(ctx_k: _Context, first: bool) -> list:
+    def starts(ctx_k: DesignContext, first: bool) -> list:
         out = [("previous mode", warm)] if first and warm is not None else []
         cand = bound_candidate(ctx_k, g, psd, noise, target)
         if cand is None:
@@ -225,14 +225,14 @@ def _design_orders(ctx: _Context, g: np.ndarray, psd, noise, b0, a0, warm, targe
         # controller with a lower gain (towards open loop) is tried too.
         return out + [("bound reduction", (c * cand[0], cand[1])) for c in _BOUND_GAINS]
 
-    if not ctx.orders:
+    if not ctx.auto_orders:
         return _design_mode(ctx, psd, noise, b0, a0, starts(ctx, True))
     tried, gains = [], []
     start = (b0, a0)
     start_order = max(np.trim_zeros(b0, "b").size - 1, np.trim_zeros(a0, "b").size - 1)
-    orders = [o for o in ctx.orders if o >= start_order] or [ctx.orders[-1]]
+    orders = [o for o in ctx.auto_orders if o >= start_order] or [ctx.auto_orders[-1]]
     for order in orders:
-        ctx_k = replace(ctx, nq=order - (ctx.fixed.size - 1))
+        ctx_k = ctx.with_structure(ctx.fixed_factor, order)
         res = _design_mode(ctx_k, psd, noise, *start, starts(ctx_k, not tried))
         res["order"] = order
         res["residual"] = _mode_residual(ctx, g, psd, noise, res["b"], res["a"])
@@ -249,7 +249,7 @@ def _design_orders(ctx: _Context, g: np.ndarray, psd, noise, b0, a0, warm, targe
     return chosen
 
 
-def _design_chunk(ctx: _Context, items: list) -> list:
+def _design_chunk(ctx: DesignContext, items: list) -> list:
     """Design a chunk of modes in one worker; failures are returned, not raised.
 
     BLAS runs on one thread here (as in joblib's workers): the products are of a few thousand
@@ -263,20 +263,20 @@ def _design_chunk(ctx: _Context, items: list) -> list:
         return _design_items(ctx, items)
 
 
-def _design_items(ctx: _Context, items: list) -> list:
+def _design_items(ctx: DesignContext, items: list) -> list:
     """The body of :func:`_design_chunk`."""
     out = []
     warm = None
-    g = frequency_response(ctx.plant, ctx.freqs, ctx.fs)
-    targets, why = bound_targets(ctx, items, min(ctx.mu * (1 + _MARGIN_SAFETY), 0.999))
+    g = frequency_response(ctx.plant, ctx.input_freqs, ctx.fs)
+    targets, why = bound_targets(ctx, items, ctx.design_margin)
     for (mode, psd, noise, b0, a0, fixed, _), target, bound_error in zip(
         items, targets, why, strict=True
-    ):
+    ):  # ModeItem fields
         try:
             ctx_m = ctx
-            if not np.array_equal(fixed, ctx.fixed):
-                order = ctx.nq + ctx.fixed.size - 1
-                ctx_m = replace(ctx, fixed=fixed, nq=order - (fixed.size - 1))
+            if not np.array_equal(fixed, ctx.fixed_factor):
+                order = ctx.free_order + ctx.fixed_factor.size - 1
+                ctx_m = ctx.with_structure(fixed, order)
             res = _design_orders(ctx_m, g, psd, noise, b0, a0, warm, target)
             res["fixed"] = fixed
             res["mode"], res["error"] = mode, ""
@@ -301,7 +301,7 @@ def _design_items(ctx: _Context, items: list) -> list:
     return out
 
 
-def _run(ctx: _Context, items: list, n_jobs: int | None, progress: bool) -> list:
+def _run(ctx: DesignContext, items: list, n_jobs: int | None, progress: bool) -> list:
     """Design every mode, in parallel over processes when it pays."""
     from joblib import cpu_count
     from tqdm.auto import tqdm

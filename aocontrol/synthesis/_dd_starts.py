@@ -280,15 +280,17 @@ def reduced_start(
 def bound_candidate(ctx, g: np.ndarray, psd, noise, target) -> tuple | None:
     """The reduced bound start at the order and fixed factor of ``ctx`` (None: no target).
 
-    ``ctx`` is the synthesis context (input grid ``ctx.freqs``, trapezoid weights ``ctx.tw``,
-    ``ctx.nq``, ``ctx.fixed``, ``ctx.pole_radius``), ``g`` the plant on the input grid and
+    ``ctx`` is the :class:`~aocontrol.synthesis._dd_context.DesignContext` (its input grid
+    and weights, free order, fixed factor and pole radius), ``g`` the plant on the input grid and
     ``target`` the bound's sensitivity there (:func:`bound_sensitivities`).
     """
     if target is None:
         return None
-    w = np.exp(-2j * np.pi * ctx.freqs / ctx.fs)
-    weight = ctx.tw * (psd + noise)
-    return reduced_start(target, w, g, weight, ctx.nq, ctx.fixed, ctx.pole_radius)
+    w = np.exp(-2j * np.pi * ctx.input_freqs / ctx.fs)
+    weight = ctx.input_weights * (psd + noise)
+    return reduced_start(
+        target, w, g, weight, ctx.free_order, ctx.fixed_factor, ctx.max_pole_radius
+    )
 
 
 def bound_start_modes(
@@ -336,15 +338,15 @@ def bound_targets(ctx, items: list, mu_d: float) -> tuple[list, list]:
     the modes with their other starts; the reason goes to the mode's report
     (:attr:`ModeReport.bound_start_error`).
     """
-    asked = [k for k, item in enumerate(items) if item[6]]
+    asked = [k for k, item in enumerate(items) if item.bound_start]
     out: list = [None] * len(items)
     why: list = [""] * len(items)
     if not asked:
         return out, why
-    psd = np.array([items[k][1] for k in asked])
-    noise = np.array([items[k][2] for k in asked])
+    psd = np.array([items[k].psd for k in asked])
+    noise = np.array([items[k].noise for k in asked])
     try:
-        found = bound_sensitivities(ctx.plant, ctx.freqs, psd, noise, mu_d)
+        found = bound_sensitivities(ctx.plant, ctx.input_freqs, psd, noise, mu_d)
     except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
         logger.warning("bound start: constrained_bound failed (%s); not used", exc)
         for k in asked:
@@ -372,5 +374,5 @@ def start_certified(ctx, cert, dense, v: np.ndarray) -> bool:
     if not cert.check(v).ok:
         return False
     with np.errstate(divide="ignore", invalid="ignore"):
-        ok = np.abs(dense.A @ v + dense.F) >= ctx.mu * np.abs(dense.AY @ v + dense.F)
+        ok = np.abs(dense.A @ v + dense.F) >= ctx.modulus_margin * np.abs(dense.AY @ v + dense.F)
     return bool(np.all(ok))
