@@ -13,7 +13,7 @@ import numpy as np
 
 from aocontrol._validation import check_in_range, check_int, check_nonnegative, check_positive
 from aocontrol.adaptive._realisation import RealisedBank, StateSpaceRows
-from aocontrol.adaptive._redesign import RANKINGS, Designer, _merge, redesign
+from aocontrol.adaptive._redesign import RANKINGS, Designer, redesign
 from aocontrol.controllers import ControllerBank, IIRBank
 from aocontrol.plant import check_system, plant_fs, z_inverse_coefficients
 from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry, pseudo_open_loop
@@ -324,7 +324,7 @@ class AdaptiveController(ControllerBank):
             self.run.final = self.current
             self.last_run = self.run
         self.run = AdaptiveRun()
-        self.current = _merge(self._initial, self._initial, np.zeros(self.n_modes, dtype=bool))
+        self.current = self._initial.rows(np.arange(self.n_modes))  # a fresh copy
         self.realisation = StateSpaceRows.none(self.n_modes)
         self._runtime = RealisedBank(self.current, self.realisation)
         self._last_ratio = np.full(self.n_modes, np.nan)

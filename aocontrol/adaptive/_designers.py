@@ -9,7 +9,7 @@ import numpy as np
 
 from aocontrol._validation import check_in_range, check_int, check_nonnegative
 from aocontrol.adaptive._realisation import StateSpaceRows
-from aocontrol.adaptive._redesign import Designer, Proposal, _join, _rows, _subset
+from aocontrol.adaptive._redesign import Designer, Proposal, _join, _subset
 from aocontrol.analysis import residual_variance
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis import (
@@ -142,7 +142,7 @@ def datadriven_designer(
                 if modes.size:
                     sub = run(
                         _subset(tel, modes),
-                        _rows(current, modes),
+                        current.rows(modes),
                         fixed_denominator=fixed,
                         **warm,
                     )

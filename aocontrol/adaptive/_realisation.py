@@ -439,15 +439,6 @@ def bumpless_state(
     return x_end
 
 
-def _rows_of(bank: IIRBank, modes: np.ndarray) -> IIRBank:
-    """The Direct-Form I rows ``modes`` of ``bank`` (trailing zero coefficients dropped)."""
-    b, a = bank.b[modes], bank.a[modes]
-    nb = max(1, int(np.flatnonzero(np.any(b != 0, axis=0)).max(initial=0)) + 1)
-    na = max(1, int(np.flatnonzero(np.any(a != 0, axis=0)).max(initial=0)) + 1)
-    limit = None if bank.command_limit is None else bank.command_limit[modes]
-    return IIRBank(b[:, :nb], a[:, :na], bank.fs, command_limit=limit)
-
-
 class RealisedBank(ControllerBank):
     """A bank whose modes run in Direct-Form I or in state space (:class:`StateSpaceRows`).
 
@@ -478,7 +469,7 @@ class RealisedBank(ControllerBank):
         self._df_idx = np.flatnonzero(~used)
         self._df = None
         if self._df_idx.size:
-            self._df = _rows_of(bank, self._df_idx)
+            self._df = bank.rows(self._df_idx).trim_orders()
         idx = self._idx
         # Mode-last layout, (ns, ns, n) and (ns, n): a frame is one pass over contiguous rows
         # of modes (a batched product of small matrices costs twice as much in numpy).

@@ -243,12 +243,6 @@ def certify(
     return ok, margin, reasons
 
 
-def _rows(bank: IIRBank, modes: np.ndarray) -> IIRBank:
-    """The rows ``modes`` of ``bank`` as a bank of their own."""
-    limit = None if bank.command_limit is None else bank.command_limit[modes]
-    return IIRBank(bank.b[modes], bank.a[modes], bank.fs, command_limit=limit)
-
-
 def _subset(tel: TelemetryPSD, modes: np.ndarray) -> TelemetryPSD:
     """The modes ``modes`` of a telemetry estimate."""
     return dataclasses.replace(
@@ -262,34 +256,15 @@ def _subset(tel: TelemetryPSD, modes: np.ndarray) -> TelemetryPSD:
 
 def _join(current: IIRBank, parts: list[tuple[np.ndarray, Proposal]]) -> Proposal:
     """One proposal from proposals for disjoint sets of modes (rows of ``current`` elsewhere)."""
-    nb = max([current.b.shape[1]] + [p.controller.b.shape[1] for _, p in parts])
-    na = max([current.a.shape[1]] + [p.controller.a.shape[1] for _, p in parts])
-    b = np.pad(current.b, ((0, 0), (0, nb - current.b.shape[1])))
-    a = np.pad(current.a, ((0, 0), (0, na - current.a.shape[1])))
+    bank = current
     failed: dict[int, str] = {}
     margin = np.full(current.n_modes, np.nan)
     for modes, p in parts:
-        c = p.controller
-        b[modes] = np.pad(c.b, ((0, 0), (0, nb - c.b.shape[1])))
-        a[modes] = np.pad(c.a, ((0, 0), (0, na - c.a.shape[1])))
+        bank = bank.with_rows(modes, p.controller)
         failed.update({int(modes[i]): msg for i, msg in p.failed.items()})
         if p.margin is not None:
             margin[modes] = p.margin
-    bank = IIRBank(b, a, current.fs, command_limit=current.command_limit)
     return Proposal(bank, failed, margin)
-
-
-def _merge(current: IIRBank, proposal: IIRBank, take: np.ndarray) -> IIRBank:
-    """Rows of ``proposal`` where ``take``, of ``current`` elsewhere (orders padded)."""
-    nb = max(current.b.shape[1], proposal.b.shape[1])
-    na = max(current.a.shape[1], proposal.a.shape[1])
-
-    def pad(x: np.ndarray, k: int) -> np.ndarray:
-        return np.pad(x, ((0, 0), (0, k - x.shape[1])))
-
-    b = np.where(take[:, None], pad(proposal.b, nb), pad(current.b, nb))
-    a = np.where(take[:, None], pad(proposal.a, na), pad(current.a, na))
-    return IIRBank(b, a, current.fs, command_limit=current.command_limit)
 
 
 def residual_shift(
@@ -522,7 +497,7 @@ def redesign(
     reasons: dict[int, str] = {}
     if not modes.size:
         return Update(current, ok, margin, reasons, selected, ratio)
-    proposal = designer(_subset(tel, modes), plant, _rows(current, modes))
+    proposal = designer(_subset(tel, modes), plant, current.rows(modes))
     if not isinstance(proposal, Proposal):
         raise TypeError(f"the designer must return a Proposal, got {type(proposal).__name__}")
     if proposal.controller.n_modes != modes.size:
@@ -558,7 +533,7 @@ def redesign(
     if ratio is not None and ok_s.any():
         take = np.flatnonzero(ok_s)
         _, rho = score(
-            _rows(proposal.controller, take), plant, _subset(tel, modes[take]), ratio[modes[take]]
+            proposal.controller.rows(take), plant, _subset(tel, modes[take]), ratio[modes[take]]
         )
         ratio[modes[take]] = rho
     full = _join(current, [(modes, proposal)]).controller
@@ -570,4 +545,4 @@ def redesign(
     if proposal.kept:
         kept = np.zeros(n, dtype=bool)
         kept[modes[np.asarray(proposal.kept, dtype=int)]] = True
-    return Update(_merge(current, full, ok), ok, margin, reasons, selected, ratio, realised, kept)
+    return Update(current.where(ok, full), ok, margin, reasons, selected, ratio, realised, kept)

@@ -197,11 +197,7 @@ class ConstrainedBound:
         pp = np.polynomial.polynomial
         rows_b = [pp.polymul(q, ag) for q in self.q]
         rows_a = [pp.polysub(ag, pp.polymul(bg, q)) for q in self.q]
-        nb = max(r.size for r in rows_b)
-        na = max(r.size for r in rows_a)
-        b = np.array([np.pad(r, (0, nb - r.size)) for r in rows_b])
-        a = np.array([np.pad(r, (0, na - r.size)) for r in rows_a])
-        return IIRBank(b, a, self.fs)
+        return IIRBank.from_rows(rows_b, rows_a, self.fs)
 
 
 class _Problem:

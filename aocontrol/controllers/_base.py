@@ -551,6 +551,12 @@ class IIRBank(ControllerBank):
         limit = None if self._limit is None else self._limit[idx]
         return IIRBank(self._b[idx], self._a[idx], self._fs, command_limit=limit)
 
+    def trim_orders(self) -> IIRBank:
+        """The same filters without the coefficient columns that are zero in every mode."""
+        nb = max(1, int(np.flatnonzero(np.any(self._b != 0, axis=0)).max(initial=0)) + 1)
+        na = max(1, int(np.flatnonzero(np.any(self._a != 0, axis=0)).max(initial=0)) + 1)
+        return IIRBank(self._b[:, :nb], self._a[:, :na], self._fs, command_limit=self._limit)
+
     def with_rows(self, modes: object, other: IIRBank) -> IIRBank:
         """This bank with the filters of ``modes`` replaced by ``other``'s rows, in order.
 
@@ -584,6 +590,8 @@ class IIRBank(ControllerBank):
         if take.shape != (self._n,):
             raise ValueError(f"take must be a boolean array of shape ({self._n},), got "
                              f"{take.shape}")  # fmt: skip
+        if not take.any():
+            return self.rows(np.arange(self._n))
         return self.with_rows(np.flatnonzero(take), other.rows(take))
 
     def _mode_index(self, name: str, modes: object) -> np.ndarray:

@@ -176,13 +176,8 @@ def _controller_coefficients(ctrl: Any) -> tuple[np.ndarray, np.ndarray] | None:
     except (NotImplementedError, TypeError, ValueError, ArithmeticError) as exc:
         logger.info("no closed-loop pole check for %s: %s", type(ctrl).__name__, exc)
         return None
-    length = max(max(bi.size, ai.size) for bi, ai in pairs)
-    b = np.zeros((len(pairs), length))
-    a = np.zeros((len(pairs), length))
-    for i, (bi, ai) in enumerate(pairs):
-        b[i, : bi.size] = bi
-        a[i, : ai.size] = ai
-    return b, a
+    bank = IIRBank.from_rows([bi for bi, _ in pairs], [ai for _, ai in pairs], ctrl.fs)
+    return bank.b, bank.a
 
 
 class _StageRun:

@@ -538,17 +538,12 @@ def _prepare(plant, freqs, psd, **options) -> _Setup:
             v_leak = np.trapezoid(residual_psd(plant, leaky, freqs, psd2, noise2, fs=fs_), freqs)
             use_leak = v_int >= _INTEGRATOR_START_GAIN * v_leak
             fixed_modes = [np.array([1.0]) if u else np.array([1.0, -1.0]) for u in use_leak]
-            b_ = np.where(use_leak[:, None], leaky.b, init_bank.b)
-            a_ = np.where(use_leak[:, None], leaky.a, init_bank.a)
-            init_bank = IIRBank(b_, a_, fs_)
+            init_bank = init_bank.where(use_leak, leaky)
         init = _initial_coefficients(init_bank, n_modes, fs_)
     else:
         init = _initial_coefficients(initial, n_modes, fs_)
-    nb0 = max(b.size for b, _ in init)
-    na0 = max(a.size for _, a in init)
-    b0s = np.array([np.pad(b, (0, nb0 - b.size)) for b, _ in init])
-    a0s = np.array([np.pad(a, (0, na0 - a.size)) for _, a in init])
-    init_bank = IIRBank(b0s, a0s, fs_)
+    init_bank = IIRBank.from_rows([b for b, _ in init], [a for _, a in init], fs_)
+    b0s, a0s = init_bank.b, init_bank.a
     unstable = [
         i for i in range(n_modes) if not is_stable(plant, init_bank.transfer_function(i), fs=fs_)
     ]

@@ -38,20 +38,13 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
     plant, freqs, fs, ctx = setup.plant, setup.freqs, setup.fs, setup.ctx
     psd2, noise2, init_bank = setup.psd, setup.noise, setup.init_bank
     n_modes = len(outcomes)
-    nb = max([init_bank.b.shape[1]] + [r["b"].size for r in outcomes if not r["error"]])
-    na = max([init_bank.a.shape[1]] + [r["a"].size for r in outcomes if not r["error"]])
-    b = np.zeros((n_modes, nb))
-    a = np.zeros((n_modes, na))
-    b[:, : init_bank.b.shape[1]] = init_bank.b
-    a[:, : init_bank.a.shape[1]] = init_bank.a
+    done = [r for r in outcomes if not r["error"]]
     designed = np.zeros(n_modes, bool)
-    for r in outcomes:
-        if not r["error"]:
-            i = r["mode"]
-            b[i], a[i] = 0.0, 0.0
-            b[i, : r["b"].size], a[i, : r["a"].size] = r["b"], r["a"]
-            designed[i] = True
-    bank = IIRBank(b, a, fs)
+    designed[[r["mode"] for r in done]] = True
+    bank = init_bank
+    if done:
+        rows = IIRBank.from_rows([r["b"] for r in done], [r["a"] for r in done], fs)
+        bank = init_bank.with_rows([r["mode"] for r in done], rows)
     var = np.trapezoid(residual_psd(plant, bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
     var0 = np.trapezoid(residual_psd(plant, init_bank, freqs, psd2, noise2, fs=fs), freqs, axis=-1)
     peaks = [np.empty(0)] * n_modes  # each mode's |S| peaks [Hz] (none for a failed one)
@@ -71,10 +64,7 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
             int(worse.sum()),
             np.flatnonzero(worse)[:10].tolist(),
         )
-        b[worse], a[worse] = 0.0, 0.0
-        b[worse, : init_bank.b.shape[1]] = init_bank.b[worse]
-        a[worse, : init_bank.a.shape[1]] = init_bank.a[worse]
-        bank = IIRBank(b, a, fs)
+        bank = bank.where(worse, init_bank)
         var[worse], fine[worse] = var0[worse], fine0[worse]
     _warn_disagreement(var, fine, designed, fs)
     reports, failed = [], {}
