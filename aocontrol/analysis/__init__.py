@@ -27,19 +27,18 @@ from aocontrol.analysis._loop import (
     sensitivity,
     white_noise_psd,
 )
-from aocontrol.analysis._margins import (
-    Margins,
-    closed_loop_poles,
-    is_stable,
-    margins,
-    winding_stability,
-    winding_zeros,
-)
+from aocontrol.analysis._margins import DELAY_SEARCH_FRAMES, Margins, margins
 from aocontrol.analysis._psd import welch_psd
 from aocontrol.analysis._residual import (
     mean_square_sampling_variance,
     residual_psd,
     residual_variance,
+)
+from aocontrol.analysis._stability import (
+    closed_loop_poles,
+    is_stable,
+    winding_stability,
+    winding_zeros,
 )
 from aocontrol.analysis._wiener import wiener_bound
 
@@ -51,6 +50,7 @@ __all__ = [
     "cascade_sensitivity",
     "slow_stage_sensitivity",
     "LoopResponse",
+    "DELAY_SEARCH_FRAMES",
     "Margins",
     "ModulusCertificate",
     "modulus_certificate",

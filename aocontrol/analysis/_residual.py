@@ -16,7 +16,7 @@ from aocontrol._validation import (
     mode_psds,
 )
 from aocontrol.analysis._loop import loop_response
-from aocontrol.analysis._margins import is_stable
+from aocontrol.analysis._stability import is_stable
 from aocontrol.controllers import ControllerBank
 from aocontrol.plant import plant_fs
 
