@@ -233,7 +233,7 @@ def bench_own(args: argparse.Namespace) -> None:
             if diffractive:
                 e = np.asarray(r2.telemetry["residuals"][k:], dtype=float)
                 raw = (args.optical_gain or scene.case.stage2.optical_gain) == "none"
-                og = np.asarray(st.optical_gain) if raw else np.ones(st.n_modes)
+                og = np.asarray(st.calibrated_gains) if raw else np.ones(st.n_modes)
                 cells += [f"{r:>18.3f}" for r in _diffractive_diagnosis(m, u, e, st, gain, og)]
             print(f"{case:14}{scheme:12}{m.shape[0]:>8}{meas:>10.2f}" + "".join(cells))
 

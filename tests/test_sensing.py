@@ -289,7 +289,7 @@ def test_scene_loop_sensors_per_setting():
     from aocontrol.study.scene import build_scene
 
     st = build_scene("bright1-best", quick=True).stage2
-    og = st.optical_gain
+    og = st.calibrated_gains
     lin, tr = st.loop_sensor("linear", "calibrated")
     assert tr is None and np.all(lin.optical_gain == 1.0)
     raw, _ = st.loop_sensor("linear", "none")
@@ -357,7 +357,7 @@ def test_two_pass_optical_gains_are_those_of_the_closed_loop_residual():
 
     scene = build_scene("red5-best", quick=True)
     two = two_pass_scene(scene, "standalone", scene.case.stage2.gain, seconds=0.05, seed=3)
-    og0, og1 = scene.stage2.optical_gain, two.stage2.optical_gain
+    og0, og1 = scene.stage2.calibrated_gains, two.stage2.calibrated_gains
     assert np.median(og1) < np.median(og0)
     np.testing.assert_allclose(two.stage2.sensor.noise_std * og1, scene.stage2.raw_noise_std)
     assert two.stage1 is scene.stage1

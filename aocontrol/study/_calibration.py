@@ -143,7 +143,7 @@ def calibrate_scene(
         e = np.asarray(r2.telemetry["residuals"][k:], dtype=float)
         raw = st.spec.optical_gain == "none"
         model = ResidualModel.from_calibration(
-            m, u, e, st.plant, st.fs, optical_gain=st.optical_gain if raw else None,
+            m, u, e, st.plant, st.fs, optical_gain=st.calibrated_gains if raw else None,
             estimator=estimator,
         )  # fmt: skip
     design = DesignInputs(

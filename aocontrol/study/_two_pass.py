@@ -92,7 +92,7 @@ def two_pass_scene(
     logger.info(
         "two-pass optical gains: median %.3f (fitting-error calibration %.3f), %d screens",
         float(np.median(og)),
-        float(np.median(st.optical_gain)),
+        float(np.median(st.calibrated_gains)),
         maps.shape[0],
     )
     return dataclasses.replace(scene, stage2=st.with_optical_gains(og))

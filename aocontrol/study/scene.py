@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol._deprecation import DeprecatedAttribute
 from aocontrol.plant import loop_plant
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.dm import DeformableMirror, ModalDM
@@ -120,8 +121,10 @@ class StageScene:
         Photo-electrons per frame on the WFS.
     sensor : LinearModalSensor
         Unit optical gain (compensated), noise per mode [nm RMS per frame].
-    optical_gain : ndarray, shape (n_modes,)
+    calibrated_gains : ndarray, shape (n_modes,)
         Calibrated optical gains (compensated by the reconstructor; 1 for the Shack-Hartmann).
+        (``optical_gain``, its former name, is deprecated: ``optical_gain`` names the
+        handling setting, a string, everywhere else.)
     raw_noise_std : ndarray, shape (n_modes,)
         Noise per mode before the optical-gain compensation [nm RMS per frame].
     wfs : PyramidWFS, optional
@@ -136,10 +139,15 @@ class StageScene:
     plant: Any
     photons: float
     sensor: LinearModalSensor
-    optical_gain: np.ndarray
+    calibrated_gains: np.ndarray
     raw_noise_std: np.ndarray
     wfs: Any = None
     calibration: WFSCalibration | None = None
+
+    #: Deprecated name of :attr:`calibrated_gains`.
+    optical_gain = DeprecatedAttribute(
+        "calibrated_gains", "the calibrated optical gains; optical_gain names the handling"
+    )
 
     @property
     def fs(self) -> float:
@@ -165,22 +173,20 @@ class StageScene:
         """
         return ModalDM.from_basis(self.basis, actuator_stroke=self.spec.dm_stroke_nm)
 
-    def with_optical_gains(self, optical_gain: np.ndarray) -> StageScene:
+    def with_optical_gains(self, gains: np.ndarray) -> StageScene:
         """The same stage with other calibrated optical gains (the compensated linear sensor
         rebuilt from them).
 
         Parameters
         ----------
-        optical_gain : ndarray (n_modes,)
+        gains : ndarray (n_modes,)
             Optical gains, > 0.
         """
-        og = np.asarray(optical_gain, dtype=float)
+        og = np.asarray(gains, dtype=float)
         if og.shape != (self.n_modes,) or not np.all(og > 0):
-            raise ValueError(
-                f"optical_gain must be {self.n_modes} values > 0, got shape {og.shape}"
-            )
+            raise ValueError(f"gains must be {self.n_modes} values > 0, got shape {og.shape}")
         sensor = LinearModalSensor(np.ones(self.n_modes), self.raw_noise_std / og)
-        return dataclasses.replace(self, optical_gain=og, sensor=sensor)
+        return dataclasses.replace(self, calibrated_gains=og, sensor=sensor)
 
     def loop_sensor(
         self, sensor: str | None = None, optical_gain: str | None = None
@@ -192,7 +198,7 @@ class StageScene:
         sensor : {"linear", "diffractive"}, optional
             Default ``spec.sensor``.
         optical_gain : {"none", "calibrated", "tracked", "two-pass"}, optional
-            Default ``spec.optical_gain`` ("two-pass" compensates :attr:`optical_gain` like
+            Default ``spec.optical_gain`` ("two-pass" compensates :attr:`calibrated_gains` like
             "calibrated": the scene's gains are then those of
             :func:`aocontrol.study.compare.two_pass_scene`).
 
@@ -226,13 +232,13 @@ class StageScene:
                 update_every=max(10, int(round(_DITHER_UPDATE_S * self.fs))),
                 memory=_DITHER_MEMORY,
                 modes=probes,
-                initial=np.clip(self.optical_gain, 0.05, 3.0),
+                initial=np.clip(self.calibrated_gains, 0.05, 3.0),
             )
         if kind == "linear":
-            if handling in ("calibrated", "two-pass"):  # two-pass: self.optical_gain is the
+            if handling in ("calibrated", "two-pass"):  # two-pass: self.calibrated_gains is the
                 return self.sensor, None  # closed-loop one (two_pass_scene)
             # the loop sees the (calibrated) gains: raw reconstructor
-            return LinearModalSensor(self.optical_gain, self.raw_noise_std), tracker
+            return LinearModalSensor(self.calibrated_gains, self.raw_noise_std), tracker
         if self.wfs is None or self.calibration is None:
             raise ValueError(
                 f"sensor='diffractive' needs a pyramid stage, this one has {self.spec.wfs!r}"
@@ -244,7 +250,7 @@ class StageScene:
                 photons=self.photons,
                 read_noise=self.spec.read_noise,
                 gain_compensation=(
-                    self.optical_gain if handling in ("calibrated", "two-pass") else None
+                    self.calibrated_gains if handling in ("calibrated", "two-pass") else None
                 ),
             ),
             tracker,
@@ -366,7 +372,7 @@ def _stage_settings(st: StageScene) -> dict:
         "photons_per_frame": st.photons,
         "noise_rms_nm_median": float(np.median(st.noise_std)),
         "noise_rms_nm_tiptilt": [float(x) for x in st.noise_std[:2]],
-        "optical_gain_median": float(np.median(st.optical_gain)),
+        "optical_gain_median": float(np.median(st.calibrated_gains)),
     }
 
 
@@ -609,7 +615,7 @@ def _stage_scene(case: Case, spec: StageSpec, magnitude: float, geo: tuple) -> S
         plant=loop_plant(spec.fs, spec.latency_frames),
         photons=photons,
         sensor=sensor,
-        optical_gain=og,
+        calibrated_gains=og,
         raw_noise_std=raw,
         wfs=wfs,
         calibration=model,
