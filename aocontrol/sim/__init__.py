@@ -25,6 +25,7 @@ from aocontrol.sim.loop import (
     run_cascade,
     run_loop,
 )
+from aocontrol.sim.model_errors import DMResponse, OpticalGainError, misregistration_matrix
 from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
 from aocontrol.sim.noise import add_detector_noise, photons_per_frame, snr
 from aocontrol.sim.profiles import (
@@ -57,6 +58,9 @@ from aocontrol.sim.wfs import (
 )
 
 __all__ = [
+    "DMResponse",
+    "OpticalGainError",
+    "misregistration_matrix",
     "DiffractiveSensor",
     "DitherGainTracker",
     "Atmosphere",

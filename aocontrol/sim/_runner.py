@@ -119,7 +119,10 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
     gain and the controller's linear part (an :class:`~aocontrol.controllers.IIRBank`'s
     coefficients, else every mode's ``transfer_function``): the characteristic polynomial
     ``A_k + og B_g B_k`` in powers of ``z^-1``, roots from batched companion matrices.
-    ``None`` when the controller has no transfer function.
+    ``None`` when the controller has no transfer function. With model errors
+    (:mod:`aocontrol.sim.model_errors`): the DM's response in the plant, each mode's own
+    part of a mixing (its coupling to the others is not in a per-mode check), a drifting
+    optical gain at both ends of its modulation.
 
     Parameters
     ----------
@@ -140,15 +143,38 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
     bg = np.zeros(k0 + 3)
     bg[k0 + 1] = 1.0 - frac
     bg[k0 + 2] = frac
+    ah = np.array([1.0])
+    gain = np.asarray(optical_gain, dtype=float)
+    dm = stage.dm
+    if dm.response is not None:  # the true plant is G H (aocontrol.sim.model_errors)
+        bh, ah = dm.response.coefficients(stage.fs)
+        bg = np.convolve(bg, bh)
+    if dm.mixing is not None:  # per mode: the diagonal of the mixing (the coupling apart)
+        gain = gain * np.diag(dm.mixing)
+    err = stage.optical_gain_error
+    if err is None:
+        return _radius(coeffs, bg, ah, gain)
+    # Drifting gains: the loop at both ends of the modulation (a frozen-gain check).
+    factors = np.broadcast_to(err.factor, (ctrl.n_modes,))
+    return np.maximum(
+        _radius(coeffs, bg, ah, gain * factors * (1.0 - err.drift)),
+        _radius(coeffs, bg, ah, gain * factors * (1.0 + err.drift)),
+    )
+
+
+def _radius(coeffs: tuple, bg: np.ndarray, ah: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """Largest root modulus per mode of ``A_k A_h + gain B_g B_k`` (powers of ``z^-1``)."""
     b, a = coeffs
-    n = ctrl.n_modes
-    length = max(a.shape[1], bg.size + b.shape[1] - 1)
+    n = a.shape[0]
+    length = max(a.shape[1] + ah.size - 1, bg.size + b.shape[1] - 1)
     char = np.zeros((n, length))
-    char[:, : a.shape[1]] = a
-    # B_g B_k per mode (one shared B_g): a convolution as a sum of shifted copies.
+    # A_k A_h and B_g B_k per mode (shared A_h, B_g): convolutions as sums of shifted copies.
+    for i, h in enumerate(ah):
+        if h:
+            char[:, i : i + a.shape[1]] += h * a
     for i, g in enumerate(bg):
         if g:
-            char[:, i : i + b.shape[1]] += (optical_gain * g)[:, None] * b
+            char[:, i : i + b.shape[1]] += (gain * g)[:, None] * b
     # Trim trailing zero columns (common to every mode) and normalise.
     nz = np.flatnonzero(np.any(char != 0, axis=0))
     char = char[:, : nz[-1] + 1] / char[:, :1]
@@ -204,8 +230,13 @@ class _StageRun:
         self.depth = self.k0 + 2
         self.hist = np.zeros((self.depth, n))  # ring buffer of commands, hist[k % depth]
         self.dm = stage.dm
-        self.dm_state = self.dm.new_state()
+        self.dm_state = self.dm.new_state(stage.fs)
         self.clip = self.dm.limited
+        # Model errors (aocontrol.sim.model_errors): the mirror's response and mixing, the
+        # sensor's true optical gains; none of them costs a nominal run anything.
+        self.dm_dynamic = self.dm.dynamic
+        self.og_error = stage.optical_gain_error
+        self.fs = stage.fs
         self.record = record
         self.tele = {name: np.empty((n_frames, n), dtype=np.float32) for name in record}
         self.settle = settle
@@ -252,6 +283,8 @@ class _StageRun:
             type(stage.sensor) is LinearModalSensor  # its run: og e_prev + noise per chunk
             and self.tracker is None
             and not self.clip
+            and not self.dm_dynamic
+            and self.og_error is None
             and isinstance(self.ctrl, IIRBank)
             and self.ctrl._recursion_state() is not None
         )
@@ -349,7 +382,16 @@ class _StageRun:
     ) -> np.ndarray:
         """Frame ``j`` of the chunk: the sensor reads the previous residual (``opd()`` forms
         its map on demand), then :meth:`frame`; returns the DM shape ``y``."""
-        m = self.sensor.read(j, self.e_prev, opd)
+        if self.og_error is None:
+            m = self.sensor.read(j, self.e_prev, opd)
+        else:
+            # The true gains at this frame's time: on the signal of a modal sensor, on the
+            # measurement of one that reads maps (a compensation error).
+            g = self.og_error.gains(self.k / self.fs, self.n)
+            if self.needs_phase:
+                m = self.sensor.read(j, self.e_prev, opd) * g
+            else:
+                m = self.sensor.read(j, self.e_prev * g, opd)
         if self.tracker is not None:
             self.tracker.observe(m)
             m = m / self.tracker.gain
@@ -390,6 +432,8 @@ class _StageRun:
             y += offset
             if self.clip:
                 y[...] = self.dm.clip(y, self.dm_state)
+        if self.dm_dynamic:
+            self.dm.respond(y, self.dm_state)
         e = np.subtract(d_j if r_j is None else r_j, y, out=self.out_e[j])
         # One reduction per frame (NaN fails the comparison and is caught here too).
         if not e @ e < self.limit_check:

@@ -20,6 +20,7 @@ from aocontrol.controllers import ControllerBank
 from aocontrol.plant import split_latency
 from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim.dm import ModalDM
+from aocontrol.sim.model_errors import OpticalGainError
 from aocontrol.sim.wfs.sensors import DiffractiveSensor, LinearModalSensor, Sensor
 
 __all__ = ["Sensor", "DiffractiveSensor", "Stage"]
@@ -66,6 +67,10 @@ class Stage:
         reads phase maps unless passed to the runner.
     gain_tracker : DitherGainTracker, optional
         Online optical-gain tracking and compensation (:mod:`aocontrol.sim._gain_tracking`).
+    optical_gain_error : OpticalGainError, optional
+        The sensor's true optical gains relative to those the loop compensates, possibly
+        drifting (:class:`aocontrol.sim.model_errors.OpticalGainError`), a model error.
+        ``None`` (or a neutral one): the compensated gains are the true ones.
     stroke, dm_stroke, m2c : optional
         Deprecated (``DeprecationWarning``): the DM's ``modal_stroke`` [nm RMS],
         ``actuator_stroke`` [nm] and ``m2c`` (default ``basis.m2c`` with ``dm_stroke``), from
@@ -95,6 +100,7 @@ class Stage:
     name: str = "stage"
     basis: Any = field(default=None, repr=False, compare=False)
     gain_tracker: DitherGainTracker | None = None
+    optical_gain_error: OpticalGainError | None = None
     delay: tuple = field(init=False, repr=False, compare=False)
 
     #: Deprecated: the DM's ``modal_stroke`` [nm RMS] (``stage.dm.modal_stroke``).
@@ -114,6 +120,7 @@ class Stage:
         name: str = "stage",
         basis: Any = None,
         gain_tracker: DitherGainTracker | None = None,
+        optical_gain_error: OpticalGainError | None = None,
         stroke: Any = None,
         dm_stroke: float | None = None,
         m2c: Any = None,
@@ -126,6 +133,7 @@ class Stage:
             name=name,
             basis=basis,
             gain_tracker=gain_tracker,
+            optical_gain_error=optical_gain_error,
         )
         for key, value in fields.items():
             object.__setattr__(self, key, value)
@@ -175,6 +183,21 @@ class Stage:
                 f"LinearModalSensor or a DiffractiveSensor), got {type(self.sensor).__name__}"
             )
         self.sensor.check(n, self.basis)
+        err = self.optical_gain_error
+        if err is not None:
+            if not isinstance(err, OpticalGainError):
+                raise TypeError(
+                    f"optical_gain_error must be an OpticalGainError, got {type(err).__name__}"
+                )
+            for name in ("factor", "phase"):
+                arr = getattr(err, name)
+                if arr.ndim == 1 and arr.shape != (n,):
+                    raise ValueError(
+                        f"optical_gain_error.{name} has {arr.shape[0]} values, the controller "
+                        f"of {self.name!r} has {n} modes"
+                    )
+            if err.is_identity:
+                object.__setattr__(self, "optical_gain_error", None)
         if self.gain_tracker is not None and not isinstance(self.gain_tracker, DitherGainTracker):
             raise TypeError(
                 "gain_tracker must be a DitherGainTracker or None, got "

@@ -64,6 +64,7 @@ from aocontrol._validation import (
     check_nonnegative,
     check_positive,
 )
+from aocontrol.sim.model_errors import DMResponse
 from aocontrol.sim.pupil import Pupil
 
 __all__ = [
@@ -387,12 +388,22 @@ class ModalDM:
         +-3.2 um); needs ``m2c``. ``None`` for no actuator limit.
     m2c : array_like (n_act, n_modes), optional
         Modes-to-commands matrix (``ModalBasis.m2c``).
+    response : DMResponse, optional
+        The mirror's temporal response (:class:`aocontrol.sim.model_errors.DMResponse`), a
+        model error: the shape the WFS sees is the applied shape through it. ``None``: the
+        mirror follows its command within the frame (the model's DM).
+    mixing : array_like (n_modes, n_modes), optional
+        The modes the mirror actually makes, in the basis (column ``i``: command ``i``), a
+        model error: a misregistration after calibration
+        (:func:`aocontrol.sim.model_errors.misregistration_matrix`). ``None``: the identity.
 
     Raises
     ------
     ValueError
         Non-finite or non-positive strokes (naming ``modal_stroke`` or ``actuator_stroke``),
-        or ``m2c`` missing or of the wrong shape.
+        ``m2c`` missing or of the wrong shape, ``mixing`` not ``(n_modes, n_modes)``.
+    TypeError
+        ``response`` not a :class:`~aocontrol.sim.model_errors.DMResponse`.
 
     Examples
     --------
@@ -405,6 +416,8 @@ class ModalDM:
     modal_stroke: Any = None
     actuator_stroke: float | None = None
     m2c: Any = None
+    response: Any = None
+    mixing: Any = None
 
     #: Deprecated name of :attr:`modal_stroke`.
     stroke = DeprecatedAttribute("modal_stroke", "the DM's limit per mode [nm RMS]")
@@ -441,6 +454,25 @@ class ModalDM:
             m2c = check_finite_array("m2c", self.m2c, ndim=2).copy()
             m2c.setflags(write=False)
             object.__setattr__(self, "m2c", m2c)
+        if self.response is not None:
+            if not isinstance(self.response, DMResponse):
+                raise TypeError(
+                    f"response must be a DMResponse, got {type(self.response).__name__}"
+                )
+            if self.response.is_identity:
+                object.__setattr__(self, "response", None)
+        if self.mixing is not None:
+            mix = check_finite_array("mixing", self.mixing, ndim=2)
+            if mix.shape != (n, n):
+                raise ValueError(f"mixing must have shape ({n}, {n}), got {mix.shape}")
+            mix = mix.copy()
+            mix.setflags(write=False)
+            object.__setattr__(self, "mixing", mix)
+
+    @property
+    def dynamic(self) -> bool:
+        """Whether the mirror's shape is not the applied command (a response or mixing)."""
+        return self.response is not None or self.mixing is not None
 
     @classmethod
     def from_basis(
@@ -507,9 +539,12 @@ class ModalDM:
         out.setflags(write=False)
         return out
 
-    def new_state(self) -> ModalDMState:
-        """Zeroed saturation counters for one run."""
-        return ModalDMState(
+    def new_state(self, fs: float | None = None) -> ModalDMState:
+        """Zeroed saturation counters (and response memory) for one run at ``fs`` [Hz].
+
+        ``fs`` is needed by a DM with a temporal response only.
+        """
+        state = ModalDMState(
             saturation=np.zeros(self.n_modes, dtype=np.int64),
             actuator_saturation=(
                 None
@@ -517,6 +552,34 @@ class ModalDM:
                 else np.zeros(self.m2c.shape[0], dtype=np.int64)
             ),
         )
+        if self.response is not None:
+            if fs is None:
+                raise ValueError("a DM with a temporal response needs the loop rate fs")
+            b, a = self.response.coefficients(fs)
+            state.response = (
+                b[:, None] / a[0],
+                a[1:, None] / a[0],
+                np.zeros((b.size, self.n_modes)),
+                np.zeros((max(a.size - 1, 1), self.n_modes)),
+            )
+        return state
+
+    def respond(self, y: np.ndarray, state: ModalDMState) -> None:
+        """The shape the mirror makes for the applied shape ``y`` (n_modes,), in place: the
+        modes it actually makes (``mixing``), then its temporal response (Direct-Form I,
+        memory in ``state``)."""
+        if self.mixing is not None:
+            y[...] = self.mixing @ y
+        if state.response is not None:
+            b, a, x_hist, y_hist = state.response
+            x_hist[1:] = x_hist[:-1]
+            x_hist[0] = y
+            out = (b * x_hist).sum(axis=0)
+            if a.size:
+                out -= (a * y_hist[: a.shape[0]]).sum(axis=0)
+                y_hist[1:] = y_hist[:-1]
+                y_hist[0] = out
+            y[...] = out
 
     def clip(self, u: np.ndarray, state: ModalDMState) -> np.ndarray:
         """Clip one modal command to the stroke(s), counting saturations in ``state``.
@@ -558,7 +621,10 @@ class ModalDMState:
         Frames in which each mode was clipped (or drives a clipped actuator).
     actuator_saturation : ndarray (n_act,) of int or None
         Frames in which each actuator was clipped (with an actuator stroke).
+    response : tuple or None
+        The temporal response's filter and memory ``(b, a[1:], inputs, outputs)``.
     """
 
     saturation: np.ndarray
     actuator_saturation: np.ndarray | None = None
+    response: tuple | None = None
