@@ -54,18 +54,21 @@ def scene_frames(scene: Scene, seconds: float) -> int:
 
 
 def scene_stage(st: StageScene, controller: ControllerBank, name: str) -> Stage:
-    """A stage of the scene running ``controller``: its sensor, latency, DM and basis."""
+    """A stage of the scene running ``controller``: its sensor, latency, DM and basis, with
+    the case's model errors (the true latency, the DM's response and misregistration, the
+    sensor's true optical gains; the designs keep the nominal plant)."""
     # The sensor in the loop and its optical-gain handling, and the DM (its stroke): the
     # case's stage settings.
     sensor, tracker = st.loop_sensor()
     return Stage(
         controller,
         sensor,
-        st.spec.latency_frames,
+        st.spec.true_latency_frames,  # the design's plus the case's model error
         dm=st.modal_dm(),
         name=name,
         basis=st.basis,
         gain_tracker=tracker,
+        optical_gain_error=st.optical_gain_error(),
     )
 
 

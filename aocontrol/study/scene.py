@@ -48,6 +48,7 @@ import json
 import logging
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -57,6 +58,7 @@ from aocontrol.plant import loop_plant
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.dm import DeformableMirror, ModalDM
 from aocontrol.sim.loop import DitherGainTracker, projection_matrix
+from aocontrol.sim.model_errors import DMResponse, OpticalGainError, misregistration_matrix
 from aocontrol.sim.modes import ModalBasis, fitting_error, kl_basis
 from aocontrol.sim.noise import photons_per_frame
 from aocontrol.sim.profiles import eso_atmosphere, eso_median_profile, scale_to_tau0
@@ -169,9 +171,41 @@ class StageScene:
 
         The case's ``dm_stroke`` [m] enters once, converted by ``StageSpec.dm_stroke_nm``;
         the loop's :class:`~aocontrol.sim.Stage` takes this DM and the MPC its
-        :attr:`~aocontrol.sim.dm.ModalDM.command_bound`.
+        :attr:`~aocontrol.sim.dm.ModalDM.command_bound`. With the case's model errors: the
+        mirror's temporal response and misregistration.
         """
-        return ModalDM.from_basis(self.basis, actuator_stroke=self.spec.dm_stroke_nm)
+        spec = self.spec
+        return ModalDM(
+            self.basis.n_modes,
+            actuator_stroke=spec.dm_stroke_nm,
+            m2c=self.basis.m2c,
+            response=DMResponse(spec.dm_time_constant, spec.dm_resonance, spec.dm_damping),
+            mixing=self.misregistration,
+        )
+
+    @cached_property
+    def misregistration(self) -> np.ndarray | None:
+        """The case's DM misregistration as the modes the mirror makes (``None``: none),
+        :func:`aocontrol.sim.model_errors.misregistration_matrix`."""
+        spec = self.spec
+        if not spec.misregistered:
+            return None
+        return misregistration_matrix(
+            self.dm,
+            self.basis,
+            shift_x=spec.misregistration_shift_x,
+            shift_y=spec.misregistration_shift_y,
+            rotation=spec.misregistration_rotation,
+            subaperture=self.dm.pupil.diameter / spec.n_subapertures,
+        )
+
+    def optical_gain_error(self) -> OpticalGainError | None:
+        """The case's optical-gain model error (``None``: the compensated gains are true)."""
+        spec = self.spec
+        err = OpticalGainError(
+            spec.optical_gain_error, spec.optical_gain_drift, spec.optical_gain_drift_period
+        )
+        return None if err.is_identity else err
 
     def with_optical_gains(self, gains: np.ndarray) -> StageScene:
         """The same stage with other calibrated optical gains (the compensated linear sensor
@@ -439,11 +473,28 @@ def build_scene(
     return scene
 
 
+#: The model-error keys of a stage (:mod:`aocontrol.sim.model_errors`): settings of the run,
+#: not of the calibration (the calibration is the nominal instrument's).
+MODEL_ERROR_KEYS = (
+    "latency_error",
+    "optical_gain_error",
+    "optical_gain_drift",
+    "optical_gain_drift_period",
+    "dm_time_constant",
+    "dm_resonance",
+    "dm_damping",
+    "misregistration_shift_x",
+    "misregistration_shift_y",
+    "misregistration_rotation",
+)
+
+
 def _geometry_key(c: Case, quick: bool, rng: int) -> str:
     """The case values the calibrations depend on (not the flux, rates, gains or tau0; in quick
     mode the modes actually built, at most :data:`QUICK_MODES`)."""
     flux = ("fs", "band", "read_noise", "throughput", "gain", "latency_frames", "dm_stroke")
     flux += ("sensor", "optical_gain")
+    flux += MODEL_ERROR_KEYS  # the run's instrument, not the calibration's
     stages = [
         {k: v for k, v in dataclasses.asdict(s).items() if k not in flux}
         for s in (c.stage1, c.stage2)

@@ -49,6 +49,7 @@ import math
 import os
 import re
 import sys
+from collections.abc import Callable
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
@@ -171,6 +172,17 @@ _STAGE_SCHEMA: dict[str, tuple[str, bool]] = {
     "pixel_scale": ("q:angle", False),
     "sensor": ("str", False),
     "optical_gain": ("str", False),
+    # Model errors (aocontrol.sim.model_errors): the instrument against the design's model.
+    "latency_error": ("float", False),
+    "optical_gain_error": ("float", False),
+    "optical_gain_drift": ("float", False),
+    "optical_gain_drift_period": ("q:time", False),
+    "dm_time_constant": ("q:time", False),
+    "dm_resonance": ("q:frequency", False),
+    "dm_damping": ("float", False),
+    "misregistration_shift_x": ("float", False),
+    "misregistration_shift_y": ("float", False),
+    "misregistration_rotation": ("float", False),
 }
 #: Sensors in the loop and optical-gain settings of a stage (keys ``sensor``, ``optical_gain``).
 SENSORS = ("linear", "diffractive")
@@ -322,6 +334,7 @@ def _stage(source: str, name: str, t: dict[str, Any], sim: dict[str, Any]) -> St
             "optical_gain",
             f"must be one of {list(OPTICAL_GAIN_SETTINGS)}, got {t['optical_gain']!r}",
         )
+    _check_model_errors(t, bad)
     if t["wfs"] == "pyramid":
         for key in ("modulation", "n_modulation_points"):
             if key not in t:
@@ -349,6 +362,40 @@ def _stage(source: str, name: str, t: dict[str, Any], sim: dict[str, Any]) -> St
             f"DM: need >= {2 * (t['n_actuators'] - 1)} (2 per pitch)",
         )
     return StageSpec(**t)
+
+
+def _check_model_errors(t: dict[str, Any], bad: Callable[[str, str], CaseError]) -> None:
+    """The model-error keys of a stage (``aocontrol.sim.model_errors``), each against its
+    physical range."""
+    if "latency_error" in t:
+        err = t["latency_error"]
+        if not -t["latency_frames"] <= err <= 5.0:
+            raise bad(
+                "latency_error",
+                f"must be in [-latency_frames, 5] = [{-t['latency_frames']:g}, 5] frames (the "
+                f"true latency latency_frames + latency_error >= 0), got {err:g}",
+            )
+    if t.get("optical_gain_error", 1.0) <= 0:
+        raise bad("optical_gain_error", f"must be > 0 (true / compensated), got "
+                  f"{t['optical_gain_error']:g}")  # fmt: skip
+    if not 0 <= t.get("optical_gain_drift", 0.0) < 1:
+        raise bad("optical_gain_drift", f"must be in [0, 1), got {t['optical_gain_drift']:g}")
+    if t.get("optical_gain_drift_period", 1.0) <= 0:
+        raise bad("optical_gain_drift_period", "must be > 0 s")
+    if t.get("dm_time_constant", 0.0) < 0:
+        raise bad("dm_time_constant", f"must be >= 0 s, got {t['dm_time_constant']:g}")
+    if "dm_resonance" in t and not 0 < t["dm_resonance"] < t["fs"] / 2:
+        raise bad(
+            "dm_resonance",
+            f"must be in (0, fs/2) = (0, {t['fs'] / 2:g}) Hz, got {t['dm_resonance']:g}",
+        )
+    if not 0 < t.get("dm_damping", 0.1) < 1:
+        raise bad("dm_damping", f"must be in (0, 1), got {t['dm_damping']:g}")
+    for key in ("misregistration_shift_x", "misregistration_shift_y"):
+        if abs(t.get(key, 0.0)) > 2.0:
+            raise bad(key, f"must be within +-2 subapertures, got {t[key]:g}")
+    if abs(t.get("misregistration_rotation", 0.0)) > 45.0:
+        raise bad("misregistration_rotation", "must be within +-45 deg")
 
 
 def _build(source: str, data: dict[str, Any]) -> Case:

@@ -209,6 +209,19 @@ class StageSpec:
         dither, :class:`aocontrol.sim.DitherGainTracker`), or calibrated around the
         closed-loop residual of a first run (``two-pass``,
         :func:`aocontrol.study.compare.two_pass_scene`).
+    latency_error : float
+        Model error: the true latency is ``latency_frames + latency_error`` [frames] (the
+        designs keep ``latency_frames``).
+    optical_gain_error : float
+        Model error: the sensor's true optical gains / the compensated ones.
+    optical_gain_drift, optical_gain_drift_period : float
+        Model error: relative amplitude and period [s] of a sinusoidal drift of those gains.
+    dm_time_constant : float
+        Model error: the DM's first-order time constant [s] (0: none).
+    dm_resonance, dm_damping : float
+        Model error: the DM's mechanical resonance [Hz] (``None``: none) and its damping.
+    misregistration_shift_x, misregistration_shift_y, misregistration_rotation : float
+        Model error: the DM moved against the WFS after calibration [subapertures, deg].
     """
 
     fs: float
@@ -229,6 +242,29 @@ class StageSpec:
     pixel_scale: float = 0.0
     sensor: str = "linear"
     optical_gain: str = "calibrated"
+    latency_error: float = 0.0
+    optical_gain_error: float = 1.0
+    optical_gain_drift: float = 0.0
+    optical_gain_drift_period: float = 60.0
+    dm_time_constant: float = 0.0
+    dm_resonance: float | None = None
+    dm_damping: float = 0.1
+    misregistration_shift_x: float = 0.0
+    misregistration_shift_y: float = 0.0
+    misregistration_rotation: float = 0.0
+
+    @property
+    def true_latency_frames(self) -> float:
+        """The loop's true latency [frames]: the design's plus the model error."""
+        return self.latency_frames + self.latency_error
+
+    @property
+    def misregistered(self) -> bool:
+        """Whether the DM is misregistered against the WFS (a model error)."""
+        return bool(
+            self.misregistration_shift_x or self.misregistration_shift_y
+            or self.misregistration_rotation
+        )  # fmt: skip
 
     @property
     def dm_stroke_nm(self) -> float | None:
