@@ -198,3 +198,61 @@ def test_mixing_reaches_the_residual_as_the_matrix_says():
 def test_bad_model_errors_are_named(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+# ----------------------------------------------------------------------------- study layer
+def test_case_model_errors_are_checked_and_reach_the_loop_not_the_design():
+    from aocontrol.study._simulate import scene_stage
+    from aocontrol.study.cases import CaseError, apply_overrides, load_case
+    from aocontrol.study.scene import build_scene, geometry_cache_key
+
+    case = load_case("bright1-best")
+    errs = {
+        "stage2.latency_error": 0.3,
+        "stage2.optical_gain_error": 0.7,
+        "stage2.dm_time_constant": "0.2 ms",
+        "stage2.dm_resonance": "1.2 kHz",
+        "stage2.misregistration_shift_x": 0.25,
+    }
+    c = apply_overrides(case, errs)
+    # The calibration is the nominal instrument's: the same cache entry.
+    assert geometry_cache_key(c, True) == geometry_cache_key(case, True)
+    scene = build_scene(c, quick=True)
+    st = scene.stage2
+    stage = scene_stage(st, Integrator(0.3, fs=st.fs, n_modes=st.n_modes), "stage 2")
+    assert stage.latency_frames == pytest.approx(case.stage2.latency_frames + 0.3)
+    np.testing.assert_array_equal(
+        st.plant.num[0][0], build_scene(case, quick=True).stage2.plant.num[0][0]
+    )  # the design's
+    assert stage.dm.response.time_constant == pytest.approx(2e-4)
+    assert stage.dm.response.resonance_hz == pytest.approx(1200.0)
+    assert stage.dm.mixing is not None and stage.dm.mixing.shape == (st.n_modes,) * 2
+    assert np.all(stage.optical_gain_error.factor == 0.7)
+    nominal = scene_stage(
+        build_scene(case, quick=True).stage2, Integrator(0.3, fs=st.fs, n_modes=st.n_modes), "s"
+    )
+    assert nominal.dm.response is None and nominal.dm.mixing is None
+    assert nominal.optical_gain_error is None
+    for key, value, match in [
+        ("stage2.dm_time_constant", "-1 ms", "dm_time_constant: must be >= 0 s"),
+        ("stage2.latency_error", -2.0, "latency_error: must be in \\[-latency_frames, 5\\]"),
+        ("stage2.optical_gain_error", 0.0, "optical_gain_error: must be > 0"),
+        ("stage2.dm_resonance", "2 kHz", "dm_resonance: must be in \\(0, fs/2\\)"),
+    ]:
+        with pytest.raises(CaseError, match=match):
+            apply_overrides(case, {key: value})
+
+
+def test_cli_set_passes_case_values():
+    from aocontrol.study.cli import UserError, _settings
+
+    assert _settings(
+        ["stage2.latency_error=0.3", "seeing=0.6", "stage2.dm_time_constant=0.2 ms"]
+    ) == {
+        "stage2.latency_error": 0.3,
+        "seeing": 0.6,
+        "stage2.dm_time_constant": "0.2 ms",
+    }
+    assert _settings([]) is None
+    with pytest.raises(UserError, match="--set takes KEY=VALUE"):
+        _settings(["latency"])

@@ -133,7 +133,7 @@ def _run(args: argparse.Namespace) -> int:
             controller=controller,
             scheme=scheme,
             seed=args.seed,
-            overrides=None,
+            overrides=_settings(args.set),
             quick=args.quick,
             progress=not args.no_progress,
             sensor=args.sensor,
@@ -190,6 +190,22 @@ def _result_plots(plot: Any, results: dict[str, Any], out: str, stem: str) -> li
 
 
 # ----------------------------------------------------------------------------- compare
+def _settings(items: list[str]) -> dict | None:
+    """``--set KEY=VALUE`` items as case overrides (numbers as numbers, the rest strings);
+    the case loader checks each key and value."""
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise UserError(f"--set takes KEY=VALUE (e.g. stage2.latency_error=0.3), got {item!r}")
+        value = value.strip()
+        try:
+            out[key.strip()] = int(value) if value.lstrip("-").isdigit() else float(value)
+        except ValueError:
+            out[key.strip()] = value.strip("'\"")
+    return out or None
+
+
 def _compare(args: argparse.Namespace) -> int:
     compare = _compare_module()
     case = _check_case(args.case)
@@ -197,6 +213,7 @@ def _compare(args: argparse.Namespace) -> int:
     try:
         comparison = compare.compare_case(
             case,
+            overrides=_settings(args.set),
             quick=args.quick,
             results_dir=out,
             progress=not args.no_progress,
@@ -526,6 +543,17 @@ def _parser() -> argparse.ArgumentParser:
     def no_progress(p: argparse.ArgumentParser) -> None:
         p.add_argument("--no-progress", action="store_true", help="hide progress bars")
 
+    def case_settings(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            metavar="KEY=VALUE",
+            help="replace a case value for this run, e.g. --set seeing=0.6 or a model error "
+            "--set stage2.latency_error=0.3 --set stage2.dm_time_constant='0.2 ms' "
+            "(repeatable; keys of 'aocontrol cases', checked like a case file)",
+        )
+
     def sensor_options(p: argparse.ArgumentParser) -> None:
         from aocontrol.study.cases import OPTICAL_GAIN_SETTINGS, SENSORS
 
@@ -570,6 +598,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="reduced modes and pupil (smoke runs)")
     p.add_argument("--telemetry", action="store_true", help="also store the telemetry")
     sensor_options(p)
+    case_settings(p)
     no_progress(p)
 
     p = add("compare", _compare, "the paper's comparison of one case: table, plots, HTML report")
@@ -577,6 +606,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="short, reduced runs")
     p.add_argument("--out", default="compare-output", help="folder of the table and plots")
     sensor_options(p)
+    case_settings(p)
     no_progress(p)
 
     p = add("design", _design, "design a controller bank from closed-loop telemetry")

@@ -374,6 +374,7 @@ def compare_case(
     sensor: str | None = None,
     optical_gain: str | None = None,
     estimator: str = "prewhitened",
+    overrides: dict | None = None,
 ) -> CaseComparison:
     """The paper's protocol on one case (module docstring).
 
@@ -404,6 +405,10 @@ def compare_case(
     estimator : {"prewhitened", "welch"}
         Disturbance estimator of the calibration telemetry
         (:func:`aocontrol.synthesis.disturbance_from_telemetry`).
+    overrides : dict, optional
+        Case values replaced for every run (:func:`aocontrol.study.cases.apply_overrides`),
+        e.g. a model error ``{"stage2.latency_error": 0.3}``: the calibration runs and the
+        exposures run the instrument so changed, the designs keep the nominal plant.
 
     Returns
     -------
@@ -413,7 +418,9 @@ def compare_case(
         _check_names(name, "single")
     for s in schemes:
         _check_names("reference", s)
-    c = apply_overrides(load_case(case), _sensor_overrides(sensor, optical_gain))
+    c = apply_overrides(
+        load_case(case), dict(overrides or {}, **_sensor_overrides(sensor, optical_gain))
+    )
     scene = build_scene(c, quick=quick, progress=progress)
     exposure = seconds if seconds is not None else (0.5 if quick else c.science.exposure)
     scan_s = _QUICK_SCAN_SECONDS if quick else _SCAN_SECONDS
