@@ -75,8 +75,14 @@ class TelemetryCheckError(ValueError):
     """Telemetry that is not the loop it claims to be (:func:`check_loop_telemetry`).
 
     Raised by :func:`aocontrol.synthesis.design_from_telemetry` before any design; the
-    message names the statistic, its value and the option that fixes it. ``.check`` holds
-    the :class:`LoopTelemetryCheck`.
+    message names the statistic, its value and the option that fixes it.
+
+    Parameters
+    ----------
+    message : str
+        What is implausible and the option that fixes it.
+    check : LoopTelemetryCheck
+        The statistics (kept as ``.check``).
     """
 
     def __init__(self, message: str, check: LoopTelemetryCheck) -> None:
