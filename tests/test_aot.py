@@ -96,7 +96,12 @@ def test_simulated_run_round_trips_through_aotpy(tmp_path):
     assert tel.fs == FS and tel.latency_frames == pytest.approx(LATENCY, abs=1e-12)
     np.testing.assert_array_equal(tel.measurements, m)
     np.testing.assert_allclose(tel.commands, u, rtol=1e-12, atol=1e-12 * np.abs(u).max())
-    np.testing.assert_array_equal(read_aot_filter(path).b, np.full((3, 1), 0.3))
+    # The filter in aotpy's documented convention: 0.3 z / (z - 1), ascending powers of z.
+    np.testing.assert_array_equal(loop.time_filter_num.data, np.tile([0.0, 0.3], (3, 1)))
+    np.testing.assert_array_equal(loop.time_filter_den.data, np.tile([-1.0, 1.0], (3, 1)))
+    back = read_aot_filter(path)
+    np.testing.assert_array_equal(back.b, np.full((3, 1), 0.3))
+    np.testing.assert_array_equal(back.a, np.tile([1.0, -1.0], (3, 1)))
 
 
 def test_actuator_commands_with_a_modes_to_actuators_matrix(tmp_path):
@@ -115,7 +120,10 @@ def test_actuator_commands_with_a_modes_to_actuators_matrix(tmp_path):
 # ----------------------------------------------------------- a file built with aotpy
 def test_reader_projects_slopes_with_the_control_matrix_of_a_foreign_file(tmp_path):
     # Oracle: a file built with aotpy directly (slopes, control matrix, actuator commands):
-    # the modal measurements are control_matrix @ slopes, the commands as recorded.
+    # the modal measurements are control_matrix @ slopes, the commands as recorded. Neither
+    # states a BUNIT: the commands are in AOT's metres, and so are the actuator commands the
+    # control matrix reconstructs; both are read in nm (1e9 per metre; issue 30: they were
+    # taken for nm before).
     rng = np.random.default_rng(2)
     m_act, u_act = rng.normal(size=(300, N_ACT)), rng.normal(size=(300, N_ACT))
     tel, src = _parts()
@@ -125,14 +133,18 @@ def test_reader_projects_slopes_with_the_control_matrix_of_a_foreign_file(tmp_pa
     sys_.write_to_file(path)
     assert aot_loops(path) == ["HO"]
     got = read_aot(path, "HO")
-    np.testing.assert_allclose(got.measurements, m_act, atol=1e-10)
-    np.testing.assert_array_equal(got.commands, u_act)
+    np.testing.assert_allclose(got.measurements, 1e9 * m_act, atol=1e-1)
+    np.testing.assert_allclose(got.commands, 1e9 * u_act, rtol=1e-15)
+    assert got.unit == "nm"
     assert got.fs == FS and got.latency_frames == pytest.approx(LATENCY)
-    # A given projection (here the control matrix's negative) is used instead of the file's.
+    # A given projection (here the control matrix's negative) is used instead of the file's;
+    # its unit is not the file's: stated here as the metres it is.
     cm = lp.control_matrix.data
-    neg = read_aot(path, projection=-cm, command_projection=np.eye(N_ACT), command_sign=-1.0)
-    np.testing.assert_allclose(neg.measurements, -m_act, atol=1e-10)
-    np.testing.assert_array_equal(neg.commands, -u_act)
+    neg = read_aot(
+        path, projection=-cm, command_projection=np.eye(N_ACT), command_sign=-1.0, unit="m"
+    )
+    np.testing.assert_allclose(neg.measurements, -1e9 * m_act, atol=1e-1)
+    np.testing.assert_allclose(neg.commands, -1e9 * u_act, rtol=1e-15)
 
 
 def test_reader_uses_modal_fields_when_the_file_has_them(tmp_path):
@@ -204,7 +216,11 @@ def test_design_and_cli_on_a_file_another_system_wrote(tmp_path, capsys):
     assert out.exists() and (tmp_path / "k.csv").exists()
     (ho,) = [lp for lp in aotpy.AOSystem.read_from_file(tmp_path / "with_filter.fits").loops
              if lp.uid == "HO"]  # fmt: skip
-    np.testing.assert_allclose(ho.time_filter_num.data[:, 0], rep.controller.b[:, 0], rtol=1e-6)
+    # The gain is the coefficient of z^1 of g z / (z - 1) (aotpy's convention, ascending).
+    np.testing.assert_allclose(ho.time_filter_num.data[:, 1], rep.controller.b[:, 0], rtol=1e-6)
+    np.testing.assert_allclose(
+        read_aot_filter(tmp_path / "with_filter.fits", "HO").b[:, 0], rep.controller.b[:, 0]
+    )
     # Several loops and none chosen: the error lists them.
     assert main(["design", str(path), "--out", str(tmp_path / "x.h5")]) == 2
     assert "2 control loops ['TT', 'HO']" in capsys.readouterr().err
@@ -212,7 +228,8 @@ def test_design_and_cli_on_a_file_another_system_wrote(tmp_path, capsys):
 
 def test_filter_round_trip_through_aotpy(tmp_path):
     # Oracle: a 5th-order bank written into a loop's time filter, read back by aotpy (the
-    # raw fields) and by us (an IIRBank whose step() equals the original's).
+    # raw fields: the rows in ascending powers of z, i.e. reversed, the convention stated)
+    # and by us (an IIRBank whose step() equals the original's).
     rng = np.random.default_rng(9)
     b = rng.normal(size=(N_ACT, 6))
     a = np.column_stack([np.ones(N_ACT), 0.1 * rng.normal(size=(N_ACT, 5))])
@@ -223,8 +240,9 @@ def test_filter_round_trip_through_aotpy(tmp_path):
     _system([loop], tel, src).write_to_file(path)
     out = write_aot_filter(path, bank, "HO", out=tmp_path / "out.fits")
     (lp,) = aotpy.AOSystem.read_from_file(out).loops
-    np.testing.assert_array_equal(lp.time_filter_num.data, b)
-    np.testing.assert_array_equal(lp.time_filter_den.data, a)
+    np.testing.assert_array_equal(lp.time_filter_num.data, b[:, ::-1])
+    np.testing.assert_array_equal(lp.time_filter_den.data, a[:, ::-1])
+    assert lp.time_filter_num.metadata_to_dict()["TFCONV"] == "z"
     back = read_aot_filter(out, "HO")
     x = rng.normal(size=(50, N_ACT))
     bank.reset()
@@ -285,3 +303,82 @@ def test_not_an_aot_file_and_a_filter_at_the_wrong_rate(tmp_path):
     with pytest.raises(AOTError, match=r"field 'framerate'.*1000 Hz, bank at 500 Hz"):
         write_aot_filter(path, Integrator(0.3, fs=500.0, n_modes=N_ACT), out=tmp_path / "o.fits")
     assert not (tmp_path / "o.fits").exists()
+
+
+# ------------------------------------------------------------- the temporal filter's convention
+def _aotpy_reader_response(num: np.ndarray, den: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """A reader that follows aotpy's documentation literally (not our code): one row's
+    sys(z) = sum_i b_i z^i / sum_j a_j z^j at z = exp(2 pi i f / fs)."""
+    z = np.exp(2j * np.pi * f / FS)
+    return np.polyval(num[::-1], z) / np.polyval(den[::-1], z)
+
+
+def _filter_file(tmp_path, name="loop.fits"):
+    tel, src = _parts()
+    loop = _slope_loop(tel, src, np.zeros((64, N_ACT)), np.zeros((64, N_ACT)))
+    path = tmp_path / name
+    _system([loop], tel, src).write_to_file(path)
+    return path, loop, tel, src
+
+
+def test_written_filter_has_its_response_for_a_reader_of_aotpy_docs(tmp_path):
+    # Issue 30: aotpy documents sys(z) = sum b_i z^i / sum a_j z^j; we wrote powers of z^-1,
+    # so a reader following the formula read our integrator (den [1, -1]) as 1 - z. Oracle: a
+    # leaky integrator with a lead of known response, K = g (1 - c z^-1) / ((1 - z^-1)(1 - p
+    # z^-1)), written by write_aot_filter and evaluated from the raw aotpy fields by a reader
+    # of aotpy's formula, equals the analytic K on the circle.
+    g, c, p = 0.4, 0.5, 0.9
+    b = g * np.array([1.0, -c])
+    a = np.convolve([1.0, -1.0], [1.0, -p])
+    bank = IIRBank(np.tile(b, (N_ACT, 1)), np.tile(a, (N_ACT, 1)), FS)
+    path, *_ = _filter_file(tmp_path)
+    out = write_aot_filter(path, bank, "HO", out=tmp_path / "out.fits")
+    (lp,) = aotpy.AOSystem.read_from_file(out).loops
+    f = np.linspace(1.0, FS / 2, 50)
+    zi = np.exp(-2j * np.pi * f / FS)
+    analytic = g * (1 - c * zi) / ((1 - zi) * (1 - p * zi))
+    for row in range(N_ACT):
+        got = _aotpy_reader_response(lp.time_filter_num.data[row], lp.time_filter_den.data[row], f)
+        np.testing.assert_allclose(got, analytic, rtol=1e-12)
+    # Twin: the rows as we wrote them before (powers of z^-1) give that reader the conjugate
+    # response (a different filter): the check above can fail.
+    old = _aotpy_reader_response(b, a, f)
+    assert np.max(np.abs(old - analytic)) > 0.1 * np.max(np.abs(analytic))
+    np.testing.assert_allclose(old, np.conj(analytic), rtol=1e-12)
+    # And our reader gives the bank back.
+    back = read_aot_filter(out, "HO")
+    np.testing.assert_allclose(back.b, bank.b, rtol=1e-15)
+    np.testing.assert_allclose(back.a, bank.a, rtol=1e-15)
+
+
+def test_unmarked_filters_old_files_and_rtc_arrays(tmp_path):
+    # Files without our TFCONV keyword: read by aotpy's formula; the rows an RTC keeps (a
+    # difference equation in powers of z^-1, as SPARTA's A/B terms that aotpy's ESO
+    # translators copy) with convention="z^-1"; a file aocontrol wrote before issue 30
+    # (images "<LOOP> TIME_FILTER_NUM/DEN", rows in z^-1) in z^-1, with a warning.
+    g = 0.3
+    path, loop, tel, src = _filter_file(tmp_path)
+    for name, num, den in (("TERMS", [g, 0.0], [1.0, -1.0]), ("HO", [g], [1.0, -1.0])):
+        loop.time_filter_num = aotpy.Image(f"{name} TIME_FILTER_NUM", np.array([num]))
+        loop.time_filter_den = aotpy.Image(f"{name} TIME_FILTER_DEN", np.array([den]))
+        _system([loop], tel, src).write_to_file(tmp_path / f"{name}.fits")
+    foreign = tmp_path / "TERMS.fits"
+    # aotpy's formula: g / (1 - z) = -g z^-1 / (1 - z^-1).
+    formula = read_aot_filter(foreign)
+    np.testing.assert_allclose(formula.b, [[0.0, -g]], atol=1e-15)
+    np.testing.assert_allclose(formula.a, [[1.0, -1.0]])
+    rtc = read_aot_filter(foreign, convention="z^-1")
+    np.testing.assert_allclose(rtc.b, [[g, 0.0]])  # as stored (z^-1 rows are not trimmed)
+    np.testing.assert_allclose(rtc.a, [[1.0, -1.0]])
+    with pytest.warns(UserWarning, match="written by aocontrol before it stated its convention"):
+        old = read_aot_filter(tmp_path / "HO.fits")
+    np.testing.assert_allclose(old.b, [[g]])
+    np.testing.assert_allclose(old.a, [[1.0, -1.0]])
+    # A row that the formula makes non-causal names the other convention.
+    loop.time_filter_num = aotpy.Image("N", np.array([[g, 0.1, 0.2]]))
+    loop.time_filter_den = aotpy.Image("D", np.array([[1.0, -1.0]]))
+    _system([loop], tel, src).write_to_file(tmp_path / "long.fits")
+    with pytest.raises(AOTError, match=r"not causal.*convention='z\^-1'"):
+        read_aot_filter(tmp_path / "long.fits")
+    with pytest.raises(ValueError, match=r"convention must be one of \['z', 'z\^-1'\]"):
+        read_aot_filter(foreign, convention="z+1")

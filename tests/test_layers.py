@@ -29,6 +29,7 @@ CONTROL = [
     "adaptive",
     "_validation.py",
     "_deprecation.py",
+    "_units.py",
 ]
 
 

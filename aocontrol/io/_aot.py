@@ -1,9 +1,8 @@
 """AOT (ESO's Adaptive Optics Telemetry, FITS) in the control layer, through ``aotpy``.
 
-Reading a loop's telemetry (:func:`read_aot`) and a loop's temporal filter
-(:func:`read_aot_filter`), writing a designed bank into a loop's temporal filter
-(:func:`write_aot_filter`). The writer of simulated runs belongs to the simulator's study
-layer (:func:`aocontrol.study.aot.write_run_aot`).
+Reading a loop's telemetry (:func:`read_aot`); a loop's temporal filter is read and written
+by :mod:`aocontrol.io._aot_filter`. The writer of simulated runs belongs to the simulator's
+study layer (:func:`aocontrol.study.aot.write_run_aot`).
 
 Conventions (AOT fields of an ``aotpy.ControlLoop``):
 
@@ -21,12 +20,26 @@ Conventions (AOT fields of an ``aotpy.ControlLoop``):
   loop's ``commands_to_modes`` (``m x a_v``), the pseudo-inverse of ``modes_to_commands``,
   or unchanged when the measurements were projected with the control matrix. Measurements
   and commands must end in the same unit (``pol = m + G u``): the matrices carry it.
+* Units (:mod:`aocontrol._units`). AOT fixes ``commands`` in metres on the actuators (a
+  ``BUNIT`` of the commands image overrides it); modal coefficients and matrices are in "user
+  defined units", stated by their ``BUNIT`` or not at all. The unit of the modal telemetry is
+  the measurements': ``modal_coefficients``' ``BUNIT``, or ``measurements_to_modes``' when it
+  is a length, or the commands' (metres) for measurements projected with the control matrix
+  (they are then actuator commands), or the ``unit`` the caller states. A length unit is
+  converted to nm once, here (both ``m`` and ``u``: the project's convention, modal
+  coefficients of 1 nm RMS), and :attr:`LoopTelemetry.unit` is ``"nm"``; any other unit is
+  kept and named, and none stated gives ``unit=None`` (figures labelled ``"a.u."``, never
+  nm). A ``unit`` that contradicts the file's is refused unless ``override_metadata``.
 * Sign: ``u = K m`` with the residual ``d - u`` (:mod:`aocontrol.analysis`);
-  ``command_sign=-1`` for a system whose commands enter with the other sign.
-* Temporal filter: ``time_filter_num`` (``m x nb``) and ``time_filter_den`` (``m x na``) as
-  :class:`aocontrol.controllers.IIRBank`'s ``b`` and ``a``: powers of ``z^-1``, ``a_0 = 1``,
-  one row per mode (one row: shared by every mode). An integrator of gain ``g`` is
-  ``num = [g]``, ``den = [1, -1]``: "the first numerator is the loop gain", as AOT says.
+  ``command_sign=-1`` for a system whose commands enter with the other sign (e.g. an RTC
+  whose temporal filter has a negative gain); :func:`aocontrol.synthesis.design_from_telemetry`
+  refuses telemetry whose sign the data contradict
+  (:func:`aocontrol.synthesis.check_loop_telemetry`).
+* Metadata given by the caller (``latency_frames``, ``unit``) that contradicts the file's
+  (``delay - 1``, the ``BUNIT``) is refused unless ``override_metadata=True``.
+* Temporal filter (``time_filter_num``/``time_filter_den``): :mod:`aocontrol.io._aot_filter`
+  (:func:`~aocontrol.io.read_aot_filter`, :func:`~aocontrol.io.write_aot_filter`), whose
+  docstring states the convention and what the standard's text and ESO's files say.
 """
 
 from __future__ import annotations
@@ -37,18 +50,21 @@ from collections.abc import Mapping
 import numpy as np
 
 from aocontrol._atomic import atomic_path
-from aocontrol.controllers import ControllerBank, IIRBank
-from aocontrol.io._rtc import iir_coefficients
+from aocontrol._units import NM, nm_per_unit
 from aocontrol.synthesis import LoopTelemetry
 
 __all__ = [
+    "AOT_COMMAND_UNIT",
     "AOTError",
     "aot_loops",
     "read_aot",
-    "read_aot_filter",
-    "write_aot_filter",
     "write_system",
 ]
+
+
+#: The unit AOT fixes for a loop's ``commands`` (``aotpy``: "in m units"), used when the
+#: commands image states none.
+AOT_COMMAND_UNIT = "m"
 
 
 class AOTError(ValueError):
@@ -183,6 +199,8 @@ def read_aot(
     command_sign: float = 1.0,
     latency_frames: float | None = None,
     skip_frames: int = 0,
+    unit: str | None = None,
+    override_metadata: bool = False,
 ) -> LoopTelemetry:
     """Modal closed-loop telemetry of one control loop of an AOT file.
 
@@ -199,49 +217,73 @@ def read_aot(
     command_sign : {1.0, -1.0}, default 1.0
         Multiplies the commands (see the sign convention).
     latency_frames : float, optional
-        RTC latency beyond the WFS integration [frames]; default ``loop.delay - 1``.
+        RTC latency beyond the WFS integration [frames]; default ``loop.delay - 1``. When the
+        file has a delay, a different value is refused unless ``override_metadata``.
     skip_frames : int, default 0
         Frames dropped at the start (e.g. a start-up transient).
+    unit : str, optional
+        Unit of the modal telemetry when the file does not state it (module docstring:
+        ``"m"``, ``"um"``, ``"nm"`` are converted to nm; another is kept as a label). When
+        the file states one, a different unit is refused unless ``override_metadata``.
+    override_metadata : bool, default False
+        Let ``latency_frames`` and ``unit`` replace the file's values.
 
     Returns
     -------
     LoopTelemetry
-        ``source`` is ``"path[loop]"``.
+        ``source`` is ``"path[loop]"``; ``unit`` is ``"nm"`` when the unit is a known length
+        (values converted), else the unit stated (``None`` if none).
 
     Raises
     ------
     AOTError
         (a ``ValueError``) No such file or loop, several loops and none chosen, no frame
         rate, no delay (and no ``latency_frames``), a delay below one frame, no
-        measurements or commands, mismatched frames or matrix sizes, non-finite data; the
-        message names the file, the loop and the field.
+        measurements or commands, mismatched frames or matrix sizes, non-finite data, a
+        ``latency_frames`` or ``unit`` that contradicts the file; the message names the file,
+        the loop and the field.
     """
     path = os.fspath(path)
     system = _read_system(path)
     lp = _loop(system, path, loop)
     name = lp.uid
     fs = _frame_rate(lp, path)
+    delay_ok = lp.delay is not None and np.isfinite(lp.delay) and lp.delay >= 1.0
     if latency_frames is None:
         if lp.delay is None:
             raise AOTError(
                 path, name, "delay", "the loop delay [frames] is missing; pass latency_frames"
             )
-        if not np.isfinite(lp.delay) or lp.delay < 1.0:
+        if not delay_ok:
             raise AOTError(
                 path,
                 name,
                 "delay",
                 f"the full loop delay must be >= 1 frame (WFS integration + RTC latency, "
-                f"mid-point to mid-point), got {lp.delay!r}",
+                f"mid-point to mid-point), got {lp.delay!r}; pass latency_frames",
             )
         latency_frames = float(lp.delay) - 1.0
+    elif delay_ok and not override_metadata:
+        file_latency = float(lp.delay) - 1.0
+        if not np.isclose(float(latency_frames), file_latency, rtol=1e-9, atol=1e-9):
+            raise AOTError(
+                path,
+                name,
+                "delay",
+                f"latency_frames={latency_frames!r} contradicts the file's delay of "
+                f"{float(lp.delay):g} frames (latency {file_latency:g} frame beyond the WFS "
+                "integration); pass override_metadata=True (CLI: --override-metadata) to use "
+                "the given value",
+            )
     if command_sign not in (1.0, -1.0):
         raise ValueError(f"command_sign must be 1.0 or -1.0, got {command_sign!r}")
 
     modal = _image(lp.modal_coefficients, path, name, "modal_coefficients", (2,))
     in_command_space = False
+    command_unit = _unit_of(lp.commands) or AOT_COMMAND_UNIT
     if modal is not None and projection is None:
         m = modal
+        file_unit = _unit_of(lp.modal_coefficients)
     else:
         sensor = lp.input_sensor
         slopes = _image(
@@ -261,13 +303,19 @@ def read_aot(
         slopes = slopes.reshape(slopes.shape[0], -1)
         if projection is not None:
             mat, field = _matrix(projection, path, name, "projection"), "projection"
+            file_unit = None
         elif lp.measurements_to_modes is not None:
             field = "measurements_to_modes"
             mat = _matrix(lp.measurements_to_modes.data, path, name, field)
+            file_unit = _unit_of(lp.measurements_to_modes)
+            file_unit = file_unit if nm_per_unit(file_unit) else None
         elif lp.control_matrix is not None:
             field = "control_matrix"
             mat = _matrix(lp.control_matrix.data, path, name, field)
             in_command_space = True
+            # Actuator commands reconstructed (no gain): in the commands' unit.
+            file_unit = _unit_of(lp.control_matrix)
+            file_unit = file_unit if nm_per_unit(file_unit) else command_unit
         else:
             raise AOTError(
                 path,
@@ -310,109 +358,53 @@ def read_aot(
         )
     if not 0 <= skip_frames < m.shape[0]:
         raise ValueError(f"skip_frames must be in [0, {m.shape[0]}), got {skip_frames!r}")
+    chosen = _chosen_unit(path, name, file_unit, unit, override_metadata)
+    factor = nm_per_unit(chosen)
+    if factor is not None:
+        m, u, chosen = m * factor, u * factor, NM
     return LoopTelemetry(
         m[skip_frames:],
         command_sign * u[skip_frames:],
         fs,
         latency_frames,
         source=f"{path}[{name}]",
+        unit=chosen,
     )
 
 
-def read_aot_filter(path: str | os.PathLike, loop: str | None = None) -> IIRBank:
-    """The temporal filter of an AOT loop as an :class:`~aocontrol.controllers.IIRBank`.
+def _unit_of(img) -> str | None:
+    """An image's ``BUNIT`` (``None`` when absent or blank)."""
+    unit = None if img is None else getattr(img, "unit", None)
+    if unit is None or not str(unit).strip():
+        return None
+    return str(unit).strip()
 
-    Rows of ``time_filter_num``/``time_filter_den`` are modes (one row: one mode); the rate
-    is the loop's (module docstring for the convention).
 
-    Parameters
-    ----------
-    path : str or os.PathLike
-        AOT FITS file.
-    loop : str, optional
-        The loop's ``uid`` (required when the file has several).
+def _same_unit(a: str, b: str) -> bool:
+    fa, fb = nm_per_unit(a), nm_per_unit(b)
+    if fa is not None and fb is not None:
+        return fa == fb
+    return a.strip().lower() == b.strip().lower()
 
-    Returns
-    -------
-    IIRBank
 
-    Raises
-    ------
-    AOTError
-        No such loop, no filter, rows that disagree, a zero ``a_0``, no frame rate.
-    """
-    path = os.fspath(path)
-    lp = _loop(_read_system(path), path, loop)
-    num = _image(lp.time_filter_num, path, lp.uid, "time_filter_num", (1, 2))
-    den = _image(lp.time_filter_den, path, lp.uid, "time_filter_den", (1, 2))
-    if num is None:
-        raise AOTError(path, lp.uid, "time_filter_num", "the loop has no temporal filter")
-    if den is None:
-        den = np.array([1.0, -1.0])  # AOT: a numerator alone is an integrator's gain
-    num, den = np.atleast_2d(num), np.atleast_2d(den)
-    if num.shape[0] != den.shape[0] and 1 not in (num.shape[0], den.shape[0]):
+def _chosen_unit(
+    path: str, loop: str, file_unit: str | None, given: str | None, override: bool
+) -> str | None:
+    """The unit of the modal telemetry: the file's, or the caller's (module docstring)."""
+    if given is None:
+        return file_unit
+    if not isinstance(given, str) or not given.strip():
+        raise ValueError(f"unit must be a non-empty string such as 'nm' or 'm', got {given!r}")
+    if file_unit is not None and not override and not _same_unit(given, file_unit):
         raise AOTError(
             path,
-            lp.uid,
-            "time_filter_den",
-            f"{den.shape[0]} rows for {num.shape[0]} numerator rows (one per mode, or one)",
+            loop,
+            "unit",
+            f"unit={given!r} contradicts the file's unit {file_unit!r} of the modal telemetry "
+            "(AOT commands are in metres); pass override_metadata=True (CLI: "
+            "--override-metadata) to use the given unit",
         )
-    if np.any(den[:, 0] == 0):
-        raise AOTError(path, lp.uid, "time_filter_den", "a_0 = 0: not a causal filter")
-    n = max(num.shape[0], den.shape[0])
-    num = np.broadcast_to(num, (n, num.shape[1]))
-    den = np.broadcast_to(den, (n, den.shape[1]))
-    return IIRBank(num, den, _frame_rate(lp, path))
-
-
-def write_aot_filter(
-    path: str | os.PathLike,
-    bank: ControllerBank,
-    loop: str | None = None,
-    *,
-    out: str | os.PathLike | None = None,
-) -> str:
-    """Write a bank's filters into an AOT loop's ``time_filter_num``/``time_filter_den``.
-
-    The file is read with ``aotpy``, the loop's filter replaced (one row per mode, powers of
-    ``z^-1``, module docstring) and the system written back with ``aotpy`` to ``out``
-    (default: ``path`` itself), atomically.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        AOT FITS file.
-    bank : ControllerBank
-        An IIR bank or any linear bank (:func:`aocontrol.io.iir_coefficients`), at the
-        loop's rate.
-    loop : str, optional
-        The loop's ``uid`` (required when the file has several).
-    out : str or os.PathLike, optional
-        Output file (default ``path``).
-
-    Returns
-    -------
-    str
-        The file written.
-
-    Raises
-    ------
-    AOTError
-        No such loop, a bank at another rate than the loop's.
-    """
-    path = os.fspath(path)
-    target = path if out is None else os.fspath(out)
-    aotpy = _aotpy()
-    system = _read_system(path)
-    lp = _loop(system, path, loop)
-    fs = _frame_rate(lp, path)
-    if not np.isclose(bank.fs, fs, rtol=1e-12):
-        raise AOTError(path, lp.uid, "framerate", f"loop at {fs:g} Hz, bank at {bank.fs:g} Hz")
-    b, a = iir_coefficients(bank)
-    lp.time_filter_num = aotpy.Image(f"{lp.uid} TIME_FILTER_NUM", b)
-    lp.time_filter_den = aotpy.Image(f"{lp.uid} TIME_FILTER_DEN", a)
-    write_system(system, target)
-    return target
+    return given.strip()
 
 
 def write_system(system: object, path: str | os.PathLike, **kwargs: Mapping) -> str:

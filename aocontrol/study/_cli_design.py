@@ -128,10 +128,29 @@ def read_telemetry(path: str, stage: str | None = None) -> tuple[np.ndarray, np.
 
 
 _AOT_EXTENSIONS = (".fits", ".fit", ".fits.gz", ".fts")
+#: Formats of ``design --out`` by extension: the controller file (HDF5, reloaded with
+#: ``aocontrol.load_controller``) or the real-time export (FITS table or CSV,
+#: ``aocontrol.io.export_controller``).
+OUT_FORMATS = {".h5": "hdf5", ".hdf5": "hdf5", ".fits": "fits", ".fit": "fits", ".csv": "csv"}
+
+
+def _out_format(option: str, path: str, formats: dict) -> str:
+    """The format a file name's extension says, or a UserError naming the valid ones."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in formats:
+        raise UserError(
+            f"{option} {path!r}: extension {ext!r} does not say the format; expected one of "
+            f"{', '.join(sorted(formats))} (.h5/.hdf5: controller file for "
+            "aocontrol.load_controller; .fits/.csv: real-time export for "
+            "aocontrol.io.read_exported_controller)"
+        )
+    return formats[ext]
 
 
 def _design_telemetry(args: argparse.Namespace) -> Any:
-    """The telemetry of ``design``: an AOT loop, or our .npz/.h5 layouts."""
+    """The telemetry of ``design``: an AOT loop, or our .npz/.h5 layouts, in nm when the unit
+    is a known length (``--unit``, the file's), with ``--command-sign`` applied."""
+    from aocontrol._units import NM, nm_per_unit
     from aocontrol.synthesis import LoopTelemetry
 
     path = args.telemetry
@@ -140,23 +159,49 @@ def _design_telemetry(args: argparse.Namespace) -> Any:
 
         if args.stage is not None:
             raise UserError("--stage is for results files; an AOT file takes --loop NAME")
-        return read_aot(path, args.loop, latency_frames=args.latency)
+        return read_aot(
+            path,
+            args.loop,
+            latency_frames=args.latency,
+            command_sign=float(args.command_sign),
+            unit=args.unit,
+            override_metadata=args.override_metadata,
+        )
     if args.loop is not None:
         raise UserError(f"--loop is for AOT files (.fits), got {path!r}")
     m, u, info = read_telemetry(path, args.stage)
-    fs = args.fs if args.fs is not None else info.get("fs")
-    latency = args.latency if args.latency is not None else info.get("latency_frames")
+    # The file's own rate and latency (results files) stay in the telemetry: a --fs or
+    # --latency that contradicts them is refused by design_from_telemetry.
+    fs = info.get("fs", args.fs)
+    latency = info.get("latency_frames", args.latency)
     if fs is None or latency is None:
         raise UserError("--fs [Hz] and --latency [frames] are required for this telemetry file")
-    return LoopTelemetry(m, u, fs, latency, source=path)
+    unit = args.unit or NM  # our layouts are documented in nm
+    results_file = not path.endswith(".npz")  # an aocontrol results file: nm, by its writer
+    if results_file and args.unit is not None and not args.override_metadata:
+        if nm_per_unit(args.unit) != 1.0:
+            raise UserError(
+                f"--unit {args.unit!r} contradicts the results file {path!r} (its telemetry is "
+                "in nm); pass --override-metadata to use the given unit"
+            )
+    factor = nm_per_unit(unit)
+    if factor is not None:
+        m, u, unit = m * factor, u * factor, NM
+    return LoopTelemetry(m, float(args.command_sign) * u, fs, latency, source=path, unit=unit)
 
 
 def _design(args: argparse.Namespace) -> int:
+    from aocontrol._units import unit_label
     from aocontrol.analysis import sensitivity
     from aocontrol.controllers import save_controller
+    from aocontrol.io import EXPORT_FORMATS
     from aocontrol.synthesis import controller_names, design_from_telemetry, get_controller
 
     controller = _valid_name("controller", args.controller, sorted(controller_names()))
+    # File names are checked before the design (minutes) is made.
+    out_format = _out_format("--out", args.out, OUT_FORMATS)
+    if args.export:
+        _out_format("--export", args.export, EXPORT_FORMATS)
     telemetry = _design_telemetry(args)
     given = {
         "order": args.order,
@@ -171,18 +216,30 @@ def _design(args: argparse.Namespace) -> int:
         telemetry,
         controller,
         fs=args.fs,
+        latency_frames=args.latency,
         estimator=args.estimator,
         modulus_margin=args.modulus_margin,
         reference_gain=args.gain,
         options=options,
         bounds=bounds,
+        check_telemetry=not args.no_telemetry_check,
+        override_metadata=args.override_metadata,
     )
     n_modes = rep.n_modes
+    unit = unit_label(rep.unit)
     print(
         f"telemetry: {telemetry.n_frames} frames x {n_modes} modes, fs = {rep.fs:g} Hz, "
         f"latency = {rep.latency_frames:g} frame; controller: {controller}; estimator: "
         f"{rep.estimate.method}"
     )
+    print(_units_line(rep.unit, args))
+    if rep.telemetry_check is not None:
+        chk = rep.telemetry_check
+        print(
+            f"command sign {int(args.command_sign):+d}: {chk.sign} (innovation variance of "
+            f"m + G u / m - G u = {chk.sign_statistic:.3g}, < 1 for the loop's own sign); "
+            f"rms(G u) / rms(m) = {chk.scale:.3g}"
+        )
     rows = [
         {
             "mode": r["mode"],
@@ -209,10 +266,10 @@ def _design(args: argparse.Namespace) -> int:
         ("mm", "MM[1]", ".3f"),
         ("dm_removed", "lat-[fr]", ".2f"),
         ("dm", "lat+[fr]", ".2f"),
-        ("rms", "resid[nm]", ".2f"),
-        ("ref", "OMGI resid[nm]", ".2f"),
-        ("wiener", "Wiener[nm]", ".2f"),
-        ("bound", "MM-bound[nm]", ".2f"),
+        ("rms", f"resid[{unit}]", ".2f"),
+        ("ref", f"OMGI resid[{unit}]", ".2f"),
+        ("wiener", f"Wiener[{unit}]", ".2f"),
+        ("bound", f"MM-bound[{unit}]", ".2f"),
     ]
     if n_modes > _MAX_MODE_ROWS:
         summary = []
@@ -230,15 +287,36 @@ def _design(args: argparse.Namespace) -> int:
     print(_format_table(rows, columns))
     total, total_ref = rep.residual_rms, rep.reference_residual_rms
     print(
-        f"predicted residual (all modes): {total:.2f} nm RMS; optimal-gain integrator "
-        f"{total_ref:.2f} nm RMS (ratio {total / total_ref:.3f}); Wiener bound "
-        f"{rep.wiener_rms:.2f} nm, modulus-margin bound {rep.constrained_rms:.2f} nm"
+        f"predicted residual (all modes): {total:.2f} {unit} RMS; optimal-gain integrator "
+        f"{total_ref:.2f} {unit} RMS (ratio {total / total_ref:.3f}); Wiener bound "
+        f"{rep.wiener_rms:.2f} {unit}, modulus-margin bound {rep.constrained_rms:.2f} {unit}"
     )
+    if rep.bound_failures:
+        first = next(iter(rep.bound_failures.items()))
+        print(
+            f"modulus-margin bound not computed for modes {list(rep.bound_failures)[:10]} "
+            f"(mode {first[0]}: {first[1]})"
+        )
     out = args.out
     folder = os.path.dirname(os.path.abspath(out))
     _out_dir(folder)
-    path = save_controller(rep.controller, out)
-    print(f"controller file: {path} (reload with aocontrol.load_controller)")
+    if out_format == "hdf5":
+        path = save_controller(rep.controller, out)
+        print(f"controller file: {path} (reload with aocontrol.load_controller)")
+    else:
+        from aocontrol.io import export_controller
+
+        path = export_controller(
+            rep.controller,
+            out,
+            latency_frames=rep.latency_frames,
+            modulus_margin=rep.achieved_modulus_margin,
+            format=out_format,
+        )
+        print(
+            f"controller file: {path} ({out_format.upper()} real-time export; read with "
+            "aocontrol.io.read_exported_controller)"
+        )
     if args.export:
         from aocontrol.io import export_controller
 
@@ -270,6 +348,7 @@ def _design(args: argparse.Namespace) -> int:
         modulus_margin=args.modulus_margin,
         title=f"{controller}: disturbance and noise PSD of mode {show[0]}",
         path=fig_path,
+        unit=unit,
     )
     margins_path = stem + "_margins.png"
     plot.plot_margins(
@@ -279,6 +358,150 @@ def _design(args: argparse.Namespace) -> int:
     )
     print(f"plot: {fig_path}")
     print(f"plot: {margins_path}")
-    info = {"telemetry": args.telemetry, "frames": telemetry.n_frames}
+    info = {"telemetry": args.telemetry, "frames": telemetry.n_frames, "unit": unit}
     print(f"report: {_design_report(rep, stem + '_report.html', info=info)}")
     return 0
+
+
+def _units_line(unit: str | None, args: argparse.Namespace) -> str:
+    """What unit the figures are in, and where it came from."""
+    if unit == "nm":
+        return (
+            "units: nm (modal coefficients of 1 nm RMS; a file's lengths converted, AOT "
+            "commands from metres)"
+        )
+    if unit is None:
+        return (
+            "units: a.u. (the file does not state the unit of its modal values; state it "
+            "with --unit, e.g. --unit m)"
+        )
+    return f"units: {unit} (not a length: figures in {unit})"
+
+
+#: ``aocontrol design --help``: what the command reads and writes, and in which conventions.
+DESIGN_DESCRIPTION = """\
+Design a controller bank from closed-loop telemetry, certify it and write it.
+
+Units. Figures are printed in the unit of the telemetry, named in every column. A unit that
+is a length is converted to nm (modal coefficients of 1 nm RMS, the project's convention):
+an AOT file's commands are in metres on the actuators (the standard's unit), its modal
+coefficients and matrices in the unit their BUNIT states; a .npz or results file is in nm.
+A unit that is not a length is printed as it is; one nobody states is printed 'a.u.': state
+it with --unit (e.g. --unit m). A --unit that contradicts the file is refused.
+
+Sign. u = K m and the correction is subtracted: m = pol - G u (G the loop plant, pol the
+pseudo-open loop). Telemetry whose commands enter with the other sign (m + G u then less
+predictable than m - G u), or whose commands and measurements are not in one unit, is
+refused before the design: read it with --command-sign -1 (--no-telemetry-check to design
+anyway).
+
+Metadata. --fs and --latency that contradict the file's frame rate or delay (AOT: latency
+= delay - 1 frame) are refused unless --override-metadata.
+
+Temporal filter. --aot-out writes the loop's time_filter_num/den in aotpy's documented
+convention, sys(z) = sum b_i z^i / sum a_j z^j (ascending powers of z; an integrator of gain
+g is num [0, g], den [-1, 1]), stated in the images' TFCONV keyword. --export and --out
+.fits/.csv write the real-time table: b0..bn, a1..an in powers of z^-1 (Direct Form I,
+u[k] = sum b_i m[k-i] - sum a_i u[k-i]). --out .h5 writes the controller file that
+aocontrol.load_controller reloads."""
+
+
+def design_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``aocontrol design`` (:func:`aocontrol.study.cli.main`)."""
+    p.add_argument(
+        "telemetry",
+        help="AOT file (.fits, with --loop NAME when it has several loops), .npz with "
+        "'measurements' and 'commands' (n_frames, n_modes), or a results file saved with "
+        "--telemetry",
+    )
+    p.add_argument("--loop", default=None, help="control loop of an AOT file (its uid)")
+    p.add_argument(
+        "--fs", type=float, default=None, help="loop rate [Hz] (refused if it contradicts the file)"
+    )
+    p.add_argument(
+        "--latency",
+        type=float,
+        default=None,
+        help="RTC latency beyond the WFS integration [frames] (AOT: delay - 1 by default; "
+        "refused if it contradicts the file)",
+    )
+    p.add_argument(
+        "--override-metadata",
+        action="store_true",
+        help="let --fs, --latency and --unit replace the file's values",
+    )
+    p.add_argument(
+        "--unit",
+        default=None,
+        metavar="UNIT",
+        help="unit of the telemetry's modal values when the file does not state it: a length "
+        "(m, um, nm) is converted to nm, another (rad, V) is printed as it is (default: the "
+        "file's; nm for .npz and results files; 'a.u.' when unknown)",
+    )
+    p.add_argument(
+        "--command-sign",
+        type=int,
+        choices=(1, -1),
+        default=1,
+        help="multiply the commands by this sign (-1 for a system whose commands enter with the "
+        "other sign; default 1)",
+    )
+    p.add_argument(
+        "--no-telemetry-check",
+        action="store_true",
+        help="design even when the command sign or scale looks wrong",
+    )
+    p.add_argument(
+        "--controller",
+        default="datadriven",
+        metavar="NAME",
+        help="registered controller to design (default datadriven; see "
+        "aocontrol.synthesis.CONTROLLERS)",
+    )
+    p.add_argument(
+        "--estimator",
+        default="prewhitened",
+        choices=("prewhitened", "welch"),
+        help="disturbance PSD estimator (default prewhitened)",
+    )
+    p.add_argument("--order", type=int, default=5, help="data-driven controller order")
+    p.add_argument(
+        "--modulus-margin", type=float, default=0.5, help="required modulus margin (default 0.5)"
+    )
+    p.add_argument("--gain", type=float, default=0.5, help="gain of --controller integrator")
+    p.add_argument(
+        "--control-weight",
+        type=float,
+        default=0.0,
+        help="LQ weight of u^2 for --controller lqg (default 0: minimum variance)",
+    )
+    p.add_argument("--stage", default=None, help="stage group of a cascade results file")
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="worker processes of the data-driven design (default: every core; 1: none)",
+    )
+    p.add_argument(
+        "--bounds",
+        default="wiener,constrained",
+        help="bounds to report: 'wiener', 'constrained' (one SOCP per mode), both "
+        "comma-separated (default), or 'none'",
+    )
+    p.add_argument(
+        "--out",
+        default="controller.h5",
+        help="controller file, its format by extension: .h5/.hdf5 (aocontrol.load_controller), "
+        ".fits or .csv (real-time export); another extension is refused",
+    )
+    p.add_argument(
+        "--export",
+        default=None,
+        help="also write the filters for a real-time computer (.fits table or .csv)",
+    )
+    p.add_argument(
+        "--aot-out",
+        default=None,
+        help="AOT input only: copy it with the designed filter in the loop's time_filter_* "
+        "(aotpy's convention, ascending powers of z)",
+    )

@@ -6,10 +6,11 @@
 with its frame rate, its delay (AOT's full delay, ``1 + latency_frames``), the modal
 measurements in ``modal_coefficients`` [nm], the commands in ``commands`` [m] and the matrices
 that map them to modes (``commands_to_modes``, ``modes_to_commands``), and the stage's
-temporal filter when its controller is given. The modal commands are the corrector's
-commands (one "actuator" per mode, 1 nm = 1e-9 m) unless a modes-to-actuators matrix is
-given for the stage; then the commands are actuator commands and ``commands_to_modes`` its
-pseudo-inverse.
+temporal filter when its controller is given (:func:`aocontrol.io.aot_time_filter`:
+``aotpy``'s documented convention, stated in the images' ``TFCONV``). The modal commands are
+the corrector's commands (one "actuator" per mode, 1 nm = 1e-9 m) unless a modes-to-actuators
+matrix is given for the stage; then the commands are actuator commands and
+``commands_to_modes`` its pseudo-inverse.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from aocontrol.controllers import ControllerBank
-from aocontrol.io import iir_coefficients, write_system
+from aocontrol.io import aot_time_filter, write_system
 
 __all__ = ["write_run_aot"]
 
@@ -142,9 +143,9 @@ def write_run_aot(
             modes_to_commands=aotpy.Image(f"{stage_name} MODES_TO_COMMANDS", to_commands),
         )
         if stage_name in controllers:
-            b, a = iir_coefficients(controllers[stage_name])
-            loop.time_filter_num = aotpy.Image(f"{stage_name} TIME_FILTER_NUM", b)
-            loop.time_filter_den = aotpy.Image(f"{stage_name} TIME_FILTER_DEN", a)
+            loop.time_filter_num, loop.time_filter_den = aot_time_filter(
+                controllers[stage_name], stage_name
+            )
         system.wavefront_sensors.append(sensor)
         system.wavefront_correctors.append(dm)
         system.loops.append(loop)

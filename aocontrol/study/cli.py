@@ -6,7 +6,8 @@ Commands (``aocontrol COMMAND --help`` for each)::
     aocontrol run CASE --controller C --scheme S [--seconds S] [--seed N] [--out DIR]
     aocontrol compare CASE [--quick] [--out DIR]
     aocontrol design TELEMETRY [--loop NAME] [--fs F --latency L] [--controller datadriven]
-                     [--order 5] [--out FILE] [--export FILE.fits|.csv] [--aot-out FILE]
+                     [--order 5] [--out FILE.h5|.fits|.csv] [--export FILE.fits|.csv]
+                     [--aot-out FILE] [--unit U] [--command-sign -1] [--override-metadata]
     aocontrol sweep SPEC.toml [--scheduler ADDRESS] [--out DIR]
     aocontrol demo [--output DIR]
 
@@ -36,7 +37,13 @@ from aocontrol.study._cli_common import (  # noqa: F401 - UserError is part of t
     _valid_name,
     run_controller_names,
 )
-from aocontrol.study._cli_design import _design, _design_report, read_telemetry  # noqa: F401
+from aocontrol.study._cli_design import (  # noqa: F401 - read_telemetry is part of this API
+    DESIGN_DESCRIPTION,
+    _design,
+    _design_report,
+    design_arguments,
+    read_telemetry,
+)
 
 __all__ = ["main", "UserError", "read_telemetry", "write_comparison"]
 
@@ -535,8 +542,15 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log INFO messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def add(name: str, func: Callable, help_: str) -> argparse.ArgumentParser:
-        p = sub.add_parser(name, help=help_, description=help_)
+    def add(
+        name: str, func: Callable, help_: str, description: str | None = None
+    ) -> argparse.ArgumentParser:
+        p = sub.add_parser(
+            name,
+            help=help_,
+            description=description or help_,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         p.set_defaults(func=func)
         return p
 
@@ -609,69 +623,13 @@ def _parser() -> argparse.ArgumentParser:
     case_settings(p)
     no_progress(p)
 
-    p = add("design", _design, "design a controller bank from closed-loop telemetry")
-    p.add_argument(
-        "telemetry",
-        help="AOT file (.fits, with --loop NAME when it has several loops), .npz with "
-        "'measurements' and 'commands' (n_frames, n_modes), or a results file saved with "
-        "--telemetry",
+    p = add(
+        "design",
+        _design,
+        "design a controller bank from closed-loop telemetry",
+        description=DESIGN_DESCRIPTION,
     )
-    p.add_argument("--loop", default=None, help="control loop of an AOT file (its uid)")
-    p.add_argument("--fs", type=float, default=None, help="loop rate [Hz]")
-    p.add_argument(
-        "--latency",
-        type=float,
-        default=None,
-        help="RTC latency beyond the WFS integration [frames] (AOT: delay - 1 by default)",
-    )
-    p.add_argument(
-        "--controller",
-        default="datadriven",
-        metavar="NAME",
-        help="registered controller to design (default datadriven; see "
-        "aocontrol.synthesis.CONTROLLERS)",
-    )
-    p.add_argument(
-        "--estimator",
-        default="prewhitened",
-        choices=("prewhitened", "welch"),
-        help="disturbance PSD estimator (default prewhitened)",
-    )
-    p.add_argument("--order", type=int, default=5, help="data-driven controller order")
-    p.add_argument(
-        "--modulus-margin", type=float, default=0.5, help="required modulus margin (default 0.5)"
-    )
-    p.add_argument("--gain", type=float, default=0.5, help="gain of --controller integrator")
-    p.add_argument(
-        "--control-weight",
-        type=float,
-        default=0.0,
-        help="LQ weight of u^2 for --controller lqg (default 0: minimum variance)",
-    )
-    p.add_argument("--stage", default=None, help="stage group of a cascade results file")
-    p.add_argument(
-        "--jobs",
-        type=int,
-        default=None,
-        help="worker processes of the data-driven design (default: every core; 1: none)",
-    )
-    p.add_argument(
-        "--bounds",
-        default="wiener,constrained",
-        help="bounds to report: 'wiener', 'constrained' (one SOCP per mode), both "
-        "comma-separated (default), or 'none'",
-    )
-    p.add_argument("--out", default="controller.h5", help="controller file (HDF5)")
-    p.add_argument(
-        "--export",
-        default=None,
-        help="also write the filters for a real-time computer (.fits table or .csv)",
-    )
-    p.add_argument(
-        "--aot-out",
-        default=None,
-        help="AOT input only: copy it with the designed filter in the loop's time_filter_*",
-    )
+    design_arguments(p)
     no_progress(p)
 
     p = add("sweep", _sweep, "run a sweep spec (cases x controllers x schemes x seeds) on Dask")

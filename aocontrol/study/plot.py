@@ -90,6 +90,7 @@ def plot_rejection(
     ax: Any = None,
     title: str | None = None,
     path: str | os.PathLike | None = None,
+    unit: str = "nm",
 ) -> Any:
     """Plot ``|S|^2`` [dB] of several controllers, with the disturbance PSD on a twin axis.
 
@@ -100,13 +101,15 @@ def plot_rejection(
     sensitivities : mapping label -> complex ndarray (n,)
         Sensitivity functions ``S`` on ``freqs``.
     psd : ndarray (n,), optional
-        Disturbance PSD, one-sided [nm^2/Hz].
+        Disturbance PSD, one-sided [unit^2/Hz].
     ax : matplotlib Axes, optional
         Axes to draw on (default: a new figure).
     title : str, optional
         Axes title.
     path : str or os.PathLike, optional
         Also write the figure to this PNG file.
+    unit : str, default "nm"
+        Unit of the telemetry (axis labels: ``unit^2/Hz``, ``unit RMS``).
 
     Returns
     -------
@@ -131,7 +134,7 @@ def plot_rejection(
             lw=1.0,
             label="disturbance PSD",
         )
-        ax2.set_ylabel(r"disturbance PSD [nm$^2$/Hz]")
+        ax2.set_ylabel(rf"disturbance PSD [{unit}$^2$/Hz]")
         ax2.legend(loc="lower right", fontsize="small")
         peak = float(np.nanmax(np.asarray(psd)[keep], initial=0.0))
         if peak > 0 and ax2.get_ylim()[0] < peak * _PSD_AXIS_RANGE:
@@ -154,6 +157,7 @@ def plot_sensitivity(
     modulus_margin: float | None = None,
     title: str | None = None,
     path: str | os.PathLike | None = None,
+    unit: str = "nm",
 ) -> Any:
     """Sensitivity ``|S|`` and complementary sensitivity ``|T|`` [dB] over the disturbance PSD.
 
@@ -169,9 +173,11 @@ def plot_sensitivity(
     complementary : mapping label -> complex ndarray (n,), optional
         ``T = G K / (1 + G K)``; default ``1 - S`` (exact for the loop ``S + T = 1``).
     disturbance_psd : ndarray (n,), optional
-        One-sided disturbance PSD [nm^2/Hz].
+        One-sided disturbance PSD [unit^2/Hz].
     noise_psd : float or ndarray (n,), optional
-        One-sided measurement-noise PSD [nm^2/Hz].
+        One-sided measurement-noise PSD [unit^2/Hz].
+    unit : str, default "nm"
+        Unit of the telemetry (the PSD axes' ``unit^2/Hz``).
     modulus_margin : float, optional
         Draw the bound ``|S| < 1 / modulus_margin`` (dimensionless, in (0, 1]).
     title : str, optional
@@ -217,7 +223,7 @@ def plot_sensitivity(
             lw=1.0,
             label=f"{name} PSD",
         )
-        twin.set_ylabel(rf"{name} PSD [nm$^2$/Hz]")
+        twin.set_ylabel(rf"{name} PSD [{unit}$^2$/Hz]")
         twin.legend(loc="lower right", fontsize="small")
     if title:
         fig.suptitle(title)
@@ -231,15 +237,16 @@ def plot_residual_psd(
     ax: Any = None,
     title: str | None = None,
     path: str | os.PathLike | None = None,
+    unit: str = "nm",
 ) -> Any:
-    """Plot one-sided PSDs [nm^2/Hz] (e.g. open loop and each controller's residual), log-log.
+    """Plot one-sided PSDs [unit^2/Hz] (e.g. open loop and each controller's residual), log-log.
 
     Parameters
     ----------
     freqs : ndarray, shape (n,)
         Frequencies [Hz] (0 Hz dropped on the log axis).
     psds : mapping label -> ndarray (n,) or (n_modes, n)
-        One-sided PSDs [nm^2/Hz]; a 2-D array is summed over modes (the PSD of the total
+        One-sided PSDs [unit^2/Hz]; a 2-D array is summed over modes (the PSD of the total
         residual of those modes).
     ax : matplotlib Axes, optional
         Axes to draw on (default: a new figure).
@@ -247,6 +254,8 @@ def plot_residual_psd(
         Axes title.
     path : str or os.PathLike, optional
         Also write the figure to this PNG file.
+    unit : str, default "nm"
+        Unit of the telemetry (axis labels: ``unit^2/Hz``, ``unit RMS``).
 
     Returns
     -------
@@ -259,7 +268,7 @@ def plot_residual_psd(
         p = p.sum(axis=0) if p.ndim == 2 else p
         ax.loglog(freqs[keep], p[keep], label=label)
     ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel(r"PSD [nm$^2$/Hz]")
+    ax.set_ylabel(rf"PSD [{unit}$^2$/Hz]")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     if title:
@@ -548,6 +557,7 @@ def plot_rejection_modes(
     *,
     title: str | None = None,
     path: str | os.PathLike | None = None,
+    unit: str = "nm",
 ) -> Any:
     """One :func:`plot_rejection` panel per mode: ``|S|^2`` of each controller over its PSD.
 
@@ -558,11 +568,13 @@ def plot_rejection_modes(
     sensitivities : mapping panel label -> (mapping controller label -> complex ndarray (n,))
         ``S`` of each controller for the mode of each panel (e.g. ``{"mode 0": {...}}``).
     psds : mapping panel label -> ndarray (n,)
-        Disturbance PSD of each panel's mode, one-sided [nm^2/Hz] (same keys).
+        Disturbance PSD of each panel's mode, one-sided [unit^2/Hz] (same keys).
     title : str, optional
         Figure title.
     path : str or os.PathLike, optional
         Also write the figure to this PNG file.
+    unit : str, default "nm"
+        Unit of the telemetry (axis labels: ``unit^2/Hz``, ``unit RMS``).
 
     Returns
     -------
@@ -577,7 +589,7 @@ def plot_rejection_modes(
         rows, cols, figsize=(7.0 * cols, 4.0 * rows), constrained_layout=True, squeeze=False
     )
     for ax, (label, sens) in zip(axes.flat[:n], sensitivities.items(), strict=True):
-        plot_rejection(freqs, sens, psd=psds.get(label), ax=ax, title=label)
+        plot_rejection(freqs, sens, psd=psds.get(label), ax=ax, title=label, unit=unit)
     for ax in axes.flat[n:]:
         ax.set_visible(False)
     if title:
@@ -649,19 +661,22 @@ def plot_modal_residuals(
     bounds: Mapping[str, np.ndarray] | None = None,
     title: str | None = None,
     path: str | os.PathLike | None = None,
+    unit: str = "nm",
 ) -> Any:
     """Residual RMS per mode of several controllers, with lower bounds dashed (log axis).
 
     Parameters
     ----------
     residuals : mapping label -> ndarray (n_modes,)
-        Residual of each controller per mode [nm RMS].
+        Residual of each controller per mode [unit RMS].
     bounds : mapping label -> ndarray (n_modes,), optional
-        Bounds per mode [nm RMS] (e.g. the Wiener and margin-constrained bounds).
+        Bounds per mode [unit RMS] (e.g. the Wiener and margin-constrained bounds).
     title : str, optional
         Axes title.
     path : str or os.PathLike, optional
         Also write the figure to this PNG file.
+    unit : str, default "nm"
+        Unit of the telemetry (axis labels: ``unit^2/Hz``, ``unit RMS``).
 
     Returns
     -------
@@ -676,7 +691,7 @@ def plot_modal_residuals(
         ax.semilogy(np.arange(b.size), b, ls="--", lw=1.0, color="0.4", label=label)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("mode")
-    ax.set_ylabel("residual [nm RMS]")
+    ax.set_ylabel(f"residual [{unit} RMS]")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     if title:

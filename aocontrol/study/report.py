@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from aocontrol._atomic import atomic_path
+from aocontrol._units import unit_label
 from aocontrol._version import __version__
 from aocontrol.analysis import Margins, loop_response, margins, residual_variance
 
@@ -261,15 +262,16 @@ def _rejection_figure(
     sens: Mapping[str, np.ndarray],
     modes: Sequence[int],
     title: str,
+    unit: str = "nm",
 ) -> str:
     from aocontrol.study import plot
 
     panels = {f"mode {i}": {k: s[i] for k, s in sens.items()} for i in modes}
     psds = {f"mode {i}": psd[i] for i in modes}
     return _figure(
-        lambda: plot.plot_rejection_modes(freqs, panels, psds),
+        lambda: plot.plot_rejection_modes(freqs, panels, psds, unit=unit),
         f"{title}: |S|^2 of each controller (left axis, dB) over the mode's disturbance PSD "
-        "(dashed, right axis, nm^2/Hz), modes " + ", ".join(str(i) for i in modes),
+        f"(dashed, right axis, {unit}^2/Hz), modes " + ", ".join(str(i) for i in modes),
     )
 
 
@@ -503,20 +505,20 @@ class DesignReportData:
     freqs : ndarray, shape (n_f,)
         Frequencies [Hz] of the PSDs, in [0, fs/2].
     psd : ndarray, shape (n_modes, n_f)
-        Disturbance (pseudo-open-loop) PSD per mode, one-sided [nm^2/Hz].
+        Disturbance (pseudo-open-loop) PSD per mode, one-sided [unit^2/Hz].
     noise_psd : ndarray, shape (n_modes,)
-        White measurement-noise level per mode, one-sided [nm^2/Hz].
+        White measurement-noise level per mode, one-sided [unit^2/Hz].
     controllers : mapping label -> ControllerBank
         The design first, then references (e.g. the starting integrator), each of
         ``n_modes`` modes.
     predicted_rms : mapping label -> ndarray (n_modes,), optional
-        Predicted residual per mode [nm RMS] of each controller (same labels); computed with
+        Predicted residual per mode [unit RMS] of each controller (same labels); computed with
         :func:`aocontrol.analysis.residual_variance` when not given.
     margins : mapping label -> sequence of Margins, optional
         Certified margins per mode of each controller; computed with
         :func:`aocontrol.analysis.margins` when not given.
     bounds : mapping label -> ndarray (n_modes,)
-        Lower bounds per mode [nm RMS], e.g. ``{"Wiener bound": ..., "constrained bound
+        Lower bounds per mode [unit RMS], e.g. ``{"Wiener bound": ..., "constrained bound
         (MM 0.5)": ...}``.
     modulus_margin : float, optional
         The required modulus margin (drawn on the margins figure).
@@ -524,6 +526,8 @@ class DesignReportData:
         Page title.
     info : mapping str -> str
         Header lines (telemetry file, frames, fs, latency, estimator, ...).
+    unit : str, default "nm"
+        Unit of the telemetry and of every figure (``"a.u."`` when unknown).
 
     Raises
     ------
@@ -542,6 +546,7 @@ class DesignReportData:
     modulus_margin: float | None = None
     title: str = "aocontrol design"
     info: Mapping[str, Any] = field(default_factory=dict)
+    unit: str = "nm"
 
     def __post_init__(self) -> None:
         f = np.asarray(self.freqs, dtype=float)
@@ -564,7 +569,7 @@ class DesignReportData:
             for label, v in (mapping or {}).items():
                 if np.shape(v) != (n,):
                     raise ValueError(
-                        f"{argname}[{label!r}] must have shape ({n},) [nm RMS per mode], got "
+                        f"{argname}[{label!r}] must have shape ({n},) [RMS per mode], got "
                         f"{np.shape(v)}"
                     )
         for label, mar in (self.margins or {}).items():
@@ -638,6 +643,7 @@ def design_report_data(
         modulus_margin=design.modulus_margin,
         title=title or f"aocontrol design: {name}",
         info=header,
+        unit=unit_label(getattr(design, "unit", "nm")),
     )
 
 
@@ -688,7 +694,7 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
         srows.append({"controller": b, "rms": t})
     scols: list[Column] = [
         ("controller", "controller", ""),
-        ("rms", "predicted residual [nm RMS]", ".2f"),
+        ("rms", f"predicted residual [{data.unit} RMS]", ".2f"),
         *[(f"ratio{i}", f"/ {b}", ".3f") for i, b in enumerate(totals)],
         *_MARGIN_COLUMNS,
     ]
@@ -731,14 +737,17 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
         ("mm", "MM [1]", ".3f"),
         ("dm_removed", "latency - [frames]", ".2f"),
         ("dm", "latency + [frames]", ".2f"),
-        *[(f"rms{j}", f"{label} [nm]", ".3f") for j, label in enumerate(labels)],
-        *[(f"b{j}", f"{b} [nm]", ".3f") for j, b in enumerate(bounds)],
+        *[(f"rms{j}", f"{label} [{data.unit}]", ".3f") for j, label in enumerate(labels)],
+        *[(f"b{j}", f"{b} [{data.unit}]", ".3f") for j, b in enumerate(bounds)],
     ]
     body = [
         _table(prows, pcols, "modes"),
         _figure(
             lambda: plot.plot_modal_residuals(
-                {k: rms[k] for k in labels}, bounds=bounds, title="predicted residual per mode"
+                {k: rms[k] for k in labels},
+                bounds=bounds,
+                title="predicted residual per mode",
+                unit=data.unit,
             ),
             "predicted residual per mode of each controller, bounds dashed",
         ),
@@ -757,7 +766,9 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
     body = []
     if sens:
         body.append(
-            _rejection_figure(data.freqs, data.psd, sens, representative_modes(n), "design")
+            _rejection_figure(
+                data.freqs, data.psd, sens, representative_modes(n), "design", data.unit
+            )
         )
         # The pseudo-open loop (disturbance + noise): what a loop without control would see,
         # and smooth where a noise-subtracted estimate is floored.
@@ -770,10 +781,13 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
         body.append(
             _figure(
                 lambda: plot.plot_residual_psd(
-                    data.freqs, series, title="predicted residual PSD (sum over modes)"
+                    data.freqs,
+                    series,
+                    title="predicted residual PSD (sum over modes)",
+                    unit=data.unit,
                 ),
                 "predicted residual PSD, |S|^2 disturbance + |T|^2 noise, summed over the "
-                "modes, one-sided [nm^2/Hz]",
+                f"modes, one-sided [{data.unit}^2/Hz]",
             )
         )
     else:

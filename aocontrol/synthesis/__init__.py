@@ -20,6 +20,13 @@ from aocontrol.synthesis._datadriven import (
 from aocontrol.synthesis._dd_assemble import REJECTED_WORSE
 from aocontrol.synthesis._dd_neighbours import datadriven_neighbours, has_integrator
 from aocontrol.synthesis._design_report import TelemetryDesign
+from aocontrol.synthesis._loop_check import (
+    SCALE_LIMIT,
+    SIGN_TOLERANCE,
+    LoopTelemetryCheck,
+    TelemetryCheckError,
+    check_loop_telemetry,
+)
 from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
 from aocontrol.synthesis._modal_gain import (
     ModalGainError,
@@ -67,6 +74,11 @@ __all__ = [
     "sensor_error_psd",
     "split_sensor_error",
     "LoopTelemetry",
+    "LoopTelemetryCheck",
+    "SCALE_LIMIT",
+    "SIGN_TOLERANCE",
+    "TelemetryCheckError",
+    "check_loop_telemetry",
     "MODULUS_MARGIN",
     "MPC_HORIZON",
     "default_nperseg",

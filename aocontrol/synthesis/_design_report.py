@@ -85,6 +85,12 @@ class TelemetryDesign:
     bound_failures : dict of int to str
         Modes whose constrained bound could not be computed, with the reason (their
         :attr:`constrained_variance` is ``nan``); empty when every asked bound was computed.
+    unit : str or None
+        Unit of the telemetry and of every figure (``residual_rms`` in ``unit``, variances in
+        ``unit^2``, PSDs in ``unit^2/Hz``): :attr:`LoopTelemetry.unit` (nm by convention);
+        ``None`` when nobody stated it (printed ``"a.u."``).
+    telemetry_check : LoopTelemetryCheck or None
+        The command sign and scale check of the telemetry (``None`` when not run).
     """
 
     controller_name: str
@@ -105,6 +111,8 @@ class TelemetryDesign:
     options: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     bound_failures: dict = field(default_factory=dict)
+    unit: str | None = "nm"
+    telemetry_check: Any = None
 
     def __post_init__(self) -> None:
         n = self.controller.n_modes

@@ -33,6 +33,11 @@ from aocontrol.analysis import (
 )
 from aocontrol.plant import loop_plant, plant_fs
 from aocontrol.synthesis._design_report import TelemetryDesign
+from aocontrol.synthesis._loop_check import (
+    MIN_CHECK_FRAMES,
+    TelemetryCheckError,
+    check_loop_telemetry,
+)
 from aocontrol.synthesis._modal_gain import optimal_modal_gain
 from aocontrol.synthesis._registry import MODULUS_MARGIN, DesignInputs, get_controller
 from aocontrol.synthesis._telemetry import LoopTelemetry, TelemetryPSD, disturbance_from_telemetry
@@ -45,11 +50,43 @@ logger = logging.getLogger(__name__)
 BOUNDS = ("wiener", "constrained")
 
 
-def _as_loop(telemetry: object, fs: float | None, latency: float | None) -> LoopTelemetry:
+def _conflict(name: str, given: float, known: float, where: str) -> str | None:
+    """The message for a ``given`` value that contradicts the telemetry's, else None."""
+    if np.isclose(float(given), float(known), rtol=1e-9, atol=1e-12):
+        return None
+    return (
+        f"{name}={given!r} contradicts the telemetry{where} ({name} = {known!r}); pass "
+        "override_metadata=True (CLI: --override-metadata) to use the given value"
+    )
+
+
+def _as_loop(
+    telemetry: object, fs: float | None, latency: float | None, override: bool
+) -> LoopTelemetry:
     if isinstance(telemetry, LoopTelemetry):
+        where = f" ({telemetry.source})" if telemetry.source else ""
+        if not override:
+            problems = [
+                _conflict(name, given, known, where)
+                for name, given, known in (
+                    ("fs", fs, telemetry.fs),
+                    ("latency_frames", latency, telemetry.latency_frames),
+                )
+                if given is not None and known is not None
+            ]
+            problems = [p for p in problems if p]
+            if problems:
+                raise ValueError("; ".join(problems))
         fs_ = telemetry.fs if fs is None else fs
         lat = telemetry.latency_frames if latency is None else latency
-        return LoopTelemetry(telemetry.measurements, telemetry.commands, fs_, lat, telemetry.source)
+        return LoopTelemetry(
+            telemetry.measurements,
+            telemetry.commands,
+            fs_,
+            lat,
+            telemetry.source,
+            unit=telemetry.unit,
+        )
     if isinstance(telemetry, Sequence) and len(telemetry) == 2:
         if fs is None:
             raise ValueError("fs [Hz] is required with telemetry given as (measurements, commands)")
@@ -104,11 +141,20 @@ def design_from_telemetry(
     options: Mapping[str, Any] | None = None,
     bounds: Sequence[str] = BOUNDS,
     n_taps: int = 128,
+    check_telemetry: bool = True,
+    override_metadata: bool = False,
 ) -> TelemetryDesign:
     """Design a controller bank from closed-loop telemetry and certify it.
 
     Steps (each timed in :attr:`TelemetryDesign.timings`):
 
+    0. Check (telemetry given as frames, ``check_telemetry``):
+       :func:`aocontrol.synthesis.check_loop_telemetry` on ``m`` and ``u`` with the plant:
+       commands that enter with the other sign (the pseudo-open loop's innovation variance
+       larger with the given sign than with the other) or in another unit than the
+       measurements (``rms(G u) / rms(m)`` beyond 1e6 either way) are refused before any
+       design (:class:`TelemetryCheckError`, naming ``command_sign=-1`` of
+       :func:`aocontrol.io.read_aot` and ``--command-sign -1`` of the CLI).
     1. Estimate: :func:`aocontrol.synthesis.disturbance_from_telemetry` with ``estimator``
        (pre-whitened Welch by default) on ``m + G u``, ``G =``
        :func:`aocontrol.plant.loop_plant` ``(fs, latency_frames)`` unless ``plant`` is
@@ -130,14 +176,17 @@ def design_from_telemetry(
     Parameters
     ----------
     telemetry : LoopTelemetry, TelemetryPSD or (measurements, commands)
-        Closed-loop modal telemetry (arrays ``(n_frames, n_modes)`` [units]), or an estimate
-        already made (then ``plant`` or ``latency_frames`` is required).
+        Closed-loop modal telemetry (arrays ``(n_frames, n_modes)`` [units]: its
+        :attr:`LoopTelemetry.unit`, nm by convention), or an estimate already made (then
+        ``plant`` or ``latency_frames`` is required).
     controller : str, default "datadriven"
         A registered name.
     fs : float, optional
-        Loop rate [Hz]; default the telemetry's.
+        Loop rate [Hz]; default the telemetry's. A value that contradicts a
+        :class:`LoopTelemetry`'s is refused unless ``override_metadata``.
     latency_frames : float, optional
-        RTC latency beyond the WFS integration [frames]; default the telemetry's.
+        RTC latency beyond the WFS integration [frames]; default the telemetry's (refused
+        when it contradicts a :class:`LoopTelemetry`'s, unless ``override_metadata``).
     plant : control.TransferFunction, optional
         Loop plant (command to measurement) instead of ``loop_plant(fs, latency_frames)``.
     estimator : {"prewhitened", "welch"}, default "prewhitened"
@@ -161,6 +210,10 @@ def design_from_telemetry(
         solves one SOCP per mode).
     n_taps : int, default 128
         FIR length of the constrained bound's Youla parameter.
+    check_telemetry : bool, default True
+        Run step 0 (False: design from telemetry whose sign or scale looks wrong).
+    override_metadata : bool, default False
+        Let ``fs`` and ``latency_frames`` replace a :class:`LoopTelemetry`'s own values.
 
     Returns
     -------
@@ -170,7 +223,11 @@ def design_from_telemetry(
     ------
     ValueError
         Unknown ``controller`` (the message lists the registered ones), unknown options or
-        bounds, missing rate or latency, bad telemetry (see ``disturbance_from_telemetry``).
+        bounds, missing rate or latency, a rate or latency that contradicts the telemetry's,
+        bad telemetry (see ``disturbance_from_telemetry``).
+    TelemetryCheckError
+        (A ValueError.) Step 0 found the sign or the scale implausible; ``.check`` holds the
+        statistics.
 
     Examples
     --------
@@ -194,6 +251,7 @@ def design_from_telemetry(
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
+    unit, check = "nm", None
     if isinstance(telemetry, TelemetryPSD):
         est = telemetry
         fs_ = est.fs if fs is None else fs
@@ -202,7 +260,8 @@ def design_from_telemetry(
                 raise ValueError("latency_frames [frames] or plant is required with a TelemetryPSD")
             plant = loop_plant(fs_, latency_frames)
     else:
-        loop = _as_loop(telemetry, fs, latency_frames)
+        loop = _as_loop(telemetry, fs, latency_frames, override_metadata)
+        unit = loop.unit
         fs_ = loop.fs
         if plant is None:
             if loop.latency_frames is None:
@@ -212,6 +271,19 @@ def design_from_telemetry(
                     "give the loop's delay"
                 )
             plant = loop_plant(fs_, loop.latency_frames)
+        if check_telemetry and loop.n_frames >= MIN_CHECK_FRAMES:
+            check = check_loop_telemetry(loop.measurements, loop.commands, plant, fs=fs_)
+            problems = check.problems(
+                "command_sign=-1 (aocontrol.io.read_aot; CLI: --command-sign -1)"
+            )
+            if problems:
+                where = f" {loop.source}" if loop.source else ""
+                raise TelemetryCheckError(
+                    f"telemetry{where} refused before the design: "
+                    + "; ".join(problems)
+                    + " (check_telemetry=False, CLI --no-telemetry-check, to design anyway)",
+                    check,
+                )
         est = disturbance_from_telemetry(
             loop.measurements,
             loop.commands,
@@ -304,4 +376,6 @@ def design_from_telemetry(
         options=dict(opts),
         timings=timings,
         bound_failures=bound_failures,
+        unit=unit,
+        telemetry_check=check,
     )

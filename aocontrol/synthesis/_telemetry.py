@@ -144,6 +144,12 @@ class LoopTelemetry:
         given to the design).
     source : str
         Where the telemetry came from (file and loop), for messages.
+    unit : str or None, default "nm"
+        Unit of :attr:`measurements` and :attr:`commands` (and of every figure designed from
+        them: RMS in ``unit``, PSDs in ``unit^2/Hz``). The project's convention is nm (modal
+        coefficients of 1 nm RMS); :func:`aocontrol.io.read_aot` converts a file's length
+        unit to nm and keeps any other (``"rad"``, ``"V"``), or ``None`` when neither the file
+        nor the user states it (figures then labelled ``"a.u."``, never nm).
     """
 
     measurements: np.ndarray
@@ -151,6 +157,7 @@ class LoopTelemetry:
     fs: float
     latency_frames: float | None = None
     source: str = ""
+    unit: str | None = "nm"
 
     def __post_init__(self) -> None:
         where = f" of {self.source}" if self.source else ""
@@ -160,6 +167,11 @@ class LoopTelemetry:
             raise ValueError(
                 f"measurements and commands{where} must have the same shape (n_frames, "
                 f"n_modes), got {m.shape} and {u.shape}"
+            )
+        if self.unit is not None and (not isinstance(self.unit, str) or not self.unit.strip()):
+            raise ValueError(
+                f"unit{where} must be a non-empty string (e.g. 'nm') or None (unknown), got "
+                f"{self.unit!r}"
             )
         object.__setattr__(self, "fs", check_positive(f"fs{where}", self.fs))
         if self.latency_frames is not None:
