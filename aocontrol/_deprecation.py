@@ -1,4 +1,5 @@
-"""Renamed keywords and attributes: the old name keeps working, with a ``DeprecationWarning``.
+"""Renamed keywords, attributes and module names: the old name keeps working, with a
+``DeprecationWarning``.
 
 The one implementation of a rename's transition period (control, sim and study layers use it):
 
@@ -7,6 +8,8 @@ The one implementation of a rename's transition period (control, sim and study l
 * :class:`DeprecatedAttribute` is a read-only class attribute ``old`` that returns ``new``
   (``self.new``) with the same warning. On a dataclass it is not a field (no annotation), so
   ``dataclasses.replace`` and ``fields`` ignore it.
+* :func:`deprecated_names` is a module's ``__getattr__`` serving old names of objects the
+  module exports under their current names; its warning names the release that removes them.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["DeprecatedAttribute", "renamed_keyword", "warn_renamed"]
+__all__ = ["DeprecatedAttribute", "deprecated_names", "renamed_keyword", "warn_renamed"]
 
 
 def warn_renamed(where: str, old: str, new: str, note: str = "", stacklevel: int = 3) -> None:
@@ -117,3 +120,52 @@ class DeprecatedAttribute:
             return self
         warn_renamed(self.owner, self.old, self.new, self.note)
         return self._get(obj)
+
+
+def deprecated_names(
+    module: str, names: dict[str, tuple[Any, str]], removed_in: str
+) -> Callable[[str], Any]:
+    """A module ``__getattr__`` for deprecated module-level names (PEP 562).
+
+    Assign the result to the module's ``__getattr__``: an old name returns its object with a
+    ``DeprecationWarning`` naming the current name and the release that removes the old one;
+    any other missing name raises ``AttributeError`` as usual.
+
+    Parameters
+    ----------
+    module : str
+        The module's ``__name__`` (for the messages).
+    names : dict
+        ``{old name: (object, current dotted name)}``.
+    removed_in : str
+        The release without the old names, e.g. ``"0.2.0"``.
+
+    Returns
+    -------
+    callable
+        ``__getattr__(name)``.
+
+    Examples
+    --------
+    >>> getattr_ = deprecated_names("pkg", {"size": (len, "builtins.len")}, "0.2.0")
+    >>> import warnings
+    >>> with warnings.catch_warnings(record=True) as w:
+    ...     warnings.simplefilter("always")
+    ...     getattr_("size") is len, str(w[0].message)[:52]
+    (True, 'pkg.size is deprecated and will be removed in 0.2.0:')
+    """
+    aliases = dict(names)
+
+    def __getattr__(name: str) -> Any:
+        if name not in aliases:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        obj, current = aliases[name]
+        warnings.warn(
+            f"{module}.{name} is deprecated and will be removed in {removed_in}: use {current} "
+            "(the same object)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return obj
+
+    return __getattr__

@@ -7,6 +7,7 @@ nm RMS over the pupil; telemetry ``(n_frames, n_modes)``; randomness only throug
 ``numpy.random.Generator``.
 """
 
+from aocontrol._deprecation import deprecated_names
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror, ModalDM
 from aocontrol.sim.drift import Drift
@@ -108,11 +109,9 @@ __all__ = [
     "snr",
 ]
 
-
-def __getattr__(name: str) -> object:
-    # LinearModalWFS: deprecated alias of LinearModalSensor (warns on use).
-    if name == "LinearModalWFS":
-        from aocontrol.sim.wfs.sensors import deprecated_alias
-
-        return deprecated_alias(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+#: Former names (with a ``DeprecationWarning``), removed in the release named.
+__getattr__ = deprecated_names(
+    __name__,
+    {"LinearModalWFS": (LinearModalSensor, "aocontrol.sim.LinearModalSensor")},
+    removed_in="0.2.0",
+)

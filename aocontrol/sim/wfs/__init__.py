@@ -6,11 +6,10 @@ a :class:`~aocontrol.sim.pupil.Pupil` grid and return signal vectors; they serve
 :class:`LinearModalSensor` that the fast modal loop uses (``measurement = gain * residual +
 noise``), or run in the loop themselves as a :class:`DiffractiveSensor`. Both implement the one
 sensor protocol (:class:`Sensor`, :mod:`aocontrol.sim.wfs.sensors`). ``LinearModalWFS`` is a
-deprecated alias of :class:`LinearModalSensor`.
+deprecated alias of :class:`LinearModalSensor` (removed in 0.2.0).
 """
 
-from typing import Any
-
+from aocontrol._deprecation import deprecated_names
 from aocontrol.sim.wfs.calibration import (
     WFSCalibration,
     calibrate,
@@ -44,10 +43,9 @@ __all__ = [
     "SensorRun",
 ]
 
-
-def __getattr__(name: str) -> Any:
-    if name == "LinearModalWFS":
-        from aocontrol.sim.wfs.sensors import deprecated_alias
-
-        return deprecated_alias(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+#: Former names (with a ``DeprecationWarning``), removed in the release named.
+__getattr__ = deprecated_names(
+    __name__,
+    {"LinearModalWFS": (LinearModalSensor, "aocontrol.sim.wfs.LinearModalSensor")},
+    removed_in="0.2.0",
+)

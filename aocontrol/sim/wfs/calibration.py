@@ -420,16 +420,3 @@ def calibrate(
         norm_pixels=n_norm,
         norm_fraction=f_norm,
     )
-
-
-def __getattr__(name: str) -> Any:
-    # The linear sensor moved to aocontrol.sim.wfs.sensors (former import path kept).
-    if name == "LinearModalSensor":
-        from aocontrol.sim.wfs.sensors import LinearModalSensor
-
-        return LinearModalSensor
-    if name == "LinearModalWFS":
-        from aocontrol.sim.wfs.sensors import deprecated_alias
-
-        return deprecated_alias(name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

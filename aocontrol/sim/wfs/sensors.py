@@ -26,7 +26,6 @@ photon and read noise on the detector pixels, then a reconstructor).
 from __future__ import annotations
 
 import logging
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol, runtime_checkable
@@ -552,13 +551,3 @@ class _DiffractiveRun:
 
     def read(self, j: int, residual: np.ndarray, opd: Callable[[], np.ndarray]) -> np.ndarray:
         return self.sensor.measure(opd(), self.rng)
-
-
-def deprecated_alias(name: str) -> type:
-    """``LinearModalSensor`` for the deprecated name ``LinearModalWFS``, with a warning."""
-    warnings.warn(
-        f"{name} is deprecated: use aocontrol.sim.wfs.LinearModalSensor (the same class)",
-        DeprecationWarning,
-        stacklevel=3,
-    )
-    return LinearModalSensor

@@ -34,6 +34,7 @@ from aocontrol._validation import check_in_range, check_int, check_positive
 from aocontrol.sim.noise import add_detector_noise
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.wfs._common import bin_matrix, check_opd, opd_to_phase
+from aocontrol.sim.wfs.calibration import WFSCalibration, calibrate
 
 __all__ = ["ShackHartmannWFS", "shack_hartmann_calibration"]
 
@@ -330,8 +331,6 @@ def shack_hartmann_calibration(
     WFSCalibration
         With ``photon_coeff`` and ``read_coeff`` per mode.
     """
-    from aocontrol.sim.wfs.calibration import WFSCalibration, calibrate
-
     geo = ShackHartmannWFS(pupil, wavelength, n_subapertures, model="geometric")
     cal = calibrate(geo, basis, amplitude)
     p = 4  # samples per subaperture of the diffractive model (its minimum)
