@@ -1,15 +1,17 @@
 """Wavefront sensors: diffractive pyramid, Shack-Hartmann, calibration, the loop's sensors.
 
-The diffractive models (:class:`PyramidWFS`, :class:`ShackHartmannWFS`) take OPD maps in nm on
-a :class:`~aocontrol.sim.pupil.Pupil` grid and return signal vectors; they serve to calibrate
+The diffractive models (:class:`PyramidWFS`, :class:`ShackHartmannWFS`, both
+:class:`WavefrontSensor`: one interface, defined once) take OPD maps in nm on a
+:class:`~aocontrol.sim.pupil.Pupil` grid and return signal vectors; they serve to calibrate
 (interaction matrix, reconstructor, optical gains, noise propagation per mode) the
 :class:`LinearModalSensor` that the fast modal loop uses (``measurement = gain * residual +
 noise``), or run in the loop themselves as a :class:`DiffractiveSensor`. Both implement the one
 sensor protocol (:class:`Sensor`, :mod:`aocontrol.sim.wfs.sensors`). ``LinearModalWFS`` is a
-deprecated alias of :class:`LinearModalSensor`.
+deprecated alias of :class:`LinearModalSensor` (removed in 0.2.0).
 """
 
 from aocontrol._deprecation import module_aliases
+from aocontrol.sim.wfs._sensor import WavefrontSensor
 from aocontrol.sim.wfs.calibration import (
     WFSCalibration,
     calibrate,
@@ -25,6 +27,7 @@ from aocontrol.sim.wfs.sensors import DiffractiveSensor, LinearModalSensor, Sens
 from aocontrol.sim.wfs.shack_hartmann import ShackHartmannWFS, shack_hartmann_calibration
 
 __all__ = [
+    "WavefrontSensor",
     "PyramidWFS",
     "ShackHartmannWFS",
     "shack_hartmann_calibration",

@@ -1,5 +1,5 @@
 """The pyramid frame's memory-bound element-wise passes as compiled loops (numba; private
-helper of :mod:`.pyramid`).
+helper of :mod:`._pyramid_propagation`).
 
 Of a closed-loop pyramid frame (80 px, 40x40, 40 modulation points, single precision), the two
 products took 41 % of the CPU time and the element-wise passes around them most of the rest
@@ -80,7 +80,7 @@ def intensity_terms(o, xq, src, d_re, d_im, s, x):
     numpy path's product buffer holds them); ``s`` ``(n_l, 2 n_lines)`` += the sum over ``U,
     V`` and the groups of the squares (real parts, then imaginary parts), ``x`` ``(n_l,
     n_lines)`` += the sum over the groups of ``Im(V conj U)`` (the cross terms of
-    :meth:`PyramidWFS._accumulate` with ``f = h``: the sine, cosine and one-point groups'
+    :func:`._pyramid_propagation.accumulate` with ``f = h``: the sine, cosine and one-point groups'
     terms are all this one).
     """
     n_l, _, n_g, nc = o.shape

@@ -1,4 +1,5 @@
-"""The pyramid's 1-D line operator, split by parity (private helper of :mod:`.pyramid`).
+"""The pyramid's 1-D line operator, split by parity (private helper of
+:mod:`._pyramid_propagation`).
 
 Along one axis, the propagation "zero-pad the ``n_pix`` pupil samples to ``n_fft``, FFT,
 multiply by one factor of the pyramid mask, inverse FFT, keep the detector lines" is a linear

@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from aocontrol._deprecation import module_aliases
 from aocontrol._validation import check_finite_array, check_int, check_nonnegative, check_positive
 from aocontrol.sim.pupil import Pupil
 from aocontrol.sim.turbulence import von_karman_psd
@@ -421,13 +420,3 @@ def calibrate(
         norm_pixels=n_norm,
         norm_fraction=f_norm,
     )
-
-
-# Former import paths of the linear sensor (it lives in aocontrol.sim.wfs.sensors).
-__getattr__ = module_aliases(
-    __name__,
-    {
-        "LinearModalSensor": "aocontrol.sim.wfs.sensors:LinearModalSensor",
-        "LinearModalWFS": "aocontrol.sim.wfs.sensors:LinearModalSensor",
-    },
-)

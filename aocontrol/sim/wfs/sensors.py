@@ -388,8 +388,10 @@ class DiffractiveSensor:
 
     Parameters
     ----------
-    wfs : object with ``pupil``, ``signals(opd)`` and ``measure(opd, photons, read_noise, rng)``
-        E.g. :class:`aocontrol.sim.wfs.PyramidWFS`; signals are reference-subtracted.
+    wfs : WavefrontSensor
+        E.g. :class:`aocontrol.sim.wfs.PyramidWFS`, or any object with ``pupil``,
+        ``signals(opd)`` and ``measure(opd, photons, read_noise, rng)``; signals are
+        reference-subtracted.
     reconstructor : ndarray, shape (n_modes, n_signals)
         Signals to modal measurements [nm] (e.g. :func:`aocontrol.sim.wfs.reconstructor`).
     photons : float, optional

@@ -16,7 +16,10 @@ zero-padded to ``oversampling * p`` and Fourier transformed (one batched FFT for
 subapertures); the spot, sampled at ``lambda / (oversampling d)`` per pixel with a
 field of view of ``p`` lambda/d, is centred on the corner of 4 pixels for a flat wavefront;
 the slope is its centre of gravity minus the flat-wavefront reference, converted to nm. Needs
-``p >= 4`` for a meaningful spot. The detector pixels are the spot pixels (no extra rebinning).
+``p >= 4`` for a meaningful spot. The detector pixels are the spot pixels (no extra rebinning):
+a frame is the spots of the valid subapertures, ``(n_valid_sub, m, m)``; the pixel Jacobian
+(:meth:`~ShackHartmannWFS.pixel_jacobian_product`) is that of each spot's centroid, its flux
+normalisation included.
 """
 
 from __future__ import annotations
@@ -30,10 +33,11 @@ import numpy as np
 import scipy.fft
 import scipy.sparse
 
-from aocontrol._validation import check_in_range, check_int, check_positive
-from aocontrol.sim.noise import add_detector_noise
+from aocontrol._validation import check_int
 from aocontrol.sim.pupil import Pupil
-from aocontrol.sim.wfs._common import bin_matrix, check_opd, opd_to_phase
+from aocontrol.sim.wfs._common import opd_to_phase
+from aocontrol.sim.wfs._sensor import WavefrontSensor
+from aocontrol.sim.wfs.calibration import WFSCalibration, calibrate
 
 __all__ = ["ShackHartmannWFS", "shack_hartmann_calibration"]
 
@@ -44,8 +48,12 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class ShackHartmannWFS:
+class ShackHartmannWFS(WavefrontSensor):
     """Shack-Hartmann WFS (see the module docstring for the models and sign conventions).
+
+    The shared interface (signals, noisy measurements, flat-wavefront reference, valid
+    subapertures) is :class:`~aocontrol.sim.wfs.WavefrontSensor`'s; the detector frames are the
+    spots of the valid subapertures, ``frame_shape = (n_valid_sub, m, m)``.
 
     Parameters
     ----------
@@ -57,6 +65,8 @@ class ShackHartmannWFS:
     n_subapertures : int, default 40
         Lenslets across the diameter.
     model : {"geometric", "diffractive"}
+        The geometric model has no detector: :meth:`detector_image`, :attr:`reference_frame`
+        and :meth:`measure` need the diffractive one.
     oversampling : int, default 2
         Spot sampling, pixels per lambda/d (diffractive model).
     valid_threshold : float, default 0.5
@@ -70,10 +80,7 @@ class ShackHartmannWFS:
     oversampling: int = 2
     valid_threshold: float = 0.5
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.pupil, Pupil):
-            raise TypeError(f"pupil must be a Pupil, got {type(self.pupil).__name__}")
-        check_positive("wavelength", self.wavelength)
+    def _check_parameters(self) -> None:
         n_sub = check_int("n_subapertures", self.n_subapertures, minimum=1)
         if self.model not in ("geometric", "diffractive"):
             raise ValueError(f"model must be 'geometric' or 'diffractive', got {self.model!r}")
@@ -86,14 +93,13 @@ class ShackHartmannWFS:
                 "sampling too coarse or not commensurate"
             )
         check_int("oversampling", self.oversampling, minimum=1)
-        check_in_range(
-            "valid_threshold",
-            self.valid_threshold,
-            0.0,
-            1.0,
-            low_inclusive=False,
-            high_inclusive=True,
-        )
+
+    def _require_detector(self, what: str) -> None:
+        if self.model != "diffractive":
+            raise ValueError(
+                f"{what} needs model='diffractive' (the geometric model has no detector), "
+                f"got model={self.model!r}"
+            )
 
     @property
     def samples_per_subaperture(self) -> int:
@@ -105,22 +111,9 @@ class ShackHartmannWFS:
         """Subaperture size ``d`` [m]."""
         return self.pupil.diameter / self.n_subapertures
 
-    @cached_property
-    def valid_subapertures(self) -> np.ndarray:
-        """Boolean map ``(n_sub, n_sub)`` of the valid subapertures (geometric illumination)."""
-        b = bin_matrix(self.pupil.n_pix, self.n_subapertures)
-        illum = b @ self.pupil.mask.astype(float) @ b.T / self.samples_per_subaperture**2
-        valid = illum >= self.valid_threshold * (1 - 1e-9)
-        valid.setflags(write=False)
-        return valid
-
     @property
-    def n_valid_subapertures(self) -> int:
-        return int(np.count_nonzero(self.valid_subapertures))
-
-    @property
-    def n_signals(self) -> int:
-        return 2 * self.n_valid_subapertures
+    def _signals_per_subaperture(self) -> int:
+        return 2
 
     # ------------------------------------------------------------------ geometric model
     @cached_property
@@ -153,11 +146,28 @@ class ShackHartmannWFS:
             shape=(self.n_signals, n_pix * n_pix),
         )
 
+    def signals(self, opd: np.ndarray) -> np.ndarray:
+        """Noise-free signals ``(..., n_signals)`` [nm of OPD across a subaperture, ``[sx,
+        sy]``] of OPD maps ``(..., n_pix, n_pix)`` [nm]: the gradient matrix (geometric
+        model) or the spots' centroids (diffractive model, :meth:`WavefrontSensor.signals`)."""
+        if self.model == "geometric":
+            opd = self._check_opd(opd)
+            lead = opd.shape[:-2]
+            flat = opd.reshape(-1, self.pupil.n_pix**2)
+            out = (self._gradient_matrix @ flat.T).T
+            return out.reshape(*lead, self.n_signals)
+        return super().signals(opd)
+
     # ------------------------------------------------------------------ diffractive model
     @property
     def spot_size(self) -> int:
         """Pixels across a subaperture image (diffractive model)."""
         return self.oversampling * self.samples_per_subaperture
+
+    @property
+    def frame_shape(self) -> tuple[int, int, int]:
+        """Detector frame shape ``(n_valid_sub, m, m)``: the spots, ``m`` = :attr:`spot_size`."""
+        return (self.n_valid_subapertures, self.spot_size, self.spot_size)
 
     @cached_property
     def _centring(self) -> np.ndarray:
@@ -167,7 +177,7 @@ class ShackHartmannWFS:
 
     def spots(self, opd: np.ndarray) -> np.ndarray:
         """Spot images ``(..., n_valid_sub, m, m)`` (fraction of the pupil flux; ``m`` =
-        :attr:`spot_size`) of OPD maps ``(..., n_pix, n_pix)`` [nm]."""
+        :attr:`spot_size`) of OPD maps ``(..., n_pix, n_pix)`` [nm], for either model."""
         opd = self._check_opd(opd)
         n_sub, p, m = self.n_subapertures, self.samples_per_subaperture, self.spot_size
         phase = opd_to_phase(opd, self.wavelength)
@@ -177,6 +187,15 @@ class ShackHartmannWFS:
         f = f[..., self.valid_subapertures, :, :] * self._centring
         g = scipy.fft.fftshift(scipy.fft.fft2(f, s=(m, m)), axes=(-2, -1))
         return (g.real**2 + g.imag**2) / m**2
+
+    def _detector_frames(self, opd: np.ndarray) -> np.ndarray:
+        return self.spots(opd)
+
+    @property
+    def reference_spots(self) -> np.ndarray:
+        """Spots of a flat wavefront ``(n_valid_sub, m, m)``, for either model (read-only;
+        the diffractive model's :attr:`reference_frame`)."""
+        return self._reference_frame
 
     @cached_property
     def _coordinates(self) -> np.ndarray:
@@ -193,53 +212,6 @@ class ShackHartmannWFS:
         scale = self.wavelength * 1e9 / self.oversampling
         return np.concatenate([cx, cy], axis=-1) * scale
 
-    @cached_property
-    def reference_spots(self) -> np.ndarray:
-        """Spots of a flat wavefront ``(n_valid_sub, m, m)``."""
-        ref = self.spots(np.zeros((self.pupil.n_pix, self.pupil.n_pix)))
-        ref.setflags(write=False)
-        return ref
-
-    @cached_property
-    def reference_signals(self) -> np.ndarray:
-        ref = self._raw_signals(self.reference_spots)
-        ref.setflags(write=False)
-        return ref
-
-    # ------------------------------------------------------------------ public
-    def _check_opd(self, opd: np.ndarray) -> np.ndarray:
-        return check_opd(opd, self.pupil.n_pix)
-
-    def signals(self, opd: np.ndarray) -> np.ndarray:
-        """Noise-free signals ``(..., n_signals)`` [nm of OPD across a subaperture]."""
-        if self.model == "geometric":
-            opd = self._check_opd(opd)
-            lead = opd.shape[:-2]
-            flat = opd.reshape(-1, self.pupil.n_pix**2)
-            out = (self._gradient_matrix @ flat.T).T
-            return out.reshape(*lead, self.n_signals)
-        return self._raw_signals(self.spots(opd)) - self.reference_signals
-
-    def detector_image(self, opd: np.ndarray) -> np.ndarray:
-        """Spot images (diffractive model only), see :meth:`spots`."""
-        if self.model != "diffractive":
-            raise ValueError(
-                "detector_image needs model='diffractive' (the geometric model "
-                f"has no detector), got model={self.model!r}"
-            )
-        return self.spots(opd)
-
-    @property
-    def reference_frame(self) -> np.ndarray:
-        """Flat-wavefront detector image (diffractive model)."""
-        if self.model != "diffractive":
-            raise ValueError(f"reference_frame needs model='diffractive', got model={self.model!r}")
-        return self.reference_spots
-
-    def signals_from_frame(self, frames: np.ndarray) -> np.ndarray:
-        """Signals of spot images ``(..., n_valid_sub, m, m)`` (any flux unit)."""
-        return self._raw_signals(np.asarray(frames, dtype=float)) - self.reference_signals
-
     def pixel_values(self, frames: np.ndarray) -> np.ndarray:
         """Pixels entering the signals, ``(..., n_valid_sub * m * m)``."""
         f = np.asarray(frames, dtype=float)
@@ -248,30 +220,14 @@ class ShackHartmannWFS:
     @property
     def normalisation(self) -> tuple[int, float]:
         """``(pixels, flux fraction)`` of one subaperture's normalisation (median subaperture)."""
-        flux = self.reference_spots.sum(axis=(-2, -1))
+        flux = self._reference_frame.sum(axis=(-2, -1))
         return self.spot_size**2, float(np.median(flux))
 
-    def pixel_jacobian_product(self, frame: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-        """``matrix @ J``, ``J`` the derivative of the centroids w.r.t. the pixel values.
-
-        Parameters
-        ----------
-        frame : array_like, shape (n_valid_sub, m, m)
-            Noise-free spots in photo-electrons.
-        matrix : array_like, shape (n_out, n_signals)
-
-        Returns
-        -------
-        ndarray, shape (n_out, n_valid_sub * m * m)
-            For subaperture ``i``: ``dsx_i / dp_j = scale (c_j - cx_i) / N_i``.
-        """
-        f = np.asarray(frame, dtype=float)
-        m_ = np.atleast_2d(np.asarray(matrix, dtype=float))
+    def _jacobian_product(self, frame: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+        """For subaperture ``i``: ``dsx_i / dp_j = scale (c_j - cx_i) / N_i`` (``c_j`` the
+        pixel's coordinate, ``cx_i`` the centroid, ``N_i`` the spot's flux)."""
+        f, m_ = frame, matrix
         nv, m = self.n_valid_subapertures, self.spot_size
-        if m_.shape[-1] != self.n_signals:
-            raise ValueError(
-                f"matrix must have n_signals={self.n_signals} columns, got shape {m_.shape}"
-            )
         scale = self.wavelength * 1e9 / self.oversampling
         c = self._coordinates
         tot = f.sum(axis=(-2, -1))
@@ -283,14 +239,6 @@ class ShackHartmannWFS:
         jy = np.broadcast_to(jy, (nv, m, m))
         out = m_[:, :nv, None, None] * jx + m_[:, nv:, None, None] * jy
         return out.reshape(m_.shape[0], -1)
-
-    def measure(
-        self, opd: np.ndarray, photons: float, read_noise: float, rng: np.random.Generator
-    ) -> np.ndarray:
-        """Noisy signals (diffractive model): Poisson + read noise on the spot pixels."""
-        n_ph = check_positive("photons", photons)
-        frames = add_detector_noise(self.detector_image(opd) * n_ph, read_noise, rng)
-        return self.signals_from_frame(frames)
 
 
 def shack_hartmann_calibration(
@@ -330,8 +278,6 @@ def shack_hartmann_calibration(
     WFSCalibration
         With ``photon_coeff`` and ``read_coeff`` per mode.
     """
-    from aocontrol.sim.wfs.calibration import WFSCalibration, calibrate
-
     geo = ShackHartmannWFS(pupil, wavelength, n_subapertures, model="geometric")
     cal = calibrate(geo, basis, amplitude)
     p = 4  # samples per subaperture of the diffractive model (its minimum)
