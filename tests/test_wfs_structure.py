@@ -8,13 +8,8 @@ same messages.
 
 from __future__ import annotations
 
-import pathlib
-
 import numpy as np
 import pytest
-
-ROOT = pathlib.Path(__file__).resolve().parents[1] / "aocontrol"
-WFS = ROOT / "sim" / "wfs"
 
 
 def test_former_name_warns_with_the_release_that_removes_it():
