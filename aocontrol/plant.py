@@ -47,6 +47,9 @@ __all__ = [
     "check_system",
     "check_frd_coverage",
     "plant_delay_frames",
+    "plant_latency",
+    "with_latency",
+    "pure_delay_form",
     "split_latency",
     "MAX_LATENCY_FRAMES",
     "FRD_END_GAP_FRACTION",
@@ -266,13 +269,16 @@ def loop_plant(fs: float, latency_frames: float) -> control.TransferFunction:
     True
     """
     fs = check_positive("fs", fs)
+    return tf_from_z_inverse(_delay_numerator(latency_frames), [1.0], 1.0 / fs)
+
+
+def _delay_numerator(latency_frames: float) -> np.ndarray:
+    """``z^-1 ((1-f) z^-k + f z^-(k+1))`` in powers of ``z^-1`` (the one construction)."""
     k, f = split_latency(latency_frames)
     b = np.zeros(k + 3)
     b[k + 1] = 1.0 - f
     b[k + 2] = f
-    if f == 0.0:
-        b = b[:-1]
-    return tf_from_z_inverse(b, [1.0], 1.0 / fs)
+    return b[:-1] if f == 0.0 else b
 
 
 def plant_delay_frames(
@@ -298,6 +304,90 @@ def plant_delay_frames(
     resp = frequency_response(plant, np.array([f0, 2 * f0]), fs_)
     dphi = np.angle(resp[1] / resp[0])
     return float(-dphi / (2 * np.pi * f0 / fs_))
+
+
+def pure_delay_form(b: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """A plant numerator as ``core(w) w^(1+k) ((1-f) + f w)``: ``(core, k + f)`` (``w = z^-1``).
+
+    The one reading of a latency from a plant (:func:`plant_latency`, :func:`with_latency`,
+    the delay margins of :func:`aocontrol.analysis.margins`).
+
+    Parameters
+    ----------
+    b : array_like
+        Numerator in powers of ``z^-1`` (lowest first).
+
+
+    Two non-zero terms of one sign are the interpolation pair of a fractional latency
+    (:func:`loop_plant`, times any gain); otherwise the leading zeros are the whole-frame delay
+    and ``core`` the rest. ``None`` without the WFS frame's delay (no latency to move).
+    """
+    b = np.trim_zeros(np.asarray(b, dtype=float), "b")
+    nz = np.flatnonzero(b)
+    if nz.size == 0 or nz[0] < 1:
+        return None
+    j, tail = int(nz[0]), b[nz[0] :]
+    if tail.size == 2 and tail[0] * tail[1] > 0:
+        c = float(tail.sum())
+        return np.array([c]), (j - 1) + float(tail[1] / c)
+    return tail, float(j - 1)
+
+
+def plant_latency(plant: control.TransferFunction) -> float | None:
+    """The latency [frames] of a plant's pure delay, as :func:`loop_plant` models it.
+
+    A numerator ``c z^-(1+k) ((1-f) + f z^-1)`` (:func:`loop_plant` times a gain, any
+    denominator: a DM's lag) has latency ``k + f``; any other numerator ``z^-(1+k) B(z^-1)``
+    has the whole frames ``k`` of its leading delay. ``None`` for a plant without the WFS
+    frame's delay.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+
+    Examples
+    --------
+    >>> plant_latency(loop_plant(3000.0, 0.83))
+    0.83
+    """
+    form = pure_delay_form(z_inverse_coefficients(plant, "plant")[0])
+    return None if form is None else round(form[1], 12)
+
+
+def with_latency(
+    plant: control.TransferFunction, latency_frames: float
+) -> control.TransferFunction:
+    """The plant with its pure delay moved to ``latency_frames`` (the rest kept).
+
+    The latency model of :func:`loop_plant` (linear interpolation between whole frames: the
+    exact sampled model of a held command): the numerator's delay pair (or its leading
+    delay, see :func:`plant_latency`) becomes ``z^-(1+k) ((1-f) + f z^-1)`` times the
+    numerator's other factors; the denominator is kept.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+    latency_frames : float
+        New latency beyond the WFS frame [frames], >= 0.
+
+    Raises
+    ------
+    ValueError
+        A plant without the WFS frame's delay, or a bad latency.
+
+    Examples
+    --------
+    >>> G = with_latency(loop_plant(1000.0, 0.5), 1.25)
+    >>> plant_latency(G)
+    1.25
+    """
+    b, a = z_inverse_coefficients(plant, "plant")
+    form = pure_delay_form(b)
+    if form is None:
+        raise ValueError("plant has no pure delay of the WFS frame to move (numerator b[0] != 0)")
+    core, _ = form
+    new = np.convolve(_delay_numerator(latency_frames), core)
+    return tf_from_z_inverse(new, np.trim_zeros(a, "b"), float(plant.dt))
 
 
 def measured_plant(freqs: object, response: object, fs: float) -> control.FRD:

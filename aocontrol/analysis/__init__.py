@@ -34,6 +34,12 @@ from aocontrol.analysis._residual import (
     residual_psd,
     residual_variance,
 )
+from aocontrol.analysis._robust import (
+    RobustMargin,
+    UncertaintySet,
+    robust_from_coefficients,
+    robust_margin,
+)
 from aocontrol.analysis._stability import (
     closed_loop_poles,
     is_stable,
@@ -65,6 +71,10 @@ __all__ = [
     "noise_transfer",
     "residual_psd",
     "residual_variance",
+    "RobustMargin",
+    "UncertaintySet",
+    "robust_margin",
+    "robust_from_coefficients",
     "sensitivity",
     "welch_psd",
     "white_noise_psd",

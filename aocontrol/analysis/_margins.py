@@ -47,6 +47,7 @@ from aocontrol.analysis._stability import is_stable, winding_zeros
 from aocontrol.plant import (
     check_frd_coverage,
     plant_fs,
+    pure_delay_form,
     split_latency,
     z_inverse_coefficients,
 )
@@ -377,7 +378,7 @@ def _exact_margins(plant: control.TransferFunction, K: control.TransferFunction,
     pm_c = np.degrees(np.angle(-L))
 
     delay = (np.nan, np.nan, np.nan, "")
-    form = _latency_form(bg)
+    form = pure_delay_form(bg)
     if form is not None:
         core, latency = form
         method = (
@@ -402,25 +403,6 @@ def _small_gain(num: np.ndarray, den: np.ndarray) -> bool:
         return True
     _, vals = rational_modulus_minima(den, num)
     return bool(np.min(vals) > 1.0)
-
-
-def _latency_form(bg: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """The plant's numerator as ``core(w) w^(1+k) ((1-f) + f w)``: ``(core, k + f)``.
-
-    Two non-zero terms of one sign are the interpolation pair of a fractional latency
-    (:func:`aocontrol.loop_plant`, times any gain); otherwise the leading zeros are the
-    whole-frame delay and ``core`` the rest. ``None`` for a plant without the one-frame delay
-    of the WFS (no latency to move).
-    """
-    b = np.trim_zeros(np.asarray(bg, dtype=float), "b")
-    nz = np.flatnonzero(b)
-    if nz.size == 0 or nz[0] < 1:
-        return None
-    j, tail = int(nz[0]), b[nz[0] :]
-    if tail.size == 2 and tail[0] * tail[1] > 0:
-        c = float(tail.sum())
-        return np.array([c]), (j - 1) + float(tail[1] / c)
-    return tail, float(j - 1)
 
 
 def _latency_family(ag, ak, bk, core, k: int) -> tuple[np.ndarray, np.ndarray]:

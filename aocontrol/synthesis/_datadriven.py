@@ -33,8 +33,10 @@ from aocontrol._validation import (
     mode_psds,
 )
 from aocontrol.analysis import (
+    UncertaintySet,
     is_stable,
     residual_psd,
+    robust_from_coefficients,
 )
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import (
@@ -42,6 +44,8 @@ from aocontrol.plant import (
     check_system,
     frequency_response,
     plant_fs,
+    plant_latency,
+    with_latency,
     z_inverse_coefficients,
 )
 from aocontrol.synthesis._dd_assemble import _assemble
@@ -154,6 +158,8 @@ def datadriven(
     n_jobs: int | None = None,
     progress: bool = True,
     fs: float | None = None,
+    uncertainty: UncertaintySet | None = None,
+    integral_action: bool = False,
 ) -> DataDrivenResult:
     r"""Data-driven IIR controllers, one per mode, from disturbance and noise PSDs.
 
@@ -323,6 +329,23 @@ def datadriven(
         Show a tqdm progress bar over modes.
     fs : float, optional
         Loop rate [Hz] if the plant lost its ``dt``.
+    uncertainty : UncertaintySet, optional
+        A robust design: the modulus margin (and closed-loop stability) for every loop of a
+        box of loop-gain factors and latency changes
+        (:class:`aocontrol.analysis.UncertaintySet`), not the nominal loop only. The convex
+        steps constrain the box's corners and edge middles at every design point
+        (:meth:`~aocontrol.analysis.UncertaintySet.corners`: the rows of each, beside the
+        nominal plant's), and every candidate is certified over the whole box
+        (:func:`aocontrol.analysis.robust_margin`: exact in the gain, a latency grid with a
+        bound between points); where the certificate fails, its worst frequency joins the
+        grid. The start (the modal-gain integrator) is scaled down per mode until it is
+        certified over the box. ``result.uncertainty`` and ``ModeReport.robust_margin`` say
+        what was certified. A transfer-function plant is needed (its pure delay moved for
+        the latencies, :func:`aocontrol.with_latency`).
+    integral_action : bool, default False
+        A fixed pole at ``z = 1`` (``fixed_denominator = [1, -1]``): a static disturbance (a
+        reference-slope change, a non-common-path aberration) is rejected entirely in steady
+        state; the other poles stay inside ``max_pole_radius``.
 
     Returns
     -------
@@ -386,9 +409,46 @@ def datadriven(
         tol=tol,
         n_grid=n_grid,
         fs=fs,
+        uncertainty=uncertainty,
+        integral_action=integral_action,
     )
     outcomes = _run(setup.ctx, setup.items, n_jobs, progress)
     return _assemble(setup, outcomes)
+
+
+# A robust start's numerator shrinks by this factor until it is certified over the set.
+_ROBUST_START_SHRINK = 0.8
+_ROBUST_START_STEPS = 40
+
+
+def _robust_start(plant, bank: IIRBank, uset: UncertaintySet, mu_d: float) -> IIRBank:
+    """The start, each mode's loop gain scaled down until the margin ``mu_d`` is certified over
+    the uncertainty set (a small enough gain always is: the loop tends to the open one).
+
+    Raises
+    ------
+    ValueError
+        A mode that no scaled start certifies (named, with the set).
+    """
+    bg, ag = z_inverse_coefficients(plant, "plant")
+    b = bank.b.copy()
+    failed = []
+    for i in range(bank.n_modes):
+        for _ in range(_ROBUST_START_STEPS):
+            rm = robust_from_coefficients(bg, ag, b[i], bank.a[i], bank.fs, uset)
+            if rm.stable and rm.value >= mu_d:
+                break
+            b[i] *= _ROBUST_START_SHRINK
+        else:
+            failed.append(i)
+    if failed:
+        raise ValueError(
+            f"no start certified over the uncertainty set ({uset.describe()}) for modes "
+            f"{failed[:10]}: the set is too wide for modulus_margin (a static gain ratio "
+            "beyond what a margin allows, or a latency range no controller of this start "
+            "survives)"
+        )
+    return IIRBank(b, bank.a, bank.fs)
 
 
 # The preparation's options and their defaults: datadriven's keywords (one source).
@@ -432,6 +492,21 @@ def _prepare(plant, freqs, psd, **options) -> _Setup:
         opts["bound_start"],
     )
     max_iter, tol, n_grid, fs = opts["max_iter"], opts["tol"], opts["n_grid"], opts["fs"]
+    uncertainty = opts["uncertainty"]
+    if uncertainty is not None and not isinstance(uncertainty, UncertaintySet):
+        raise TypeError(
+            f"uncertainty must be an aocontrol.analysis.UncertaintySet, got "
+            f"{type(uncertainty).__name__}"
+        )
+    if uncertainty is not None and uncertainty.nominal_only:
+        uncertainty = None
+    if opts["integral_action"]:
+        if fixed_denominator is not None:
+            raise ValueError(
+                "integral_action=True fixes the denominator factor [1, -1]: give it or "
+                f"fixed_denominator, not both (got fixed_denominator={fixed_denominator!r})"
+            )
+        fixed_denominator = [1.0, -1.0]
     fs_ = plant_fs(plant, fs)
     if isinstance(plant, control.FRD):
         # Every result is verified on [0, fs/2]: a measured plant must cover it.
@@ -552,6 +627,22 @@ def _prepare(plant, freqs, psd, **options) -> _Setup:
             f"initial controller does not stabilise the plant for modes "
             f"{unstable[:10]}{' ...' if len(unstable) > 10 else ''}"
         )
+    variants: tuple = ()
+    if uncertainty is not None:
+        if not isinstance(plant, control.TransferFunction):
+            raise TypeError(
+                "uncertainty needs a transfer-function plant (the certificate over the set "
+                f"is polynomial), got {type(plant).__name__}"
+            )
+        latency0 = plant_latency(plant)
+        if latency0 is None and uncertainty.latency != (0.0, 0.0):
+            raise ValueError("a latency interval needs a plant with a pure delay to move")
+        variants = tuple(
+            k * (plant if d == 0.0 else with_latency(plant, max(latency0 + d, 0.0)))
+            for k, d in uncertainty.corners()
+        )
+        init_bank = _robust_start(plant, init_bank, uncertainty, design_margin(mu))
+        b0s, a0s = init_bank.b, init_bank.a
     if max_pole_radius is not None:
         outside = {}
         for i in range(n_modes):
@@ -618,6 +709,8 @@ def _prepare(plant, freqs, psd, **options) -> _Setup:
         extrapolate=True,
         max_pole_radius=max_pole_radius,
         auto_orders=orders,
+        uncertainty=uncertainty,
+        variant_plants=variants,
     )
 
     items = [

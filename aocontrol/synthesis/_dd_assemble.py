@@ -11,7 +11,7 @@ import warnings
 
 import numpy as np
 
-from aocontrol.analysis import modulus_certificate, residual_psd
+from aocontrol.analysis import modulus_certificate, residual_psd, robust_margin
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis._dd_context import DesignContext, exact_quotient
 from aocontrol.synthesis._dd_grids import fine_residual
@@ -77,9 +77,12 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
             reports.append(ModeReport(i, False, r["error"], *empty, bound_start_error=bound_error))
             continue
         margin, method, start = r["margin"], r["certificate"], r["start"]
+        robust = r.get("robust_margin", np.nan)
         if worse[i]:
             cert = modulus_certificate(plant, init_bank, fs=fs, mode=i)
             margin, method, start = cert.value, cert.method, REJECTED_WORSE
+            if ctx.uncertainty is not None:
+                robust = robust_margin(plant, init_bank, ctx.uncertainty, fs=fs, mode=i).value
         reports.append(
             ModeReport(
                 i,
@@ -96,6 +99,7 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
                 pole_radius=_bank_pole_radius(bank, i, r["fixed"]),
                 order=int(r.get("order", ctx.free_order + ctx.fixed_factor.size - 1)),
                 bound_start_error=r.get("bound_error", ""),
+                robust_margin=float(robust),
             )
         )
     no_bound = {r.mode: r.bound_start_error for r in reports if r.bound_start_error}
@@ -118,6 +122,7 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
         residual_variance_fine=fine,
         initial_residual_variance_fine=fine0,
         verification=_verification_text(ctx),
+        uncertainty=ctx.uncertainty,
     )
     if failed:
         raise DataDrivenError(failed, result)
@@ -178,8 +183,14 @@ def _verification_text(ctx: DesignContext) -> str:
         if ctx.max_pole_radius is not None
         else "controller poles unconstrained (max_pole_radius=None)"
     )
+    robust = (
+        ""
+        if ctx.uncertainty is None
+        else f"; over the uncertainty set {ctx.uncertainty.describe()}: modulus margin and "
+        "closed-loop stability certified (aocontrol.analysis.robust_margin)"
+    )
     return (
-        f"{margin}; closed-loop stability from the closed-loop poles"
+        f"{margin}{robust}; closed-loop stability from the closed-loop poles"
         f"{'' if exact else ' (winding number on the dense grid)'}; {poles}; residual on the "
         "input grid (trapezoid) and on a fine check (20,001 linear + 2,001 log points and "
         "points around every |S| peak, PSDs interpolated linearly)"

@@ -16,8 +16,10 @@ import numpy as np
 
 from aocontrol.analysis import (
     ModulusCertificate,
+    RobustMargin,
     modulus_certificate,
     polynomial_certificate,
+    robust_from_coefficients,
     winding_stability,
     winding_zeros,
 )
@@ -77,7 +79,15 @@ class _ModeCertifier(Certifier):
     def __init__(self, ctx, psd, noise, v_ref, b0, a0, dense, mu_d):
         self.ctx, self.psd, self.noise, self.v_ref = ctx, psd, noise, v_ref
         self.b0, self.a0, self.dense, self.mu_d = b0, a0, dense, mu_d
+        self.rows_per_point = ctx.rows_per_point
         self.wind = dense.take(ctx.winding_index)
+        # A robust design: the winding rows of every variant plant too.
+        f_w = ctx.dense_freqs[ctx.winding_index]
+        self.wind_variants = [
+            ctx.grid_data(f_w, frequency_response_unchecked(p, f_w, ctx.fs), ctx.modulus_margin)
+            for p in ctx.variant_plants
+        ]
+        self._robust: dict[bytes, RobustMargin] = {}
         self.h2_f = ctx.h2_freqs
         self.h2_extra = np.empty(0)
         # Certificates already computed, by the bytes of ``v``: a candidate is certified once
@@ -86,13 +96,26 @@ class _ModeCertifier(Certifier):
         self._stability: dict[bytes, bool] = {}
 
     # -- grid ---------------------------------------------------------------------------
+    def _plants(self) -> tuple:
+        return (self.ctx.plant, *self.ctx.variant_plants)
+
     def rows(self, f: np.ndarray) -> GridData:
-        g = frequency_response_unchecked(self.ctx.plant, f, self.ctx.fs)
-        return self.ctx.grid_data(f, g, self.mu_d)
+        """Rows at ``f`` [Hz]: the nominal plant's, then each variant plant's, point after
+        point (``rows_per_point`` per frequency)."""
+        ctx = self.ctx
+        parts = [
+            ctx.grid_data(f, frequency_response_unchecked(p, f, ctx.fs), self.mu_d)
+            for p in self._plants()
+        ]
+        return parts[0] if len(parts) == 1 else _interleave(parts)
 
     def p_start(self, f: np.ndarray) -> np.ndarray:
-        g = frequency_response_unchecked(self.ctx.plant, f, self.ctx.fs)
-        return _p_of(self.ctx, f, g, self.b0, self.a0)[1]
+        ctx = self.ctx
+        P = [
+            _p_of(ctx, f, frequency_response_unchecked(p, f, ctx.fs), self.b0, self.a0)[1]
+            for p in self._plants()
+        ]
+        return np.stack(P, axis=1).ravel()
 
     def weights(self, f: np.ndarray) -> tuple:
         """``(r1, rn, h)`` on the grid ``f``: the H2 quadrature on its H2 points.
@@ -113,8 +136,10 @@ class _ModeCertifier(Certifier):
             r1_h = np.where(t > 0, np.sqrt(q1 / t), 0.0)
             rn_h = np.where(t > 0, np.sqrt(qn / t), 0.0)
         pos = np.searchsorted(h2, f[is_h2])
-        r1, rn, h = np.zeros(f.size), np.zeros(f.size), np.zeros(f.size)
-        r1[is_h2], rn[is_h2], h[is_h2] = r1_h[pos], rn_h[pos], t[pos] / self.v_ref
+        k = self.rows_per_point  # the variant plants' rows constrain the margin only
+        r1, rn, h = np.zeros(f.size * k), np.zeros(f.size * k), np.zeros(f.size * k)
+        idx = np.flatnonzero(is_h2) * k
+        r1[idx], rn[idx], h[idx] = r1_h[pos], rn_h[pos], t[pos] / self.v_ref
         return r1, rn, h
 
     # -- winding blocks -----------------------------------------------------------------
@@ -125,6 +150,14 @@ class _ModeCertifier(Certifier):
         else:
             Pw = self.wind.A @ v + self.wind.F
         blocks = [(self.wind.A, self.wind.F, Pw, _P_FLOOR)]
+        for wv, p in zip(self.wind_variants, ctx.variant_plants, strict=True):
+            if v is None:
+                f_w = ctx.dense_freqs[ctx.winding_index]
+                g_w = frequency_response_unchecked(p, f_w, ctx.fs)
+                Pv = _p_of(ctx, f_w, g_w, self.b0, self.a0)[1]
+            else:
+                Pv = wv.A @ v + wv.F
+            blocks.append((wv.A, wv.F, Pv, _P_FLOOR))
         if ctx.max_pole_radius is not None:
             A = self._pole_rows(v)
             Ys = A @ v + 1.0 if v is not None else np.ones(A.shape[0], complex)
@@ -196,6 +229,21 @@ class _ModeCertifier(Certifier):
             self._margins[key] = cert
         return cert
 
+    def robust(self, v: np.ndarray) -> RobustMargin | None:
+        """The certified margin over the uncertainty set (``None`` without one; computed
+        once per candidate)."""
+        ctx = self.ctx
+        if ctx.uncertainty is None:
+            return None
+        key = np.asarray(v, dtype=float).tobytes()
+        rm = self._robust.get(key)
+        if rm is None:
+            b, a = ctx.from_v(v)
+            rm = self._robust[key] = robust_from_coefficients(
+                *ctx.plant_coefficients, b, a, ctx.fs, ctx.uncertainty, ctx.modulus_margin
+            )
+        return rm
+
     def stable(self, v: np.ndarray) -> bool:
         """Closed-loop stability of ``v`` (:func:`_stable`; computed once)."""
         key = np.asarray(v, dtype=float).tobytes()
@@ -229,6 +277,11 @@ class _ModeCertifier(Certifier):
                 Pb = _p_of(ctx, ctx.dense_freqs, ctx.dense_response, self.b0, self.a0)[1]
             cos = (P * np.conj(Pb)).real / (np.abs(P) * np.abs(Pb) + 1e-300)
             return Check(False, ctx.dense_freqs[np.argsort(cos)[:16]], "stability")
+        rm = self.robust(v)
+        if rm is not None and not (rm.stable and rm.value >= ctx.modulus_margin):
+            logger.debug("robust certificate failed at %.4g Hz (bound %.4g)",
+                         rm.worst_frequency_hz, rm.value)  # fmt: skip
+            return Check(False, np.array([rm.worst_frequency_hz]), "margin")
         peaks = self._misrepresented_peaks(cert, v)
         if peaks.size:
             # They join the grid as H2 points (margin cuts only constrain).
@@ -258,6 +311,9 @@ class _ModeCertifier(Certifier):
                 stable = False
         cert = self.margin(v)
         if not stable or cert.value < ctx.modulus_margin * (1 - 1e-9):
+            return None
+        rm = self.robust(v)
+        if rm is not None and not (rm.stable and rm.value >= ctx.modulus_margin * (1 - 1e-9)):
             return None
         return cert.value, cert.method
 
@@ -289,3 +345,18 @@ class _ModeCertifier(Certifier):
         worse = s2 > _PEAK_FACTOR * interp
         order = np.argsort(-(s2 / interp)[worse])
         return f[worse][order]
+
+
+def _interleave(parts: list[GridData]) -> GridData:
+    """Grids of the same points as one, their rows point after point."""
+
+    def mix(arrays: list[np.ndarray]) -> np.ndarray:
+        return np.stack(arrays, axis=1).reshape((-1, *arrays[0].shape[1:]))
+
+    return GridData(
+        mix([p.AY for p in parts]),
+        mix([p.AX for p in parts]),
+        mix([p.F for p in parts]),
+        mix([p.mu_rows() for p in parts]),
+        parts[0].hinf_weight,
+    )

@@ -119,6 +119,12 @@ class DesignContext:
     auto_tol : float
         ``order="auto"``: a higher order is kept only if it lowers the residual by more than
         this fraction.
+    uncertainty : UncertaintySet or None
+        The loop gains and latencies every design must survive (robust design), or ``None``.
+    variant_plants : tuple of control.TransferFunction
+        The plants of the uncertainty set the convex problem constrains at every point (its
+        corners and edge middles, :meth:`~aocontrol.analysis.UncertaintySet.corners`); the
+        certificate covers the whole set.
     """
 
     plant: object
@@ -143,6 +149,13 @@ class DesignContext:
     max_pole_radius: float | None
     auto_orders: tuple = ()
     auto_tol: float = 0.02
+    uncertainty: object = None
+    variant_plants: tuple = ()
+
+    @property
+    def rows_per_point(self) -> int:
+        """Grid rows per frequency: the nominal plant and every variant plant."""
+        return 1 + len(self.variant_plants)
 
     @property
     def design_margin(self) -> float:

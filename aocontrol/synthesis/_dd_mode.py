@@ -109,14 +109,17 @@ def _design_mode(
         v_ref = float(np.sum(q1 + qn))
     dense = _dense_data(ctx)
     cert = _ModeCertifier(ctx, psd, noise, v_ref, b0, a0, dense, mu_d)
+    k = ctx.rows_per_point  # rows per point: the nominal plant and a robust design's variants
     r1, rn, h = cert.weights(f)
     grid = cert.rows(f)
-    n_wind = ctx.winding_index.size + (cert.n_pole_rows if ctx.max_pole_radius is not None else 0)
+    n_wind = ctx.winding_index.size * k
+    n_wind += cert.n_pole_rows if ctx.max_pole_radius is not None else 0
     # Up to _SPARE_SLOTS points added by the checks; each solve at the grid's size.
     problem = get_problem(
-        f.size + _SPARE_SLOTS, 2 * ctx.free_order + 1, ctx.hinf_weight > 0, n_wind
+        (f.size + _SPARE_SLOTS) * k, 2 * ctx.free_order + 1, ctx.hinf_weight > 0, n_wind, k
     )
     v0 = ctx.to_v(b0, a0)
+    P_rows = cert.p_start(f)  # the start's P on the grid's rows (every plant's)
     start = "initial"
     J_best = true_objective(grid, v0, r1, rn, h)[0] if v0 is not None else np.inf
     leak = 1.0 - ctx.max_pole_radius * (1.0 - _START_LEAK_MARGIN) if ctx.max_pole_radius else 0.0
@@ -137,11 +140,14 @@ def _design_mode(
         # certificate enforces exactly), so that the start is feasible for the convex steps.
         need = ctx.modulus_margin if label == "bound reduction" else mu_d
         if Jc < J_best and met >= need * (1 - 1e-4) and start_certified(ctx, cert, dense, vc):
-            (b0, a0), v0, P0, start, J_best = ctx.from_v(vc), vc, Pc_grid, label, Jc
+            (b0, a0), v0, P_rows, start, J_best = ctx.from_v(vc), vc, Pc_grid, label, Jc
+            Y0, P0 = _p_of(ctx, f, g, b0, a0)
             cert.b0, cert.a0 = b0, a0
             cert.mu_d = max(ctx.modulus_margin, min(mu_d, met * (1 - 1e-4)))
+    # The objective of the start (nominal rows: the variants' carry no H2 weight).
+    r1n, rnn, hn = r1[::k], rn[::k], h[::k]
     J_start = float(
-        np.sum(h * (r1**2 * np.abs(Y0) ** 2 + rn**2 * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2)
+        np.sum(hn * (r1n**2 * np.abs(Y0) ** 2 + rnn**2 * np.abs(P0 - Y0) ** 2) / np.abs(P0) ** 2)
     )
     if start == "initial" and ctx.hinf_weight > 0:
         J_start += ctx.hinf_weight * float(np.max(np.abs(P0 - Y0) ** 2 / np.abs(P0) ** 2))
@@ -150,7 +156,7 @@ def _design_mode(
         f,
         cert,
         v0,
-        P0,
+        P_rows,
         cert.p_start,
         max_iter=ctx.max_iter,
         tol=ctx.tol,
@@ -177,7 +183,9 @@ def _design_mode(
     b, a = ctx.from_v(v)
     poles = ctx.free_poles(v)
     cert_v = cert.margin(v)
+    rm = cert.robust(v)
     return {
+        "robust_margin": np.nan if rm is None else rm.value,
         "peaks_hz": cert_v.minima_hz,
         "b": b,
         "a": a,

@@ -145,6 +145,9 @@ class ModeReport:
         Why the reduced-bound start asked for this mode (``bound_start``) is missing: the
         failure of :func:`aocontrol.analysis.constrained_bound` (then the mode started from
         its other starts, with a warning); empty when not asked or computed.
+    robust_margin : float
+        A robust design (``uncertainty``): the modulus margin certified over the whole set
+        (:func:`aocontrol.analysis.robust_margin`, a lower bound); ``nan`` otherwise.
     """
 
     mode: int
@@ -161,6 +164,7 @@ class ModeReport:
     pole_radius: float = float("nan")
     order: int = 0
     bound_start_error: str = ""
+    robust_margin: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,7 @@ class DataDrivenResult:
     residual_variance_fine: np.ndarray | None = field(default=None, repr=False)
     initial_residual_variance_fine: np.ndarray | None = field(default=None, repr=False)
     verification: str = ""
+    uncertainty: object = None
 
     @property
     def ok(self) -> np.ndarray:

@@ -418,10 +418,13 @@ class SizedProblem:
         return prob.solve(Pc, scale, iteration)
 
 
-def get_problem(slots: int, nv: int, stroke: bool, n_wind: int = 0) -> SizedProblem:
-    """The convexified problem of up to ``slots`` grid points, solved at the grid's size
-    (:class:`SizedProblem`; its compiled problems are cached per worker process)."""
-    return SizedProblem(slots, nv, stroke, n_wind)
+def get_problem(
+    slots: int, nv: int, stroke: bool, n_wind: int = 0, rows_per_point: int = 1
+) -> SizedProblem:
+    """The convexified problem of up to ``slots`` grid rows, solved at the grid's size
+    (:class:`SizedProblem`; its compiled problems are cached per worker process). With
+    ``rows_per_point`` rows per frequency, the compiled sizes step by whole points."""
+    return SizedProblem(slots, nv, stroke, n_wind, step=_SLOT_STEP * rows_per_point)
 
 
 def true_objective(
@@ -486,7 +489,15 @@ class Check:
 
 
 class Certifier:
-    """What :func:`ccp` needs from the design (implemented by the data-driven synthesis)."""
+    """What :func:`ccp` needs from the design (implemented by the data-driven synthesis).
+
+    ``rows(f)`` gives ``rows_per_point`` rows per frequency, point after point (a robust
+    design constrains several plants at each frequency); ``weights(f)`` and the start's
+    ``P`` follow the same order.
+    """
+
+    #: Grid rows per frequency point.
+    rows_per_point = 1
 
     def check(self, v: np.ndarray) -> Check:  # pragma: no cover - interface
         raise NotImplementedError
@@ -651,7 +662,8 @@ def ccp(
         # |S| > 1): the steps tend to deepen them between design points, which the
         # certificates would otherwise add one cut (one solve) at a time.
         seeds = cert.seeds(v0)
-        seeds = seeds[~np.isin(seeds, grid_f)][: max(problem.slots - grid_f.size, 0) // 2]
+        free_points = max(problem.slots - grid.F.size, 0) // cert.rows_per_point
+        seeds = seeds[~np.isin(seeds, grid_f)][: free_points // 2]
         if seeds.size:
             join(seeds)
             history[0] = J_best
@@ -690,7 +702,7 @@ def ccp(
                 break
         if not chk.ok:
             new = chk.cut[~np.isin(chk.cut, grid_f)][:_ADD_PER_CHECK]
-            room = problem.slots - grid_f.size
+            room = (problem.slots - grid.F.size) // cert.rows_per_point
             if new.size == 0 or room <= 0:
                 logger.debug("check failed (%s) and no grid slot or point left", chk.reason)
                 if free:

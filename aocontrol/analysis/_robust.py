@@ -1,0 +1,363 @@
+"""The modulus margin over an uncertainty set: every loop gain and latency of an interval.
+
+A controller is designed on a model; the instrument's loop gain (optical gains, a DM's gain)
+and latency differ from it. :class:`UncertaintySet` is the box of loop-gain factors
+``k in [k_lo, k_hi]`` and latency changes ``d in [d_lo, d_hi]`` frames (the plant's pure delay
+moved as :func:`aocontrol.loop_plant` models a fractional latency, :func:`aocontrol.with_latency`);
+:func:`robust_margin` certifies a lower bound of ``min |1 + k L_d|`` over the whole box and
+over the unit circle, and the closed-loop stability of every loop in it:
+
+* in the gain, exactly. With ``L = B / A``, ``|1 + k L|^2`` is a convex quadratic in ``k``: its
+  minimum over ``[k_lo, k_hi]`` is at an end or, where ``k* = -Re(B conj A) / |B|^2`` lies
+  inside, ``|Im(B conj A)| / (|A| |B|) = |B A~ - B~ A| / (2 |A| |B|)`` on the circle (``A~``:
+  the reversed polynomial). Both ends are the exact certificate of
+  :func:`~aocontrol.analysis.modulus_certificate` (polynomial roots); the interior value is a
+  ratio of polynomial moduli whose every stationary point is found the same way
+  (:func:`~aocontrol.analysis.rational_modulus_minima`), kept where ``k*`` is inside.
+* in the latency, on a grid of latencies (whole-frame boundaries included) with a bound
+  between them: within a whole frame the numerator is affine in the fraction ``f``,
+  ``B_f = B_0 + f B_1``, so ``| |1 + k L_f| - |1 + k L_g| | <= k_hi |B_1 / A| |f - g|``;
+  ``max |B_1 / A|`` over the circle is certified exactly (the certificate of ``|A / B_1|``),
+  and subtracted, times half the grid step, from the grid's margin.
+* stability: every loop of the box is stable if the nominal one is and the bound is above 0
+  (a closed-loop pole reaching the circle would make ``1 + k L_d`` vanish there); the loops at
+  the grid latencies are also checked by their poles.
+
+The value is a certificate, conservative by at most the latency bound it reports.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import control
+import numpy as np
+from numpy.polynomial import polynomial as npoly
+
+from aocontrol.analysis._certificate import _controller_tf, rational_modulus_minima
+from aocontrol.analysis._families import poly_stable
+from aocontrol.plant import plant_fs, pure_delay_form, split_latency, z_inverse_coefficients
+
+__all__ = ["RobustMargin", "UncertaintySet", "robust_from_coefficients", "robust_margin"]
+
+# A bound at or below this is zero to round-off: a closed-loop pole may sit on the circle.
+_ZERO = 1e-9
+# First latency grid [frames] of the certificate, refined where it decides the value.
+_COARSE_STEP = 0.1
+_METHOD_GAIN = (
+    "exact in the loop gain (polynomial roots: both ends and the interior's stationary points)"
+)
+_METHOD_LATENCY = (
+    "latency on a grid, refined where it decides, with the exact bound k_hi max|dB/df / A| "
+    "step/2 subtracted between points"
+)
+
+
+@dataclass(frozen=True)
+class UncertaintySet:
+    """Loop-gain factors and latency changes a loop must survive (a box).
+
+    Parameters
+    ----------
+    gain : (float, float), default (1, 1)
+        Interval of factors on the loop gain, ``0 < low <= 1 <= high`` (``(0.7, 1.3)``: +-30 %).
+    latency : (float, float), default (0, 0)
+        Interval of latency changes [frames], ``low <= 0 <= high`` (``(-0.3, 0.3)``), the
+        true latency staying >= 0.
+    latency_step : float, default 0.025
+        Largest step [frames] of the latency grid of the certificate (the bound between grid
+        points grows with it).
+
+    Raises
+    ------
+    ValueError
+        A reversed or empty-of-nominal interval, a gain interval reaching 0 or not finite,
+        a step <= 0.
+    """
+
+    gain: tuple[float, float] = (1.0, 1.0)
+    latency: tuple[float, float] = (0.0, 0.0)
+    latency_step: float = 0.025
+
+    def __post_init__(self) -> None:
+        lo, hi = (float(x) for x in self.gain)
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"gain must be a finite interval, got {self.gain!r}")
+        if lo > hi:
+            raise ValueError(f"gain interval reversed: got ({lo:g}, {hi:g}), expected low <= high")
+        if lo <= 0:
+            raise ValueError(
+                f"gain interval must stay above 0 (a loop gain of 0 is no loop), got ({lo:g}, "
+                f"{hi:g})"
+            )
+        if not lo <= 1.0 <= hi:
+            raise ValueError(f"gain interval must hold the nominal 1, got ({lo:g}, {hi:g})")
+        dlo, dhi = (float(x) for x in self.latency)
+        if not (math.isfinite(dlo) and math.isfinite(dhi)):
+            raise ValueError(f"latency must be a finite interval, got {self.latency!r}")
+        if dlo > dhi:
+            raise ValueError(
+                f"latency interval reversed: got ({dlo:g}, {dhi:g}), expected low <= high"
+            )
+        if not dlo <= 0.0 <= dhi:
+            raise ValueError(
+                f"latency interval must hold the nominal 0, got ({dlo:g}, {dhi:g}) frames"
+            )
+        step = float(self.latency_step)
+        if not step > 0:
+            raise ValueError(f"latency_step must be > 0 frames, got {self.latency_step!r}")
+        object.__setattr__(self, "gain", (lo, hi))
+        object.__setattr__(self, "latency", (dlo, dhi))
+        object.__setattr__(self, "latency_step", step)
+
+    @property
+    def nominal_only(self) -> bool:
+        """Whether the set is the nominal loop alone."""
+        return self.gain == (1.0, 1.0) and self.latency == (0.0, 0.0)
+
+    def latencies(self, nominal: float) -> np.ndarray:
+        """The latencies [frames] of the certificate's grid around ``nominal``: the interval's
+        ends, the nominal, the whole frames inside, and steps of at most ``latency_step``."""
+        lo = max(nominal + self.latency[0], 0.0)
+        hi = nominal + self.latency[1]
+        knots = [lo, nominal, hi, *range(math.ceil(lo), math.floor(hi) + 1)]
+        knots = np.unique(np.clip(knots, lo, hi))
+        out = [knots[:1]]
+        for a, b in zip(knots[:-1], knots[1:], strict=True):
+            n = max(1, math.ceil((b - a) / self.latency_step - 1e-9))
+            out.append(np.linspace(a, b, n + 1)[1:])
+        return np.concatenate(out)
+
+    def corners(self) -> list[tuple[float, float]]:
+        """``(gain, latency change)`` of the box's corners, the nominal apart: the loops a
+        design constrains explicitly at every point (the certificate covers the rest, and
+        its worst frequencies join the design grid)."""
+        gains = sorted({self.gain[0], self.gain[1]})
+        lats = sorted({self.latency[0], self.latency[1]})
+        return [(k, d) for k in gains for d in lats if (k, d) != (1.0, 0.0)]
+
+    def describe(self) -> str:
+        """The set in words (for results and reports)."""
+        g, d = self.gain, self.latency
+        return (
+            f"loop gain x[{g[0]:g}, {g[1]:g}] (exact), latency {d[0]:+g}..{d[1]:+g} frames "
+            f"(grid of {self.latency_step:g} frame with a bound between points)"
+        )
+
+
+@dataclass(frozen=True)
+class RobustMargin:
+    """A certified lower bound of the modulus margin over an uncertainty set.
+
+    Attributes
+    ----------
+    value : float
+        Lower bound of ``min |1 + k L_d|`` over the box and the unit circle.
+    stable : bool
+        Every loop of the box is stable (certified: see the module docstring).
+    worst_gain, worst_latency, worst_frequency_hz : float
+        Where the smallest grid value is reached (gain factor, latency [frames], [Hz]).
+    latency_bound : float
+        What the bound between latency grid points costs: the grid's smallest value minus
+        the certified one (0 for a set without latency change).
+    latencies : numpy.ndarray
+        The latency grid [frames].
+    method : str
+        What the value covers.
+    """
+
+    value: float
+    stable: bool
+    worst_gain: float
+    worst_latency: float
+    worst_frequency_hz: float
+    latency_bound: float
+    latencies: np.ndarray
+    method: str
+
+    def below(self, margin: float) -> np.ndarray:
+        """``[worst_frequency_hz]`` if the value is below ``margin``, else empty (a cut)."""
+        return np.array([self.worst_frequency_hz]) if self.value < margin else np.empty(0)
+
+
+def _reversed(p: np.ndarray, n: int) -> np.ndarray:
+    """``w^n p(1/w)`` (coefficients reversed, padded to degree ``n``)."""
+    out = np.zeros(n + 1)
+    out[: p.size] = p
+    return out[::-1]
+
+
+def _gain_family_minimum(A: np.ndarray, B: np.ndarray, k_lo: float, k_hi: float):
+    """``(value, gain, theta)``: ``min |A + k B| / |A|`` over ``k in [k_lo, k_hi]`` and the
+    circle, exact (module docstring)."""
+    best = (np.inf, 1.0, 0.0)
+    for k in sorted({k_lo, k_hi}):
+        theta, vals = rational_modulus_minima(npoly.polyadd(A, k * B), A)
+        i = int(np.argmin(vals))
+        if vals[i] < best[0]:
+            best = (float(vals[i]), k, float(theta[i]))
+    if k_hi > k_lo:
+        n = max(A.size, B.size) - 1
+        D = npoly.polysub(npoly.polymul(B, _reversed(A, n)), npoly.polymul(_reversed(B, n), A))
+        theta, vals = rational_modulus_minima(D, 2.0 * npoly.polymul(A, B))
+        w = np.exp(-1j * theta)
+        a, b = npoly.polyval(w, A), npoly.polyval(w, B)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            k_star = -(b * np.conj(a)).real / np.abs(b) ** 2
+        inside = np.isfinite(vals) & (k_star > k_lo) & (k_star < k_hi)
+        if inside.any():
+            i = int(np.flatnonzero(inside)[np.argmin(vals[inside])])
+            if vals[i] < best[0]:
+                best = (float(vals[i]), float(k_star[i]), float(theta[i]))
+    return best
+
+
+def robust_margin(
+    plant: control.TransferFunction,
+    controller: object,
+    uncertainty: UncertaintySet,
+    *,
+    fs: float | None = None,
+    mode: int = 0,
+) -> RobustMargin:
+    """Certified modulus margin and stability of ``G K`` over an uncertainty set.
+
+    Parameters
+    ----------
+    plant : control.TransferFunction
+        Nominal loop plant (its pure delay in the form of :func:`aocontrol.loop_plant`, any
+        other factor kept: a DM's response).
+    controller : control.TransferFunction or ControllerBank
+        Controller; for a bank, ``mode`` selects the SISO controller.
+    uncertainty : UncertaintySet
+        The box of loop gains and latency changes.
+    fs : float, optional
+        Loop rate [Hz] if the plant lost its ``dt``.
+    mode : int, default 0
+        Mode of a controller bank.
+
+    Returns
+    -------
+    RobustMargin
+
+    Raises
+    ------
+    TypeError
+        A measured (FRD) plant or controller (the certificate needs polynomials).
+    ValueError
+        A latency interval on a plant without a pure delay to move.
+
+    Examples
+    --------
+    An integrator on ``z^-2`` is stable for ``g < 1`` (Jury): with ``g = 0.4`` and the loop gain
+    up to 1.5x it keeps a margin; up to 3x (``g = 1.2``) it does not.
+
+    >>> from aocontrol.plant import loop_plant
+    >>> from aocontrol.controllers import Integrator
+    >>> G, K = loop_plant(1000.0, 1.0), Integrator(0.4, fs=1000.0)
+    >>> robust_margin(G, K, UncertaintySet(gain=(0.5, 1.5))).stable
+    True
+    >>> robust_margin(G, K, UncertaintySet(gain=(0.5, 3.0))).stable
+    False
+    """
+    fs_ = plant_fs(plant, fs)
+    K = _controller_tf(controller, fs_, mode)
+    if not isinstance(plant, control.TransferFunction) or not isinstance(
+        K, control.TransferFunction
+    ):
+        raise TypeError("robust_margin needs a transfer-function plant and controller")
+    bg, ag = z_inverse_coefficients(plant, "plant")
+    bk, ak = z_inverse_coefficients(K, "controller")
+    return robust_from_coefficients(bg, ag, bk, ak, fs_, uncertainty)
+
+
+def robust_from_coefficients(
+    bg: np.ndarray,
+    ag: np.ndarray,
+    bk: np.ndarray,
+    ak: np.ndarray,
+    fs: float,
+    uset: UncertaintySet,
+    target: float | None = None,
+) -> RobustMargin:
+    """:func:`robust_margin` of ``G = bg / ag`` and ``K = bk / ak`` (powers of ``z^-1``), from
+    their coefficients: the synthesis certifies every candidate this way.
+
+    The latency grid starts at steps of ``_COARSE_STEP`` frames (and the whole frames);
+    intervals whose lower bound is the smallest (or, with ``target``, below it) are halved
+    until their step reaches ``uset.latency_step``: the bound between the points of an
+    interval whose ends are far above it never decides the value. ``target``: stop refining
+    once every interval is certified above it (the value is then a bound above ``target``,
+    not the tightest).
+    """
+    A = npoly.polymul(ag, ak)
+    k_lo, k_hi = uset.gain
+    if uset.latency == (0.0, 0.0):
+        val, kk, th = _gain_family_minimum(A, npoly.polymul(bg, bk), k_lo, k_hi)
+        stable = poly_stable(npoly.polyadd(A, npoly.polymul(bg, bk)))
+        return RobustMargin(
+            value=val, stable=bool(stable and val > _ZERO), worst_gain=float(kk),
+            worst_latency=float("nan"), worst_frequency_hz=float(th * fs / (2 * np.pi)),
+            latency_bound=0.0, latencies=np.empty(0), method=_METHOD_GAIN,
+        )  # fmt: skip
+    form = pure_delay_form(bg)
+    if form is None:
+        raise ValueError("a latency interval needs a plant with a pure delay to move")
+    core, nominal = form
+    e0 = npoly.polymul(bk, core)
+    # |dB/df / A| = |K core (w - 1) / (A_g A_k)|, the same for every latency (w^(1+k) has
+    # unit modulus): one exact bound. With integral action A has the factor (1 - w) too,
+    # cancelled so that the ratio is finite at 0 Hz as it truly is.
+    num, den = npoly.polysub(np.concatenate([[0.0], e0]), e0), A
+    while den.size > 1 and abs(npoly.polyval(1.0, den)) <= 1e-12 * np.abs(den).sum():
+        q_num, r_num = npoly.polydiv(num, [1.0, -1.0])
+        if np.max(np.abs(r_num)) > 1e-12 * np.abs(num).sum():
+            break
+        num, den = q_num, npoly.polydiv(den, [1.0, -1.0])[0]
+    slope = 0.0
+    if np.any(num):
+        _, inv = rational_modulus_minima(den, num)
+        slope = 1.0 / max(float(np.min(inv)), 1e-300)
+
+    cache: dict[float, tuple] = {}
+
+    def at(tau: float) -> tuple:
+        if tau not in cache:
+            k, f = split_latency(tau)
+            e = np.concatenate([np.zeros(1 + k), e0])
+            B = npoly.polyadd(e * (1.0 - f), np.concatenate([[0.0], e]) * f)
+            val, kk, th = _gain_family_minimum(A, B, k_lo, k_hi)
+            cache[tau] = (val, kk, th, poly_stable(npoly.polyadd(A, B)))
+        return cache[tau]
+
+    coarse = UncertaintySet(uset.gain, uset.latency, max(uset.latency_step, _COARSE_STEP))
+    lats = list(coarse.latencies(nominal))
+    while True:
+        vals = np.array([at(t)[0] for t in lats])
+        steps = np.diff(lats)
+        lower = np.minimum(vals[:-1], vals[1:]) - k_hi * slope * steps / 2.0
+        floor = target if target is not None else vals.min()
+        split = [
+            i for i in range(len(steps))
+            if lower[i] < floor and steps[i] > uset.latency_step * (1 + 1e-9)
+        ]  # fmt: skip
+        if not split:
+            break
+        for i in reversed(split):
+            lats.insert(i + 1, 0.5 * (lats[i] + lats[i + 1]))
+    lats = np.asarray(lats)
+    value = float(min(vals.min(), lower.min())) if lats.size > 1 else float(vals[0])
+    i = int(np.argmin(vals))
+    kk, th = at(lats[i])[1:3]
+    stable = all(at(t)[3] for t in lats)
+    return RobustMargin(
+        value=value,
+        stable=bool(stable and value > _ZERO),
+        worst_gain=float(kk),
+        worst_latency=float(lats[i]),
+        worst_frequency_hz=float(th * fs / (2 * np.pi)),
+        latency_bound=float(vals.min() - value),
+        latencies=lats,
+        method=_METHOD_GAIN + f"; {_METHOD_LATENCY} ({lats.size} points)",
+    )
