@@ -37,6 +37,7 @@ __all__ = [
     "figure_png",
     "save_figure",
     "use_file_backend",
+    "plot_robustness",
 ]
 
 # Floor of |S|, |T| before taking dB (a perfect zero would be -inf on the axis).
@@ -800,4 +801,67 @@ def plot_adapt(
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    return _finish(fig, path)
+
+
+def plot_robustness(
+    rows: Sequence[Mapping[str, Any]],
+    *,
+    title: str | None = None,
+    path: str | os.PathLike | None = None,
+) -> Any:
+    """Gain retained under model errors: a panel per (case, error), a line per controller.
+
+    Parameters
+    ----------
+    rows : sequence of mapping
+        One per run: ``case``, ``error`` (``"nominal"`` for the reference point), ``magnitude``
+        (the error's size, in its own unit), ``controller``, ``status`` (``"ok"`` or
+        ``"diverged"``) and ``retained`` (the fraction of the nominal gain over the reference
+        integrator that remains). A diverged run is a red cross at 0.
+    title : str, optional
+        Figure title.
+    path : str or os.PathLike, optional
+        Also write the figure to this PNG file.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    errors = [e for e in dict.fromkeys(r["error"] for r in rows) if e != "nominal"]
+    cases = list(dict.fromkeys(r["case"] for r in rows))
+    if not errors or not cases:
+        raise ValueError("rows must hold runs under at least one model error")
+    ctrls = list(dict.fromkeys(r["controller"] for r in rows))
+    fig, axes = plt.subplots(
+        len(cases), len(errors), figsize=(3.2 * len(errors), 2.9 * len(cases)),
+        constrained_layout=True, squeeze=False,
+    )  # fmt: skip
+    colors = {c: f"C{i}" for i, c in enumerate(ctrls)}
+    for i, case in enumerate(cases):
+        for j, err in enumerate(errors):
+            ax = axes[i, j]
+            for c in ctrls:
+                pts = sorted(
+                    (float(r["magnitude"]), r)
+                    for r in rows
+                    if r["case"] == case and r["error"] == err and r["controller"] == c
+                )  # fmt: skip
+                if not pts:
+                    continue
+                x = np.array([m for m, _ in pts])
+                y = np.array([r["retained"] if r["status"] == "ok" else np.nan for _, r in pts])
+                ax.plot(x, y, "o-", ms=3, lw=1.0, color=colors[c],
+                        label=c if (i, j) == (0, 0) else None)  # fmt: skip
+                bad = np.array([r["status"] != "ok" for _, r in pts])
+                if bad.any():
+                    ax.plot(x[bad], np.zeros(bad.sum()), "x", color="r", ms=8)
+            ax.axhline(1.0, color="k", lw=0.6, ls=":")
+            ax.set_title(f"{case}: {err}", fontsize="small")
+            ax.set_xlabel("error magnitude")
+            ax.set_ylabel("gain retained [1]")
+            ax.grid(True, alpha=0.3)
+    fig.legend(loc="outside lower center", ncol=min(len(ctrls), 6), fontsize="small")
+    if title:
+        fig.suptitle(title)
     return _finish(fig, path)

@@ -4,7 +4,9 @@ Control layer: what a design receives (:class:`DesignInputs`: the plant, the PSD
 from telemetry, the reference gain) and the designs themselves. One registry serves
 :func:`aocontrol.synthesis.design_from_telemetry`, the CLI's ``design`` and the simulator's
 comparison (:mod:`aocontrol.study.compare`, which re-exports it). Built in: the reference
-integrator (alias ``integrator``), ``omgi``, ``datadriven``, ``lqg`` and ``mpc``.
+integrator (alias ``integrator``), ``omgi``, ``datadriven``, ``datadriven-robust`` (certified
+over :data:`ROBUST_SET`), ``datadriven-integral`` (a fixed pole at ``z = 1``), ``lqg`` and
+``mpc``.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from aocontrol._deprecation import DeprecatedAttribute, renamed_keyword
+from aocontrol.analysis import UncertaintySet
 from aocontrol.controllers import ControllerBank, Integrator
 from aocontrol.synthesis._datadriven import DataDrivenResult
 from aocontrol.synthesis._dd_neighbours import datadriven_neighbours
@@ -162,7 +165,9 @@ def _omgi(inp: DesignInputs) -> ControllerBank:
     )
 
 
-def _datadriven_details(inp: DesignInputs) -> tuple[ControllerBank, DataDrivenResult]:
+def _datadriven_details(
+    inp: DesignInputs, **structure: object
+) -> tuple[ControllerBank, DataDrivenResult]:
     # Option "stride" > 1: the cold design of every stride-th mode, the others warm-started
     # from their nearest designed mode (datadriven_neighbours; it changes results, within the
     # tolerance its docstring measures). Default 1: the cold bank.
@@ -176,8 +181,25 @@ def _datadriven_details(inp: DesignInputs) -> tuple[ControllerBank, DataDrivenRe
         modulus_margin=inp.modulus_margin,
         progress=inp.option("progress", False),
         n_jobs=inp.option("n_jobs", None),
+        **structure,
     )
     return res.controller, res
+
+
+#: The uncertainty set of the robust data-driven design (``"datadriven-robust"``): the loop
+#: gain within +-30 % (optical gains, a DM's gain) and the latency within +-0.3 frame.
+ROBUST_SET = UncertaintySet(gain=(0.7, 1.3), latency=(-0.3, 0.3))
+
+
+def _datadriven_robust_details(inp: DesignInputs) -> tuple[ControllerBank, DataDrivenResult]:
+    gain = tuple(inp.option("gain_interval", ROBUST_SET.gain))
+    latency = tuple(inp.option("latency_interval", ROBUST_SET.latency))
+    uset = UncertaintySet(gain=gain, latency=latency)
+    return _datadriven_details(inp, uncertainty=uset)
+
+
+def _datadriven_integral_details(inp: DesignInputs) -> tuple[ControllerBank, DataDrivenResult]:
+    return _datadriven_details(inp, fixed_denominator=[1.0, -1.0])
 
 
 def _datadriven(inp: DesignInputs) -> ControllerBank:
@@ -287,6 +309,29 @@ register_controller(
         parameters={"order": 5, "noise_term": True, "modulus_margin": MODULUS_MARGIN},
         options=("order", "n_jobs", "progress", "stride"),
         design_with_details=_datadriven_details,
+    )
+)
+register_controller(
+    ControllerSpec(
+        "datadriven-robust",
+        lambda inp: _datadriven_robust_details(inp)[0],
+        parameters={
+            "order": 5,
+            "modulus_margin": MODULUS_MARGIN,
+            "gain_interval": ROBUST_SET.gain,
+            "latency_interval": ROBUST_SET.latency,
+        },
+        options=("order", "n_jobs", "progress", "stride", "gain_interval", "latency_interval"),
+        design_with_details=_datadriven_robust_details,
+    )
+)
+register_controller(
+    ControllerSpec(
+        "datadriven-integral",
+        lambda inp: _datadriven_integral_details(inp)[0],
+        parameters={"order": 5, "modulus_margin": MODULUS_MARGIN, "integral_action": True},
+        options=("order", "n_jobs", "progress", "stride"),
+        design_with_details=_datadriven_integral_details,
     )
 )
 register_controller(

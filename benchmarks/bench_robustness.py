@@ -1,0 +1,218 @@
+"""Benchmark: what each controller keeps when the instrument differs from its model (issue 29).
+
+Protocol, per case (stage 2, standalone cascade, the case's sensor settings):
+
+1. one calibration run of the nominal instrument with the reference integrator; every
+   controller is designed from its telemetry (the reference integrator at the case's gain,
+   the optimised modal gains, the LQG, the data-driven design nominal, robust over
+   ``aocontrol.synthesis.ROBUST_SET`` (loop gain +-30 %, latency +-0.3 frame) and with
+   integral action);
+2. each controller runs the exposure on the nominal instrument and under each model error
+   (:mod:`aocontrol.sim.model_errors`, a case setting of the run: the designs keep the
+   nominal plant) at 2-3 magnitudes; one error, ``pol-latency``, also runs the calibration
+   under it (the pseudo-open loop rebuilt with the wrong plant) and redesigns from it;
+3. printed per (error, magnitude, controller): the stage-2 residual RMS, the raw contrast at
+   1-2 and 4-6 lambda/D, and the fraction of the nominal gain over the reference that remains,
+   ``retained = (1 - v / v_ref)_error / (1 - v / v_ref)_nominal`` (``v`` residual variances);
+   a diverged run is a row ("diverged"), never a crash. The plot: retained gain against the
+   error's magnitude, a line per controller, a panel per error.
+
+Usage: python benchmarks/bench_robustness.py [--quick] [--cases bright1-best,red1-fast]
+       [--seconds 1] [--out robustness-output] [--errors latency,gain,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import time
+import warnings
+
+import numpy as np
+
+from aocontrol.sim.loop import LoopDivergedError
+from aocontrol.study.cases import apply_overrides, load_case
+from aocontrol.study.compare import calibration_seconds, design_inputs, run_configuration
+from aocontrol.study.plot import plot_robustness
+from aocontrol.study.scene import build_scene
+
+CONTROLLERS = (
+    "reference",
+    "omgi",
+    "lqg",
+    "datadriven",
+    "datadriven-robust",
+    "datadriven-integral",
+)
+#: Model errors: name -> [(label, magnitude, case overrides)].
+ERRORS = {
+    "latency": [
+        ("-0.3 frame", -0.3, {"stage2.latency_error": -0.3}),
+        ("+0.3 frame", 0.3, {"stage2.latency_error": 0.3}),
+        ("+0.6 frame", 0.6, {"stage2.latency_error": 0.6}),
+    ],
+    "loop gain": [
+        ("x0.7", 0.7, {"stage2.optical_gain_error": 0.7}),
+        ("x1.3", 1.3, {"stage2.optical_gain_error": 1.3}),
+        ("x1.6", 1.6, {"stage2.optical_gain_error": 1.6}),
+    ],
+    "gain drift": [
+        (
+            "+-15 %",
+            0.15,
+            {"stage2.optical_gain_drift": 0.15, "stage2.optical_gain_drift_period": "0.5 s"},
+        ),
+        (
+            "+-30 %",
+            0.30,
+            {"stage2.optical_gain_drift": 0.30, "stage2.optical_gain_drift_period": "0.5 s"},
+        ),
+    ],  # fmt: skip
+    "DM lag": [
+        ("0.1 ms", 1e-4, {"stage2.dm_time_constant": "0.1 ms"}),
+        ("0.3 ms", 3e-4, {"stage2.dm_time_constant": "0.3 ms"}),
+    ],
+    "misregistration": [
+        ("0.1 subap", 0.1, {"stage2.misregistration_shift_x": 0.1}),
+        (
+            "0.25 subap + 1 deg",
+            0.25,
+            {"stage2.misregistration_shift_x": 0.25, "stage2.misregistration_rotation": 1.0},
+        ),
+    ],  # fmt: skip
+    "pol-latency": [
+        ("+0.3 frame", 0.3, {"stage2.latency_error": 0.3}),
+    ],
+}
+
+
+def _run(case, controller, seconds, quick, design, overrides, seed):
+    try:
+        out = run_configuration(
+            case, controller=controller, scheme="standalone", seconds=seconds, seed=seed,
+            quick=quick, design=design, overrides=overrides,
+        )  # fmt: skip
+    except LoopDivergedError as exc:
+        return {"status": "diverged", "detail": str(exc)[:120]}
+    sci = out.result.science
+    radii = np.asarray(sci.radii_ld)
+    profile = np.asarray(sci.contrast_profile)
+    c12 = float(np.mean(profile[(radii >= 1) & (radii <= 2)]))
+    return {
+        "status": "ok",
+        "residual_nm": out.summary["residual_rms_nm"],
+        "contrast_1_2": c12,
+        "contrast_4_6": out.summary["mean_contrast_4_6"],
+        "strehl": out.summary["strehl"],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        default=True,
+        help="quick scenes (24 stage-2 modes; the default, see --full)",
+    )
+    ap.add_argument("--full", action="store_true", help="the cases at full scale (hours)")
+    ap.add_argument("--smoke", action="store_true", help="one error, two controllers")
+    ap.add_argument("--cases", default="bright1-best,red1-fast")
+    ap.add_argument("--seconds", type=float, default=1.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--errors", default=",".join(ERRORS))
+    ap.add_argument("--controllers", default=",".join(CONTROLLERS))
+    ap.add_argument("--out", default="robustness-output")
+    args = ap.parse_args()
+    quick = not args.full
+    errors = [e.strip() for e in args.errors.split(",") if e.strip()]
+    ctrls = [c.strip() for c in args.controllers.split(",") if c.strip()]
+    if args.smoke:
+        errors, ctrls = errors[:1], ctrls[:2]
+    os.makedirs(args.out, exist_ok=True)
+    warnings.simplefilter("ignore")
+    t_start, cpu_start = time.perf_counter(), time.process_time()
+    print(f"load average at start: {os.getloadavg()}")
+    rows = []
+    for case in [c.strip() for c in args.cases.split(",") if c.strip()]:
+        scene = build_scene(case, quick=quick)
+        cal = calibration_seconds(scene, quick)
+        gain = scene.case.stage2.gain
+        t0 = time.process_time()
+        nominal_design = design_inputs(scene, "standalone", gain, seconds=cal, seed=args.seed)
+        for name in ctrls:
+            t1 = time.process_time()
+            base = _run(case, name, args.seconds, quick, nominal_design, {}, args.seed)
+            rows.append({"case": case, "error": "nominal", "label": "", "magnitude": 0.0,
+                         "controller": name, **base})  # fmt: skip
+            print(f"{case} nominal {name}: {base} (design + run {time.process_time() - t1:.0f} s)",
+                  flush=True)  # fmt: skip
+        print(f"{case}: calibration and designs {time.process_time() - t0:.0f} s CPU")
+        for err in errors:
+            for label, mag, ov in ERRORS[err]:
+                design = nominal_design
+                if err == "pol-latency":  # the calibration under the error too
+                    c = apply_overrides(load_case(case), ov)
+                    design = design_inputs(build_scene(c, quick=quick), "standalone", gain,
+                                           seconds=cal, seed=args.seed)  # fmt: skip
+                for name in ctrls:
+                    r = _run(case, name, args.seconds, quick, design, ov, args.seed)
+                    rows.append({"case": case, "error": err, "label": label, "magnitude": mag,
+                                 "controller": name, **r})  # fmt: skip
+                    print(f"{case} {err} {label} {name}: {r}", flush=True)
+    _retained(rows)
+    _report(rows, args.out)
+    print(
+        f"total: {time.perf_counter() - t_start:.0f} s wall, {time.process_time() - cpu_start:.0f}"
+        f" s CPU (this process; load average now {os.getloadavg()})"
+    )
+
+
+def _retained(rows: list[dict]) -> None:
+    """``retained`` of each row: its gain over the reference of the same (case, error,
+    magnitude), over the nominal one's."""
+    key = {(r["case"], r["error"], r["label"], r["controller"]): r for r in rows}
+    for r in rows:
+        r["retained"] = math.nan
+        ref = key.get((r["case"], r["error"], r["label"], "reference"))
+        nom = key.get((r["case"], "nominal", "", r["controller"]))
+        nref = key.get((r["case"], "nominal", "", "reference"))
+        if None in (ref, nom, nref) or "diverged" in (r["status"], ref["status"], nom["status"],
+                                                        nref["status"]):  # fmt: skip
+            continue
+        g_err = 1 - (r["residual_nm"] / ref["residual_nm"]) ** 2
+        g_nom = 1 - (nom["residual_nm"] / nref["residual_nm"]) ** 2
+        if abs(g_nom) > 1e-6:
+            r["retained"] = g_err / g_nom
+
+
+def _report(rows: list[dict], out: str) -> None:
+    fields = ["case", "error", "label", "magnitude", "controller", "status", "residual_nm",
+              "contrast_1_2", "contrast_4_6", "strehl", "retained"]  # fmt: skip
+    with open(os.path.join(out, "robustness.csv"), "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    print(f"\n{'case':14s} {'error':16s} {'magnitude':20s} {'controller':20s} "
+          f"{'resid[nm]':>9s} {'C1-2':>9s} {'C4-6':>9s} {'retained':>8s}")  # fmt: skip
+    for r in rows:
+        if r["status"] != "ok":
+            print(f"{r['case']:14s} {r['error']:16s} {r['label']:20s} {r['controller']:20s} "
+                  f"{'DIVERGED':>9s}")  # fmt: skip
+            continue
+        print(f"{r['case']:14s} {r['error']:16s} {r['label']:20s} {r['controller']:20s} "
+              f"{r['residual_nm']:9.2f} {r['contrast_1_2']:9.2e} {r['contrast_4_6']:9.2e} "
+              f"{r['retained']:8.2f}")  # fmt: skip
+    diverged = [r for r in rows if r["status"] != "ok"]
+    print(f"diverged runs: {len(diverged)} of {len(rows)}")
+    for r in diverged:
+        print(f"  {r['case']} {r['error']} {r['label']} {r['controller']}: {r['detail']}")
+    path = os.path.join(out, "robustness.png")
+    plot_robustness(rows, title="Gain over the reference integrator retained", path=path)
+    print(f"table: {os.path.join(out, 'robustness.csv')}; plot: {path}")
+
+
+if __name__ == "__main__":
+    main()
