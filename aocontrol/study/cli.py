@@ -8,6 +8,7 @@ Commands (``aocontrol COMMAND --help`` for each)::
     aocontrol design TELEMETRY [--loop NAME] [--fs F --latency L] [--controller datadriven]
                      [--order 5] [--out FILE] [--export FILE.fits|.csv] [--aot-out FILE]
     aocontrol sweep SPEC.toml [--scheduler ADDRESS] [--out DIR]
+    aocontrol adapt CASE [--scenario S] [--period 2] [--window T] [--seconds 60] [--quick]
     aocontrol demo [--output DIR]
 
 Exit status 0 on success, 2 for a user error (bad name, unreadable file: one line on stderr,
