@@ -16,6 +16,7 @@ import os
 import pathlib
 import re
 import shutil
+import subprocess
 import sys
 import tempfile
 
@@ -54,6 +55,24 @@ class _IpcKernelManager(AsyncKernelManager):
     @default("ip")
     def _ip_default(self) -> str:
         return os.path.join(_KERNELS, "kernel")
+
+    async def _async_launch_kernel(self, kernel_cmd, **kw):
+        # The kernel process's own stderr (its shutdown's asyncio and joblib notes under load;
+        # what a cell prints reaches the page through its messages, and a failing cell fails
+        # the build) goes to a log beside the build, not to the build's output.
+        kw.setdefault("stderr", _KERNEL_LOG[0] if _KERNEL_LOG else subprocess.DEVNULL)
+        return await super()._async_launch_kernel(kernel_cmd, **kw)
+
+
+_KERNEL_LOG: list = []  # the open log file, set when the builder starts (setup)
+
+
+def _open_kernel_log(app) -> None:
+    """``<outdir>/../kernels.log``: the notebook kernels' process stderr of this build."""
+    path = pathlib.Path(app.outdir).parent / "kernels.log"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _KERNEL_LOG.append(open(path, "w"))  # open for the build's duration
+    atexit.register(_KERNEL_LOG[0].close)
 
 
 # myst-nb creates nbclient's NotebookClient without options: its default manager class is set.
@@ -193,4 +212,5 @@ def setup(app):  # noqa: D103 - Sphinx hook
     _cases_table()
     _mathjax()
     app.set_html_assets_policy("always")  # MathJax on pages whose only TeX is in an output
+    app.connect("builder-inited", _open_kernel_log)
     app.connect("autodoc-process-docstring", _escape_bars)

@@ -310,7 +310,7 @@ class AdaptStudy:
         return "\n".join(lines)
 
 
-def _check_settings(
+def check_adapt_settings(
     *,
     scenario: str | Drift,
     periods: Sequence[float],
@@ -321,7 +321,8 @@ def _check_settings(
     measure_from: float | None = None,
 ) -> None:
     """The checks of :func:`run_adapt` that need no scene (the command line runs them before
-    it creates its output folder); raises ValueError naming the argument."""
+    it creates its output folder); raises ValueError naming the argument. Study-layer
+    internal (not in ``__all__``): the arguments are :func:`run_adapt`'s."""
     if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be a finite number of seconds > 0, got {duration!r}")
     bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS]
@@ -436,7 +437,7 @@ def run_adapt(
         shorter than the run, a period (or, with ``fixed``, a window) not longer than the
         latency, ``measure_from`` outside ``[0, duration)``: all before any run.
     """
-    _check_settings(
+    check_adapt_settings(
         scenario=scenario,
         periods=periods,
         windows=windows,

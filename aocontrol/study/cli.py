@@ -422,7 +422,7 @@ def _adapt(args: argparse.Namespace) -> int:
         DIAGNOSTICS,
         STRATEGIES,
         AdaptStudy,
-        _check_settings,
+        check_adapt_settings,
         run_adapt,
         scenario_drift,
     )
@@ -452,7 +452,7 @@ def _adapt(args: argparse.Namespace) -> int:
             scenario, args.seconds, c.atmosphere.seeing, case_drift=c.atmosphere.drift
         )  # a case without a drift, for "case"
         for ps, ws in calls:
-            _check_settings(
+            check_adapt_settings(
                 scenario=scenario,
                 periods=ps,
                 windows=ws,
