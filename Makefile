@@ -1,4 +1,4 @@
-# Two commands on a fresh machine:  make demo   and   make test
+# On a fresh machine:  make demo,  make test  and  make docs
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -27,9 +27,11 @@ bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
 
 # HTML docs in docs/_build/html: API, tour, cases, notebooks executed in quick mode (the test
-# extra installs the docs extra's packages; warnings are errors).
+# extra installs the docs extra's packages; warnings are errors; -q: only what needs acting on).
 docs: $(STAMP)
-	$(PY) -m sphinx -W --keep-going -b html docs docs/_build/html
+	@echo "make docs: building docs/_build/html (runs the five notebooks in quick mode)"
+	$(PY) -m sphinx -q -W --keep-going -b html docs docs/_build/html
+	@echo "make docs: open docs/_build/html/index.html"
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache

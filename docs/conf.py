@@ -2,32 +2,81 @@
 
 Sources: the API from the docstrings (autodoc + numpydoc), the README's tour and its notes on
 python-control (included, one source), the science cases table (generated from the case files
-at build time), and the four notebooks of ``notebooks/``, executed at build time in their quick
+at build time), and the five notebooks of ``notebooks/``, executed at build time in their quick
 mode (``AOCONTROL_NOTEBOOK_QUICK=1``, a few minutes on 2 cores) by myst-nb, so the rendered
 pages carry their outputs and figures. The notebooks are stored without outputs; a notebook
-that fails to run fails the build. No pandoc, no network.
+that fails to run fails the build. No pandoc, no network: MathJax is served from the site.
 """
 
 from __future__ import annotations
 
+import atexit
+import json
 import os
 import pathlib
 import re
 import shutil
+import subprocess
 import sys
+import tempfile
 
 HERE = pathlib.Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))  # document this checkout, installed or not
 
 # The kernel that executes the notebooks inherits this environment: quick mode, headless
-# matplotlib, and this checkout on the path.
+# matplotlib, and this checkout on the path. Its sockets are Unix-domain ones (IPC), not TCP:
+# no port to race for with another build or test run on the machine (over TCP a port picked
+# free can be taken before the kernel binds it: "ZMQError: Address already in use"), and no
+# warning that TCP is unencrypted.
 os.environ["AOCONTROL_NOTEBOOK_QUICK"] = "1"
 os.environ["PYTHONPATH"] = os.pathsep.join(
     [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]
 )
 
+from jupyter_client import AsyncKernelManager  # noqa: E402
+from nbclient import NotebookClient  # noqa: E402
+from traitlets import default  # noqa: E402
+
 import aocontrol  # noqa: E402
+
+_KERNELS = tempfile.mkdtemp(prefix="aocontrol-docs-kernels-")  # the sockets' folder
+atexit.register(shutil.rmtree, _KERNELS, ignore_errors=True)
+
+
+class _IpcKernelManager(AsyncKernelManager):
+    """nbclient's kernel manager on Unix-domain sockets, under an absolute prefix (the kernel
+    runs in a temporary folder, the client in this process)."""
+
+    @default("transport")
+    def _transport_default(self) -> str:
+        return "ipc"
+
+    @default("ip")
+    def _ip_default(self) -> str:
+        return os.path.join(_KERNELS, "kernel")
+
+    async def _async_launch_kernel(self, kernel_cmd, **kw):
+        # The kernel process's own stderr (its shutdown's asyncio and joblib notes under load;
+        # what a cell prints reaches the page through its messages, and a failing cell fails
+        # the build) goes to a log beside the build, not to the build's output.
+        kw.setdefault("stderr", _KERNEL_LOG[0] if _KERNEL_LOG else subprocess.DEVNULL)
+        return await super()._async_launch_kernel(kernel_cmd, **kw)
+
+
+_KERNEL_LOG: list = []  # the open log file, set when the builder starts (setup)
+
+
+def _open_kernel_log(app) -> None:
+    """``<outdir>/../kernels.log``: the notebook kernels' process stderr of this build."""
+    path = pathlib.Path(app.outdir).parent / "kernels.log"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _KERNEL_LOG.append(open(path, "w"))  # open for the build's duration
+    atexit.register(_KERNEL_LOG[0].close)
+
+
+# myst-nb creates nbclient's NotebookClient without options: its default manager class is set.
+NotebookClient._kernel_manager_class_default = lambda self: _IpcKernelManager
 
 project = "aocontrol"
 author = "aocontrol developers"
@@ -61,11 +110,18 @@ nb_execution_raise_on_error = True
 nb_execution_show_tb = True
 nb_merge_streams = True
 myst_enable_extensions = ["dollarmath"]
+# MathJax renders the math nodes and, in notebook outputs, the TeX that python-control's
+# transfer functions print in their HTML (class text_html); it is loaded on every page (setup).
+myst_mathjax_classes = "tex2jax_process|mathjax_process|math|output_area|text_html"
 myst_heading_anchors = 3
 
 html_theme = "alabaster"
 html_title = f"aocontrol {release}"
-html_static_path: list[str] = []
+# MathJax 3 from the docs extra (django-static-mathjax ships its files), copied into the site by
+# _mathjax(): the formulas render without a network. tex-svg.js draws glyphs as SVG paths from
+# its own tables, so it needs no font files.
+html_static_path = ["_generated/static"]
+mathjax_path = "mathjax/tex-svg.js"
 html_theme_options = {
     "description": "Adaptive-optics control toolbox",
     "fixed_sidebar": True,
@@ -75,13 +131,19 @@ html_theme_options = {
 
 
 def _copy_notebooks() -> None:
-    """The notebooks of ``notebooks/`` into ``docs/notebooks/`` (Sphinx reads only docs/)."""
+    """The notebooks of ``notebooks/`` into ``docs/notebooks/`` (Sphinx reads only docs/), each
+    cell with an ``id`` (nbformat 4.5 requires one and warns for every notebook without)."""
     dst = HERE / "notebooks"
     dst.mkdir(exist_ok=True)
     for old in dst.glob("*.ipynb"):
         old.unlink()
     for nb in sorted((ROOT / "notebooks").glob("*.ipynb")):
-        shutil.copy2(nb, dst / nb.name)
+        data = json.loads(nb.read_text(encoding="utf-8"))
+        for i, cell in enumerate(data.get("cells", [])):
+            cell.setdefault("id", f"cell-{i}")
+        text = json.dumps(data, indent=1, ensure_ascii=False) + "\n"
+        (dst / nb.name).write_text(text, encoding="utf-8")
+        shutil.copystat(nb, dst / nb.name)
 
 
 def _cases_table() -> None:
@@ -112,6 +174,24 @@ def _cases_table() -> None:
         target.write_text(text)
 
 
+def _mathjax() -> None:
+    """``docs/_generated/static/mathjax/tex-svg.js``: MathJax, from the installed package."""
+    from importlib import resources
+
+    try:
+        src = resources.files("mathjax").joinpath("static", "mathjax", "es5", "tex-svg.js")
+    except ModuleNotFoundError:
+        raise RuntimeError(
+            "MathJax is missing: install the docs extra (pip install -e '.[docs]'), which "
+            "brings django-static-mathjax, so that the formulas render offline"
+        ) from None
+    dst = HERE / "_generated" / "static" / "mathjax" / "tex-svg.js"
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    data = src.read_bytes()
+    if not dst.exists() or dst.read_bytes() != data:
+        dst.write_bytes(data)
+
+
 # ``|x|`` (an absolute value, natural in a numerical docstring) is a substitution reference to
 # reStructuredText: outside inline literals and roles it is escaped to a literal ``\|x\|``.
 _LITERAL = re.compile(r"(``.*?``|:\w+:`[^`]*`|`[^`]*`_?)")
@@ -130,4 +210,7 @@ def _escape_bars(app, what, name, obj, options, lines):  # noqa: ARG001 - Sphinx
 def setup(app):  # noqa: D103 - Sphinx hook
     _copy_notebooks()
     _cases_table()
+    _mathjax()
+    app.set_html_assets_policy("always")  # MathJax on pages whose only TeX is in an output
+    app.connect("builder-inited", _open_kernel_log)
     app.connect("autodoc-process-docstring", _escape_bars)

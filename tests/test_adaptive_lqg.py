@@ -116,3 +116,24 @@ def test_certify_checks_the_recursion_gain_argument():
     with pytest.raises(ValueError, match="max_recursion_gain"):
         certify(plant, Integrator(0.3, fs=FS), modulus_margin=0.3, max_recursion_gain=0.0)
     assert recursion_gain(plant, np.array([0.3]), np.array([1.0, -1.0])) < MAX_RECURSION_GAIN
+
+
+def test_lqg_designer_logs_the_short_windows_low_frequency_note(caplog):
+    # Issue 33: a W-second window resolves its PSD down to its Welch resolution only, so the
+    # LQG fit notes at every redesign that a steep spectrum keeps rising below it. The adaptive
+    # designer logs it (INFO) instead of printing a warning per redesign; lqg() itself warns.
+    import logging
+    import warnings
+
+    plant = loop_plant(FS, LATENCY)
+    freqs = np.linspace(0.0, FS / 2, 6001)  # 0.25-Hz resolution, as a 4-s window's
+    psd = 1e3 / (1.0 + (freqs[None, :] / 0.01) ** 2)  # still rising at 0.25 Hz
+    noise = np.array([1e-3])
+    tel = TelemetryPSD(freqs, psd, noise, np.zeros((8, 1)), psd, FS, (0.8, 1.0), "welch")
+    with pytest.warns(UserWarning, match="keeps rising down to the lowest grid frequency"):
+        lqg(plant, freqs, psd, noise_psd=noise)
+    with caplog.at_level(logging.INFO, logger="aocontrol.adaptive._designers"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            lqg_designer()(tel, plant, Integrator(0.3, fs=FS, n_modes=1))
+    assert any("keeps rising" in r.getMessage() for r in caplog.records)

@@ -131,3 +131,20 @@ def test_version_has_one_source():
         text = path.read_text()
         assert "from aocontrol import __version__" not in text, path
         assert 'version("aocontrol")' not in text, path
+
+
+def test_pyproject_license_is_an_spdx_expression():
+    # Issue 33: a license table ({ text = ... }) makes setuptools >= 77 warn three times per
+    # install (deprecated, unsupported from 2027-02-18); an SPDX string needs setuptools >= 77.
+    import pathlib
+    import re
+
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+
+    meta = tomllib.loads((pathlib.Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert isinstance(meta["project"]["license"], str)
+    (req,) = [r for r in meta["build-system"]["requires"] if r.startswith("setuptools")]
+    assert int(re.search(r">=\s*(\d+)", req).group(1)) >= 77

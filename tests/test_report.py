@@ -6,6 +6,7 @@ command line's comparison writes the same report (tests/test_cli.py).
 
 import base64
 import math
+import pathlib
 from html.parser import HTMLParser
 
 import numpy as np
@@ -185,6 +186,11 @@ def test_comparison_report_is_self_contained_with_every_row(loop, compared):
     )
     assert [r[:2] for r in _rows(page, "margins")] == expected
     assert [r[0] for r in _rows(page, "vibration")] == ["reference", "omgi"]
+    # Beside the predicted / measured column, what its interval counts and what it leaves out
+    # (issue 33: the demo's 0.92-0.94 with an interval excluding 1).
+    text = " ".join(pathlib.Path(path).read_text().split())
+    note = text.index("takes the modes as independent")
+    assert text.index("predicted / measured [2 s.e.]") < note < text.index("vibration")
     # The margins table states the banks' certified margins (min modulus margin, column 6).
     plant = loop[0]
     for row, c in zip(_rows(page, "margins"), comparison.cells, strict=True):
@@ -250,19 +256,50 @@ def test_design_report_data_names_the_bad_argument(loop):
         DesignReportData(plant, f, psd, noise, {"k": Integrator(0.3, fs=1000.0, n_modes=2)})
 
 
+def _readme_demo_figures() -> dict[str, list[tuple[float, float]]]:
+    """The README's demo table: per quantity, one (low, high) per controller (a single value
+    quoted to n digits is the interval of the values that round to it)."""
+    import pathlib
+    import re
+
+    text = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    out = {}
+    for key, label in (("contrast", "contrast"), ("strehl", "Strehl [%]")):
+        row = re.search(rf"^\| {re.escape(label)}, every machine below \|(.*)\|$", text, re.M)
+        cells = [c.strip() for c in row.group(1).split("|")]
+        spans = []
+        for cell in cells:
+            values = cell.split(" to ")
+            half = []
+            for v in values:  # half a unit of the last digit quoted
+                mantissa = v.split("e")[0]
+                digits = len(mantissa.split(".")[1]) if "." in mantissa else 0
+                exp = int(v.split("e")[1]) if "e" in v else 0
+                half.append(0.5 * 10.0 ** (exp - digits))
+            spans.append((float(values[0]) - half[0], float(values[-1]) + half[-1]))
+        out[key] = spans
+    return out
+
+
 @pytest.mark.slow
 def test_demo_comparison_shows_the_papers_ordering(tmp_path):
     # The demo's point (issue 16): on red 1 fast with enough stage-2 modes the controllers
     # differ as in the paper's table (the paper's contrasts: reference 1.00e-4, modal gains
-    # 9.44e-5, data-driven 7.87e-5; the demo: 1.63e-4, 1.60e-4, 1.15e-4), and the report
-    # carries every row.
+    # 9.44e-5, data-driven 7.87e-5), and the report carries every row. Issue 33: its figures
+    # are those the README quotes, within the spread measured over emulated machines.
     from aocontrol.study.demo import DEMO_STAGE2_MODES, demo_comparison
 
     comparison = demo_comparison(str(tmp_path))
     contrast = {c.controller: c.mean_contrast_4_6 for c in comparison.cells}
-    # Modal gains and reference are 2 % apart here (within an exposure's noise): only the
+    # Modal gains and reference are 4 % apart here (within an exposure's noise): only the
     # data-driven margin is asserted.
     assert contrast["datadriven"] < 0.9 * min(contrast["omgi"], contrast["reference"])
+    quoted = _readme_demo_figures()
+    for cell, c_span, s_span in zip(
+        comparison.cells, quoted["contrast"], quoted["strehl"], strict=True
+    ):
+        assert c_span[0] <= cell.mean_contrast_4_6 <= c_span[1], (cell.controller, c_span)
+        assert s_span[0] <= 100 * cell.strehl <= s_span[1], (cell.controller, s_span)
     assert comparison.designs["standalone"].n_modes == DEMO_STAGE2_MODES
     page = _read(comparison_report(comparison, tmp_path / "demo.html"))
     assert _broken_images(page) == []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import warnings
 
 import control
 import numpy as np
@@ -34,6 +35,8 @@ CANCEL_RTOL = 0.1
 CANCEL_MAX_ERROR = 0.05
 #: Points of the unit circle on which that change is measured.
 _CHECK_POINTS = 2048
+# The LQG fit's note on a spectrum still rising at the PSD's lowest frequency (synthesis._arfit).
+_LOW_FREQUENCY_NOTE = "keeps rising down to the lowest grid frequency"
 
 
 def _certified(res: DataDrivenResult) -> np.ndarray:
@@ -327,14 +330,24 @@ def lqg_designer(
 
     def design(tel: TelemetryPSD, plant: control.TransferFunction, current: IIRBank) -> Proposal:
         _worse = _worse_than(tel, plant)
-        bank = lqg(
-            plant,
-            tel.freqs,
-            tel.psd,
-            noise_psd=tel.noise_psd,
-            n_vibrations=n_vibrations,
-            control_weight=control_weight,
-        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            bank = lqg(
+                plant,
+                tel.freqs,
+                tel.psd,
+                noise_psd=tel.noise_psd,
+                n_vibrations=n_vibrations,
+                control_weight=control_weight,
+            )
+        for w in caught:
+            # A window of W seconds resolves its PSD down to its Welch resolution only: the
+            # fit's note that a spectrum keeps rising below it is expected at every redesign
+            # (logged); any other warning passes on.
+            if issubclass(w.category, UserWarning) and _LOW_FREQUENCY_NOTE in str(w.message):
+                logger.info("%s", w.message)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         F, G, H, J = bank.state_space.controller_matrices
         if realisation == "state-space":
             tfs = [bank.transfer_function(i) for i in range(bank.n_modes)]  # at a redesign only

@@ -9,6 +9,7 @@ Commands (``aocontrol COMMAND --help`` for each)::
                      [--order 5] [--out FILE.h5|.fits|.csv] [--export FILE.fits|.csv]
                      [--aot-out FILE] [--unit U] [--command-sign -1] [--override-metadata]
     aocontrol sweep SPEC.toml [--scheduler ADDRESS] [--out DIR]
+    aocontrol adapt CASE [--scenario S] [--period 2] [--window T] [--seconds 60] [--quick]
     aocontrol demo [--output DIR]
 
 Exit status 0 on success, 2 for a user error (bad name, unreadable file: one line on stderr,

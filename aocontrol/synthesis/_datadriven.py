@@ -193,7 +193,7 @@ def datadriven(
     to it, differs.
 
     The problem is solved by convex-concave iterations: each step is a second-order cone
-    program (cvxpy with Clarabel, compiled once per worker with ``Parameter``s and re-solved)
+    program (cvxpy with Clarabel, compiled once per worker with parameters and re-solved)
     around the previous controller, which is always feasible, so the objective never
     increases. Each step also keeps ``Re(P conj Pc) > 0`` on a fine grid (linear constraints:
     same winding number, so the closed loop stays stable) and ``|P|`` away from 0 (no hidden
@@ -223,8 +223,10 @@ def datadriven(
     (never above the true margin), ``residual_variance`` is on the input grid and
     ``residual_variance_fine`` on a fine check (exact ``|S|^2`` on 20,001 + 2,001 points and
     around every ``|S|`` peak, PSDs linear between input points). A design worse than its
-    starting controller on either is not returned: the start is kept for that mode (with a
-    warning, and ``start`` says so). So the result is never worse than the start (by default
+    starting controller on either is not returned: the start is kept for that mode (logged,
+    a warning for the default start, information for a user's ``initial``, the loop's running
+    controller in a warm redesign; and ``start`` says so, :data:`REJECTED_WORSE`). So the
+    result is never worse than the start (by default
     the optimal modal-gain integrator of that structure) on the input grid and on the fine
     check. ``result.verification`` says which certificates and grids were used. A mode for
     which no certified controller is found fails alone (see Raises).

@@ -309,17 +309,31 @@ def _design_items(ctx: DesignContext, items: list) -> list:
     return out
 
 
+class _Bar:
+    """No progress bar: the two methods of a tqdm bar that :func:`_run` calls."""
+
+    def update(self, n: int) -> None:  # noqa: D102 - a bar's method
+        pass
+
+    def close(self) -> None:  # noqa: D102 - a bar's method
+        pass
+
+
 def _run(ctx: DesignContext, items: list, n_jobs: int | None, progress: bool) -> list:
     """Design every mode, in parallel over processes when it pays."""
     from joblib import cpu_count
-    from tqdm.auto import tqdm
 
     cores = cpu_count()  # affinity, cgroups and LOKY_MAX_CPU_COUNT (a sweep worker's share)
     n_workers = cores if n_jobs is None else n_jobs
     if n_workers < 0:
         n_workers = max(1, cores + 1 + n_workers)
     n_workers = min(n_workers, len(items))
-    bar = tqdm(total=len(items), desc="data-driven synthesis", unit="mode", disable=not progress)
+    bar = _Bar()
+    if progress:  # tqdm.auto imported only for a bar asked for (in Jupyter without ipywidgets
+        # its import warns, a warning a call without a bar should not print)
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(items), desc="data-driven synthesis", unit="mode")
     results = []
     try:
         # Fixed chunks of neighbouring modes (each mode may start from the previous one's
