@@ -278,16 +278,16 @@ def pole_refined_grid(polys: tuple[np.ndarray, ...]) -> np.ndarray:
     step = np.pi / _GRID_UNIFORM
     parts = [_UNIFORM_THETA]
     for p in polys:
-        p = np.asarray(p, dtype=float)
-        # Top coefficients at round-off of the largest: roots far off the circle, dropped.
-        p = (
-            p[: np.flatnonzero(np.abs(p) > 1e-14 * np.max(np.abs(p), initial=0.0))[-1] + 1]
-            if np.any(p)
-            else p
-        )
+        p = np.trim_zeros(np.asarray(p, dtype=float), "b")
         if p.size < 2 or not np.any(p[1:]):
             continue
-        w_roots = np.roots(p[::-1])  # roots in w = z^-1
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            # A top coefficient at round-off (subnormal) overflows the companion matrix:
+            # its roots lie far off the circle, where no refinement is needed.
+            try:
+                w_roots = np.roots(p[::-1])  # roots in w = z^-1
+            except np.linalg.LinAlgError:
+                continue
         z = 1.0 / w_roots[w_roots != 0]
         near = z[np.abs(np.abs(z) - 1.0) <= _GRID_POLE_BAND]
         if near.size:

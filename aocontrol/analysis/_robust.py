@@ -290,6 +290,23 @@ def robust_from_coefficients(
     interval whose ends are far above it never decides the value. ``target``: stop refining
     once every interval is certified above it (the value is then a bound above ``target``,
     not the tightest).
+
+    Parameters
+    ----------
+    bg, ag : numpy.ndarray
+        Plant numerator and denominator, powers of ``z^-1`` (lowest first).
+    bk, ak : numpy.ndarray
+        Controller numerator and denominator, likewise.
+    fs : float
+        Loop rate [Hz].
+    uset : UncertaintySet
+        The box of loop gains and latency changes.
+    target : float, optional
+        A margin the caller needs: refinement stops once the bound is above it.
+
+    Returns
+    -------
+    RobustMargin
     """
     A = npoly.polymul(ag, ak)
     k_lo, k_hi = uset.gain

@@ -180,7 +180,7 @@ class LoopResult:
         """Write the result to ``path`` (.npz: arrays + JSON metadata), atomically. Deprecated.
 
         Results are HDF5 files (``aocontrol.study.results.save_result``, opened by xarray);
-        this older form stays readable (:meth:`load`, ``aocontrol.load_result``) and
+        this older form stays readable (:meth:`load`, ``aocontrol.study.results.load_result``) and
         convertible (``aocontrol.study.results.convert_npz``).
 
         Parameters

@@ -192,6 +192,9 @@ class DataDrivenResult:
         interpolated linearly between input points (a resonance between input points shows).
     verification : str
         Which certificates and grids the reported figures come from.
+    uncertainty : UncertaintySet or None
+        The set every mode was certified over (a robust design), ``None`` for the nominal
+        loop only.
     """
 
     controller: IIRBank
