@@ -35,6 +35,11 @@ from aocontrol.analysis._margins import (
     winding_stability,
     winding_zeros,
 )
+from aocontrol.analysis._multimode import (
+    MultiModeCertificate,
+    multimode_certificate,
+    multimode_closed_loop_poles,
+)
 from aocontrol.analysis._psd import welch_psd
 from aocontrol.analysis._residual import (
     mean_square_sampling_variance,
@@ -53,6 +58,9 @@ __all__ = [
     "LoopResponse",
     "Margins",
     "ModulusCertificate",
+    "MultiModeCertificate",
+    "multimode_certificate",
+    "multimode_closed_loop_poles",
     "modulus_certificate",
     "closed_loop_poles",
     "command_transfer",

@@ -1,6 +1,6 @@
 """Controller synthesis: optimised modal gains, disturbance estimation from telemetry, the
-data-driven controller, LQG and MPC, the controller registry and the telemetry-to-design
-pipeline (:func:`design_from_telemetry`).
+data-driven controller, LQG and MPC, the multi-mode (EOF) predictor, the controller registry
+and the telemetry-to-design pipeline (:func:`design_from_telemetry`).
 
 Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
 PSDs are one-sided [units^2/Hz]; telemetry is shaped ``(n_frames, n_modes)``.
@@ -18,6 +18,13 @@ from aocontrol.synthesis._datadriven import (
 from aocontrol.synthesis._dd_assemble import REJECTED_WORSE
 from aocontrol.synthesis._dd_neighbours import datadriven_neighbours, has_integrator
 from aocontrol.synthesis._design_report import TelemetryDesign
+from aocontrol.synthesis._eof import (
+    REGULARISATION_GRID,
+    EOFNotCertifiedError,
+    EOFResult,
+    eof_from_pseudo_open_loop,
+    eof_predictor,
+)
 from aocontrol.synthesis._lqg import lqg, lqg_from_telemetry, lqg_state_space, plant_latency
 from aocontrol.synthesis._modal_gain import (
     ModalGainError,
@@ -73,6 +80,11 @@ __all__ = [
     "DataDrivenError",
     "DataDrivenResult",
     "DisturbanceModel",
+    "EOFNotCertifiedError",
+    "EOFResult",
+    "REGULARISATION_GRID",
+    "eof_from_pseudo_open_loop",
+    "eof_predictor",
     "InitialPoleRadiusError",
     "ModalGainError",
     "ModeReport",
