@@ -274,13 +274,15 @@ class _Certifier:
         self.margin, self.limit, self.precision = margin, limit, precision
         self.fit_seconds = self.certify_seconds = 0.0
 
-    def __call__(self, lam: float) -> tuple[MultiModeBank, MultiModeCertificate]:
+    def __call__(
+        self, lam: float, decide_only: bool = False
+    ) -> tuple[MultiModeBank, MultiModeCertificate]:
         t0 = time.perf_counter()
         A = _solve(self.normal, lam)
         t1 = time.perf_counter()
         bank = MultiModeBank(_taps(A, self.h), self.fs, self.latency, command_limit=self.limit,
                              precision=self.precision)  # fmt: skip
-        cert = multimode_certificate(bank, modulus_margin=self.margin)
+        cert = multimode_certificate(bank, modulus_margin=self.margin, decide_only=decide_only)
         self.fit_seconds += t1 - t0
         self.certify_seconds += time.perf_counter() - t1
         verdict = "certified" if cert.certified else "refused"
@@ -292,28 +294,27 @@ class _Certifier:
         bank, cert = self(lam)
         if cert.certified:
             return bank, cert, lam
+        # The search only needs each weight's verdict; the one kept is certified in full.
         low = lam
         high = max(lam * _RAISE_FACTOR, float(REGULARISATION_GRID[0]))
         for _ in range(_MAX_RAISES):
-            bank, cert = self(high)
-            if cert.certified:
+            if self(high, decide_only=True)[1].certified:
                 break
             low, high = high, high * _RAISE_FACTOR
         else:
             raise EOFNotCertifiedError(
-                f"no regularisation up to {low:.3g} gives a certified loop (margin bound "
-                f"{cert.margin:.4g} < modulus_margin {self.margin:g}); predictor refused"
+                f"no regularisation up to {low:.3g} gives a certified loop (margin bound below "
+                f"modulus_margin {self.margin:g}); predictor refused"
             )
-        best = (bank, cert, high)
         low = max(low, float(REGULARISATION_GRID[0]) / _RAISE_FACTOR)
         for _ in range(_BISECTIONS):
             mid = math.sqrt(low * high)
-            bank, cert = self(mid)
-            if cert.certified:
-                best, high = (bank, cert, mid), mid
+            if self(mid, decide_only=True)[1].certified:
+                high = mid
             else:
                 low = mid
-        return best
+        bank, cert = self(high)
+        return bank, cert, high
 
 
 def _check_length(
