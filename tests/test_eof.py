@@ -29,10 +29,13 @@ from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.modes import kl_basis
 from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.synthesis import (
+    DesignInputs,
     DisturbanceModel,
     LoopTelemetry,
+    disturbance_from_telemetry,
     eof_from_pseudo_open_loop,
     eof_predictor,
+    get_controller,
     lqg_from_telemetry,
     lqg_state_space,
     pseudo_open_loop,
@@ -420,6 +423,25 @@ def test_training_regularises_further_until_the_margin_is_certified(ar2_modes):
     plain = eof_predictor(tel, history=3, regularisation=res.validation_regularisation,
                           modulus_margin=0.01)  # fmt: skip
     assert plain.certificate.margin_upper < 0.5
+
+
+def test_registry_entry_designs_from_the_telemetrys_pseudo_open_loop(ar2_modes):
+    # The registry's "eof": the POL of the telemetry estimate, the plant's latency, the design
+    # margin; the same predictor as eof_predictor on the same telemetry.
+    _, train, _ = ar2_modes
+    tel = _telemetry(train[:6000], LATENCY_AR)
+    plant = loop_plant(FS, LATENCY_AR)
+    est = disturbance_from_telemetry(tel.measurements, tel.commands, plant)
+    inputs = DesignInputs(plant, est.freqs, est.psd, est.noise_psd, FS, 4, 0.3, telemetry=est,
+                          modulus_margin=0.3, options={"history": 3})  # fmt: skip
+    bank, details = get_controller("eof").build(inputs)
+    assert isinstance(bank, MultiModeBank) and details.certificate.certified
+    assert details.certificate.margin >= 0.3 and bank.history == 3
+    direct = eof_predictor(tel, history=3, modulus_margin=0.3)
+    np.testing.assert_allclose(bank.taps, direct.controller.taps, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="needs telemetry"):
+        get_controller("eof").build(DesignInputs(plant, est.freqs, est.psd, est.noise_psd, FS,
+                                                 4, 0.3))  # fmt: skip
 
 
 # -- bad input -------------------------------------------------------------------------------

@@ -36,6 +36,7 @@ from aocontrol.synthesis._pipeline import BOUNDS, design_from_telemetry
 from aocontrol.synthesis._registry import (
     CONTROLLER_ALIASES,
     CONTROLLERS,
+    EOF_HISTORY,
     MODULUS_MARGIN,
     MPC_HORIZON,
     ControllerSpec,
@@ -73,6 +74,7 @@ __all__ = [
     "split_sensor_error",
     "LoopTelemetry",
     "MODULUS_MARGIN",
+    "EOF_HISTORY",
     "MPC_HORIZON",
     "default_nperseg",
     "design_from_telemetry",
