@@ -24,7 +24,7 @@ common unit of the modal coefficients. It bounds the predictor's gain in every d
 alike, which is what the multivariable margin needs; a penalty scaled per regressor (ridge
 on standardised regressors) leaves the low-variance, high-order directions free and was
 measured much worse for it (margin 0.29 at 9x the residual of the unit penalty at margin
-0.30, on the frozen-flow case of the tests).
+0.30, on a noise-free frozen-flow record of 30 modes).
 
 Noise, honestly. The target ``p[t+1] = d[t] + n[t+1]`` and the regressors carry the
 measurement noise, as on an instrument. The noise ``n[t+1]`` is white and later than every
