@@ -28,6 +28,11 @@ from aocontrol.analysis._loop import (
     white_noise_psd,
 )
 from aocontrol.analysis._margins import DELAY_SEARCH_FRAMES, Margins, margins
+from aocontrol.analysis._multimode import (
+    MultiModeCertificate,
+    multimode_certificate,
+    multimode_closed_loop_poles,
+)
 from aocontrol.analysis._psd import welch_psd
 from aocontrol.analysis._residual import (
     mean_square_sampling_variance,
@@ -59,6 +64,9 @@ __all__ = [
     "DELAY_SEARCH_FRAMES",
     "Margins",
     "ModulusCertificate",
+    "MultiModeCertificate",
+    "multimode_certificate",
+    "multimode_closed_loop_poles",
     "modulus_certificate",
     "closed_loop_poles",
     "command_transfer",

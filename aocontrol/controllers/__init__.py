@@ -8,6 +8,7 @@ from aocontrol.controllers._integrator import Integrator
 from aocontrol.controllers._io import load_controller, register_controller_format, save_controller
 from aocontrol.controllers._lqg import FilterpyLQG, LQGBank, LQGStateSpace
 from aocontrol.controllers._mpc import MPCBank
+from aocontrol.controllers._multimode import MultiModeBank
 
 __all__ = [
     "ControllerBank",
@@ -17,6 +18,7 @@ __all__ = [
     "LQGBank",
     "LQGStateSpace",
     "MPCBank",
+    "MultiModeBank",
     "save_controller",
     "load_controller",
     "register_controller_format",

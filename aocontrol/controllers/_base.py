@@ -9,6 +9,11 @@ Every controller is a bank of ``n_modes`` independent SISO controllers (modal co
   ``dt = 1/fs``. The real-time path and the transfer function agree (impulse responses equal
   to rounding; tested for every controller).
 
+The multi-mode controller :class:`~aocontrol.controllers.MultiModeBank` (each command uses
+every mode's measurements) honours the same interface, the bad-frame policy below included;
+its ``transfer_function(mode)`` raises ``NotImplementedError`` (no per-mode SISO controller
+exists) and its transfer matrix is ``frequency_response`` / ``impulse_matrix``.
+
 Real-time policy for bad frames (shared by every controller)
 -----------------------------------------------------------
 The public :meth:`ControllerBank.step` lives in the base class; subclasses implement the

@@ -1,6 +1,6 @@
 """Controller synthesis: optimised modal gains, disturbance estimation from telemetry, the
-data-driven controller, LQG and MPC, the controller registry and the telemetry-to-design
-pipeline (:func:`design_from_telemetry`).
+data-driven controller, LQG and MPC, the multi-mode (EOF) predictor, the controller registry
+and the telemetry-to-design pipeline (:func:`design_from_telemetry`).
 
 Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
 PSDs are one-sided [units^2/Hz]; telemetry is shaped ``(n_frames, n_modes)``.
@@ -20,6 +20,13 @@ from aocontrol.synthesis._datadriven import (
 from aocontrol.synthesis._dd_assemble import REJECTED_WORSE
 from aocontrol.synthesis._dd_neighbours import datadriven_neighbours, has_integrator
 from aocontrol.synthesis._design_report import TelemetryDesign
+from aocontrol.synthesis._eof import (
+    REGULARISATION_GRID,
+    EOFNotCertifiedError,
+    EOFResult,
+    eof_from_pseudo_open_loop,
+    eof_predictor,
+)
 from aocontrol.synthesis._loop_check import (
     SCALE_LIMIT,
     SIGN_TOLERANCE,
@@ -38,6 +45,7 @@ from aocontrol.synthesis._pipeline import BOUNDS, design_from_telemetry
 from aocontrol.synthesis._registry import (
     CONTROLLER_ALIASES,
     CONTROLLERS,
+    EOF_HISTORY,
     MODULUS_MARGIN,
     MPC_HORIZON,
     ControllerSpec,
@@ -80,6 +88,7 @@ __all__ = [
     "TelemetryCheckError",
     "check_loop_telemetry",
     "MODULUS_MARGIN",
+    "EOF_HISTORY",
     "MPC_HORIZON",
     "default_nperseg",
     "design_from_telemetry",
@@ -89,6 +98,11 @@ __all__ = [
     "DisturbanceModel",
     "GRID_DISAGREEMENT",
     "GridResolutionWarning",
+    "EOFNotCertifiedError",
+    "EOFResult",
+    "REGULARISATION_GRID",
+    "eof_from_pseudo_open_loop",
+    "eof_predictor",
     "InitialPoleRadiusError",
     "ModalGainError",
     "ModeReport",

@@ -64,6 +64,10 @@ _PLANT_RTOL = 1e-9
 def plant_latency(plant: control.TransferFunction) -> float:
     """Latency ``latency_frames`` of a :func:`aocontrol.plant.loop_plant` transfer function.
 
+    The strict reading the LQG needs (a pure delay line of unit gain, which its state space
+    models exactly); :func:`aocontrol.plant.plant_latency` reads the latency of any plant with
+    that delay (a DM's lag or a gain beside it).
+
     Parameters
     ----------
     plant : control.TransferFunction

@@ -5,8 +5,9 @@ from telemetry, the reference gain) and the designs themselves. One registry ser
 :func:`aocontrol.synthesis.design_from_telemetry`, the CLI's ``design`` and the simulator's
 comparison (:mod:`aocontrol.study.compare`, which re-exports it). Built in: the reference
 integrator (alias ``integrator``), ``omgi``, ``datadriven``, ``datadriven-robust`` (certified
-over :data:`ROBUST_SET`), ``datadriven-integral`` (a fixed pole at ``z = 1``), ``lqg`` and
-``mpc``.
+over :data:`ROBUST_SET`), ``datadriven-integral`` (a fixed pole at ``z = 1``), ``lqg``, ``mpc``
+and ``eof`` (the multi-mode predictor, trained on the pseudo-open loop itself rather than on
+PSDs).
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ import numpy as np
 from aocontrol._deprecation import DeprecatedAttribute, renamed_keyword
 from aocontrol.analysis import UncertaintySet
 from aocontrol.controllers import ControllerBank, Integrator
+from aocontrol.plant import split_latency
 from aocontrol.synthesis._datadriven import DataDrivenResult
 from aocontrol.synthesis._dd_neighbours import datadriven_neighbours
-from aocontrol.synthesis._lqg import lqg
+from aocontrol.synthesis._eof import EOFResult, eof_from_pseudo_open_loop
+from aocontrol.synthesis._lqg import lqg, plant_latency
 from aocontrol.synthesis._modal_gain import optimal_modal_gain
 from aocontrol.synthesis._mpc import mpc
 from aocontrol.synthesis._telemetry import TelemetryPSD
@@ -35,6 +38,7 @@ __all__ = [
     "get_controller",
     "MODULUS_MARGIN",
     "MPC_HORIZON",
+    "EOF_HISTORY",
     "ControllerSpec",
     "DesignInputs",
     "register_controller",
@@ -44,6 +48,8 @@ __all__ = [
 MODULUS_MARGIN = 0.5
 #: Default MPC prediction horizon [frames].
 MPC_HORIZON = 10
+#: Default history of the multi-mode predictor ``eof`` [frames of pseudo-open loop].
+EOF_HISTORY = 5
 
 
 @renamed_keyword("stroke", "command_limit", "the per-mode bound on the modal command")
@@ -237,6 +243,33 @@ def _mpc(inp: DesignInputs) -> ControllerBank:
     )
 
 
+def _eof_details(inp: DesignInputs) -> tuple[ControllerBank, EOFResult]:
+    # The multi-mode predictor from the telemetry's pseudo-open loop (not from the PSDs: it
+    # needs the cross-mode correlations in time), its first k + 2 frames dropped (they need
+    # commands before the record), at the plant's latency, certified at the design margin.
+    # No command limit: like the other linear designs it leaves the stroke to the DM.
+    if inp.telemetry is None:
+        raise ValueError(
+            "controller 'eof' needs telemetry (DesignInputs.telemetry with its pseudo-open "
+            "loop): a multi-mode predictor is trained on the time series, not on PSDs"
+        )
+    latency = plant_latency(inp.plant)
+    k0, _ = split_latency(latency)
+    res = eof_from_pseudo_open_loop(
+        inp.telemetry.pseudo_open_loop[k0 + 2 :],
+        inp.fs,
+        latency,
+        history=inp.option("history", EOF_HISTORY),
+        regularisation=inp.option("regularisation", None),
+        modulus_margin=inp.modulus_margin,
+    )
+    return res.controller, res
+
+
+def _eof(inp: DesignInputs) -> ControllerBank:
+    return _eof_details(inp)[0]
+
+
 #: Registered controllers (name -> spec); see :func:`register_controller`.
 CONTROLLERS: dict[str, ControllerSpec] = {}
 
@@ -348,5 +381,19 @@ register_controller(
         _mpc,
         parameters={"turbulence": "AR(2)", "n_vibrations": 2, "horizon": MPC_HORIZON},
         options=("n_vibrations", "horizon"),
+    )
+)
+register_controller(
+    ControllerSpec(
+        "eof",
+        _eof,
+        parameters={
+            "predictor": "multi-mode FIR on the pseudo-open loop",
+            "history": EOF_HISTORY,
+            "regularisation": "held-back telemetry",
+            "modulus_margin": MODULUS_MARGIN,
+        },
+        options=("history", "regularisation"),
+        design_with_details=_eof_details,
     )
 )

@@ -1,0 +1,554 @@
+"""Multi-mode linear prediction from telemetry (EOF / LMMSE), certified before use.
+
+A modal controller predicts each mode from its own past. Frozen-flow turbulence moves the
+phase across the pupil, so the past of one mode predicts another: a multi-mode predictor
+(Guyon & Males 2017, "empirical orthogonal functions") uses the last ``h`` pseudo-open-loop
+(POL) frames of every mode for every command. This module trains one from telemetry and
+returns it as a :class:`~aocontrol.controllers.MultiModeBank` with its certificate.
+
+Loop (conventions of :mod:`aocontrol.plant`): ``G = z^-1 ((1 - f) z^-k + f z^-(k+1))``,
+residual ``e[t] = d[t] - (1 - f) u[t-k] - f u[t-k-1]``, POL ``p[t] = m[t] + (G u)[t] =
+d[t-1] + n[t]``. The controller commands ``u[s] = sum_{j < h} A_j p[s-j]``, so
+
+    e[t] = d[t] - sum_j A_j q[t-k-j],       q[s] = (1 - f) p[s] + f p[s-1],
+
+linear in the ``A_j``: the fractional latency is handled exactly as the plant applies it.
+Training minimises, over the frames ``t`` of the record,
+
+    sum_t || p[t+1] - sum_j A_j q[t-k-j] ||^2  +  lam e ||A||_F^2,   A = [A_0 | ... | A_{h-1}]
+
+with ``e = trace(G) / (n h)`` the regressors' mean energy over the data (``G`` their Gram
+matrix): ``lam`` is dimensionless, and the penalty is what white noise of variance
+``lam x`` (the mean POL variance per mode) added to every regressor would cost, in the
+common unit of the modal coefficients. It bounds the predictor's gain in every direction
+alike, which is what the multivariable margin needs; a penalty scaled per regressor (ridge
+on standardised regressors) leaves the low-variance, high-order directions free and was
+measured much worse for it (margin 0.29 at 9x the residual of the unit penalty at margin
+0.30, on a noise-free frozen-flow record of 30 modes).
+
+Noise, honestly. The target ``p[t+1] = d[t] + n[t+1]`` and the regressors carry the
+measurement noise, as on an instrument. The noise ``n[t+1]`` is white and later than every
+regressor (``q[t-k-j]`` uses ``p`` up to frame ``t``), so it is uncorrelated with them: the
+least-squares solution is the best linear predictor of ``d[t]`` itself (the target's noise
+adds a constant to the cost), and the noise in the regressors is what the controller will
+see in the loop, so the fit weighs it exactly as it will act (the LMMSE predictor under
+noisy inputs). No noise model is needed. The oracle trained on the true disturbance (pass
+``p = z^-1 d`` to :func:`eof_from_pseudo_open_loop`) is a diagnostic, not an instrument's
+design.
+
+Choice of ``lam`` (when not given): the last ``validation_fraction`` (default 20 %) of the
+frames is held back; the predictor is fitted on the first part for every ``lam`` of
+:data:`REGULARISATION_GRID` and ``lam`` is the one with the smallest residual on the held-back
+part (the future of the training data, so a drift counts against overfitting). Every
+weight comes from one eigendecomposition of the scaled Gram matrix ``G / e = V diag(s) V^T``:
+``A(lam) = (B / e) V diag(1 / (s + lam)) V^T`` and the held-back residual is a quadratic form in
+``1 / (s + lam)``. The predictor is then refitted on all frames with that ``lam`` (a
+Cholesky solve): 25 % more data for the final taps; the weight chosen on 80 % is then, if
+anything, slightly too large (a safe bias).
+
+Certificate, never skipped: the controller's loop is certified by
+:func:`aocontrol.analysis.multimode_certificate` (stability structural and checked on the
+real-time path, multivariable margin ``min sigma_min(I + G K)`` bounded over the whole
+circle). Below the required margin, ``lam`` is multiplied by 4 and the predictor refitted
+until it is met (``lam -> inf`` gives ``F -> 0``, ``S = I``, margin 1, so this ends), then
+the last step is bisected to a factor ~1.19; the result says which weight and margin were
+certified. The margin costs residual: ``S = I - G F`` with a short FIR ``F`` cannot shape
+``|S|`` as an IIR controller can, so a margin of 0.5 behind a two-frame delay costs far
+more here than it costs the data-driven modal design (measured in
+``benchmarks/bench_eof.py``).
+
+Cost (``n`` modes, history ``h``, ``T`` frames, ``N = n h``): the Gram matrix from ``h``
+products ``n x T x n`` (its block Toeplitz structure: the other blocks by rank-one
+updates) and ``h`` for the cross terms; one ``N x N`` eigendecomposition and two ``N^3``
+products for the validation scan; one Cholesky per refit; the certificate's ``O(n^3)``
+per frequency. Memory ``O(N^2)``; the ``T x N`` regressor matrix is never formed.
+
+Control layer: imports nothing from :mod:`aocontrol.sim` or :mod:`aocontrol.study`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from aocontrol._validation import (
+    check_finite_array,
+    check_in_range,
+    check_instance,
+    check_int,
+    check_nonnegative,
+    check_positive,
+)
+from aocontrol.analysis import MultiModeCertificate, multimode_certificate
+from aocontrol.controllers import MultiModeBank
+from aocontrol.plant import loop_plant, split_latency
+from aocontrol.synthesis._telemetry import LoopTelemetry, pseudo_open_loop
+
+__all__ = [
+    "EOFNotCertifiedError",
+    "EOFResult",
+    "REGULARISATION_GRID",
+    "eof_from_pseudo_open_loop",
+    "eof_predictor",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Tikhonov weights scanned on the held-back telemetry: 10^-10 to 10^2, four per decade
+#: (relative to the regressors' mean energy; 0 is left out, singular for noise-free
+#: telemetry).
+REGULARISATION_GRID = np.logspace(-10.0, 2.0, 49)
+REGULARISATION_GRID.setflags(write=False)
+# Below the required margin the weight is multiplied by this, at most this many times
+# (1e-10 * 4^40 ~ 1e14: F is then ~0 and the margin ~1), then the last factor is bisected
+# this many times in log(lam) (see _Certifier).
+_RAISE_FACTOR, _MAX_RAISES, _BISECTIONS = 4.0, 40, 3
+
+
+class EOFNotCertifiedError(RuntimeError):
+    """No regularisation weight gave a predictor whose loop is certified (never run)."""
+
+
+@dataclass(frozen=True, eq=False)
+class EOFResult:
+    """A trained multi-mode predictor, its certificate and how its weight was chosen.
+
+    Attributes
+    ----------
+    controller : MultiModeBank
+        The certified controller (taps ``A_j``, latency model, rate).
+    certificate : MultiModeCertificate
+        Its loop's certificate (stability, margin bound, required margin).
+    regularisation : float
+        Tikhonov weight of ``controller`` (relative to the regressors' mean energy).
+    validation_regularisation : float or None
+        The weight the held-back telemetry chose (``None`` when it was given);
+        ``regularisation`` is larger when the margin required more.
+    regularisation_grid : numpy.ndarray, shape (n_grid,)
+        Weights scanned (empty when the weight was given).
+    validation_residual : numpy.ndarray, shape (n_grid,)
+        Mean-square error on the held-back frames per weight, summed over modes
+        [units^2]: ``E||p[t+1] - prediction||^2``, the disturbance's prediction error plus
+        the noise variance of the target once.
+    history : int
+        POL frames per command, ``h``.
+    latency_frames : float
+        Latency beyond the WFS frame of the loop it was trained for [frames].
+    n_training_frames : int
+        Training equations (frames ``t``) of the final fit (all usable frames).
+    n_validation_frames : int
+        Equations held back for the choice of the weight (0 when it was given).
+    fit_seconds : float
+        Wall-clock time of the training (Gram matrices, scan, refits) [s], certificates
+        excluded.
+    certify_seconds : float
+        Wall-clock time of the certificates [s].
+    """
+
+    controller: MultiModeBank
+    certificate: MultiModeCertificate
+    regularisation: float
+    validation_regularisation: float | None
+    regularisation_grid: np.ndarray
+    validation_residual: np.ndarray
+    history: int
+    latency_frames: float
+    n_training_frames: int
+    n_validation_frames: int
+    fit_seconds: float
+    certify_seconds: float
+
+
+# -- least squares with the Gram matrix's block structure ----------------------------------
+@dataclass
+class _Normal:
+    """Normal equations of the rows ``s`` in ``[s0, s1]``: ``G = Z^T Z``, ``B = Y^T Z``,
+    ``yy = sum ||y||^2`` (``Z`` rows ``[q[s], q[s-1], ..., q[s-h+1]]``, ``y = p[s+k+1]``)."""
+
+    gram: np.ndarray  # (N, N)
+    cross: np.ndarray  # (n, N)
+    yy: float
+    rows: int
+
+    def __add__(self, other: _Normal) -> _Normal:
+        return _Normal(self.gram + other.gram, self.cross + other.cross, self.yy + other.yy,
+                       self.rows + other.rows)  # fmt: skip
+
+
+def _normal_equations(p: np.ndarray, q: np.ndarray, h: int, k0: int, s0: int, s1: int):
+    """:class:`_Normal` of rows ``s0..s1`` (inclusive; ``s0 >= h``, ``s1 + k0 + 1 < T``).
+
+    Block ``(i, j)`` of ``G`` is ``sum_s q[s-i] q[s-j]^T``; the first block row takes ``h``
+    products, and ``G_{i+1, j+1} = G_{ij} + q[s0-1-i] q[s0-1-j]^T - q[s1-i] q[s1-j]^T``
+    (the same sum over a window one frame earlier) gives the rest.
+    """
+    n = p.shape[1]
+    N = n * h
+    rows = s1 - s0 + 1
+    y = p[s0 + k0 + 1 : s1 + k0 + 2]
+    gram = np.empty((N, N))
+    cross = np.empty((n, N))
+    q0 = q[s0 : s1 + 1]
+    for j in range(h):
+        qj = q[s0 - j : s1 + 1 - j]
+        gram[:n, j * n : (j + 1) * n] = q0.T @ qj
+        cross[:, j * n : (j + 1) * n] = y.T @ qj
+    for i in range(h - 1):
+        for j in range(i, h - 1):
+            blk = gram[i * n : (i + 1) * n, j * n : (j + 1) * n]
+            upd = np.outer(q[s0 - 1 - i], q[s0 - 1 - j]) - np.outer(q[s1 - i], q[s1 - j])
+            gram[(i + 1) * n : (i + 2) * n, (j + 1) * n : (j + 2) * n] = blk + upd
+    for i in range(1, h):  # lower blocks by symmetry
+        for j in range(i):
+            gram[i * n : (i + 1) * n, j * n : (j + 1) * n] = gram[
+                j * n : (j + 1) * n, i * n : (i + 1) * n
+            ].T
+    return _Normal(gram, cross, float(np.einsum("ij,ij->", y, y)), rows)
+
+
+def _energy(gram: np.ndarray) -> float:
+    """Mean regressor energy ``trace(G) / N`` (1 for an all-zero record)."""
+    e = float(np.trace(gram)) / gram.shape[0]
+    return e if e > 0 else 1.0
+
+
+def _solve(normal: _Normal, lam: float) -> np.ndarray:
+    """``A`` minimising the regularised cost (module docstring), shape ``(n, N)``."""
+    scale = _energy(normal.gram)
+    g = normal.gram / scale
+    g[np.diag_indices_from(g)] += lam
+    try:
+        factor = scipy.linalg.cho_factor(g, lower=False, check_finite=False)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError(
+            f"regularisation={lam!r} leaves the regressors' Gram matrix singular (telemetry "
+            "without enough independent frames, e.g. noise-free and smooth): give "
+            "regularisation > 0 or None (chosen on held-back telemetry)"
+        ) from exc
+    return scipy.linalg.cho_solve(factor, (normal.cross / scale).T, check_finite=False).T
+
+
+def _scan(train: _Normal, valid: _Normal, grid: np.ndarray) -> np.ndarray:
+    """Held-back residual ``sum ||y - A(lam) z||^2 / rows`` for every weight of ``grid``.
+
+    With ``G / e = V diag(s) V^T`` (``e`` the training regressors' mean energy) and
+    ``M = (B / e) V``: ``A(lam) = M diag(c) V^T``, ``c = 1 / (s + lam)``, and the held-back
+    residual is ``yy - 2 c . a + c^T (W o K) c`` with ``a_k = sum_i M_ik (Bv V)_ik``,
+    ``W = V^T Gv V`` and ``K = M^T M``.
+    """
+    scale = _energy(train.gram)
+    s, V = np.linalg.eigh(train.gram / scale)
+    s = np.maximum(s, 0.0)
+    M = (train.cross / scale) @ V
+    a = np.einsum("ik,ik->k", M, valid.cross @ V)
+    WK = (V.T @ valid.gram @ V) * (M.T @ M)
+    out = np.empty(grid.size)
+    for i, lam in enumerate(grid):
+        c = 1.0 / (s + lam)
+        out[i] = valid.yy - 2.0 * c @ a + c @ WK @ c
+    return out / valid.rows
+
+
+def _taps(A: np.ndarray, h: int) -> np.ndarray:
+    n = A.shape[0]
+    return np.ascontiguousarray(A.reshape(n, h, n).transpose(1, 0, 2))
+
+
+class _Certifier:
+    """Fits at given weights and certifies them; finds a small weight whose loop is certified.
+
+    From the weight ``lam`` chosen on data: if its loop is not certified, the weight is
+    multiplied by 4 (from at least the grid's smallest) until it is, then the last factor
+    of 4 is bisected in ``log(lam)`` three times (to a factor 4^(1/8) ~ 1.19): the smallest
+    certified weight found is kept. The margin need not be monotone in ``lam``; every
+    returned controller is certified whatever the path.
+    """
+
+    def __init__(self, normal, h, fs, latency, margin, limit, precision) -> None:
+        self.normal, self.h, self.fs, self.latency = normal, h, fs, latency
+        self.margin, self.limit, self.precision = margin, limit, precision
+        self.fit_seconds = self.certify_seconds = 0.0
+
+    def __call__(
+        self, lam: float, decide_only: bool = False
+    ) -> tuple[MultiModeBank, MultiModeCertificate]:
+        t0 = time.perf_counter()
+        A = _solve(self.normal, lam)
+        t1 = time.perf_counter()
+        bank = MultiModeBank(_taps(A, self.h), self.fs, self.latency, command_limit=self.limit,
+                             precision=self.precision)  # fmt: skip
+        cert = multimode_certificate(bank, modulus_margin=self.margin, decide_only=decide_only)
+        self.fit_seconds += t1 - t0
+        self.certify_seconds += time.perf_counter() - t1
+        verdict = "certified" if cert.certified else "refused"
+        logger.info("eof: regularisation %.3g, margin bound %.4g (required %.4g): %s", lam,
+                    cert.margin, self.margin, verdict)  # fmt: skip
+        return bank, cert
+
+    def smallest_certified(self, lam: float) -> tuple[MultiModeBank, MultiModeCertificate, float]:
+        bank, cert = self(lam)
+        if cert.certified:
+            return bank, cert, lam
+        # The search only needs each weight's verdict; the one kept is certified in full.
+        low = lam
+        high = max(lam * _RAISE_FACTOR, float(REGULARISATION_GRID[0]))
+        for _ in range(_MAX_RAISES):
+            if self(high, decide_only=True)[1].certified:
+                break
+            low, high = high, high * _RAISE_FACTOR
+        else:
+            raise EOFNotCertifiedError(
+                f"no regularisation up to {low:.3g} gives a certified loop (margin bound below "
+                f"modulus_margin {self.margin:g}); predictor refused"
+            )
+        low = max(low, float(REGULARISATION_GRID[0]) / _RAISE_FACTOR)
+        for _ in range(_BISECTIONS):
+            mid = math.sqrt(low * high)
+            if self(mid, decide_only=True)[1].certified:
+                high = mid
+            else:
+                low = mid
+        bank, cert = self(high)
+        return bank, cert, high
+
+
+def _check_length(
+    name: str,
+    n_frames: int,
+    n: int,
+    h: int,
+    latency: float,
+    validation: float | None,
+    start: int,
+) -> None:
+    """Refuse a record too short to train: ``n h`` training equations (as many as unknowns
+    per mode), more when a fraction is held back, plus ``start`` frames (the first
+    regressors' past, the last target, and frames dropped before)."""
+    rows = n * h if validation is None else math.ceil(n * h / (1.0 - validation)) + 1
+    needed = rows + start
+    if n_frames < needed:
+        held = "" if validation is None else f", validation_fraction {validation:g} held back"
+        raise ValueError(
+            f"{name} has {n_frames} frames; a history-{h} predictor of {n} modes at latency "
+            f"{float(latency):g} needs at least {needed} (n_modes * history = {n * h} "
+            f"training equations{held}, plus {start} frames of start-up)"
+        )
+
+
+def eof_from_pseudo_open_loop(
+    pseudo_open_loop: object,
+    fs: float,
+    latency_frames: float,
+    *,
+    history: int = 5,
+    regularisation: float | None = None,
+    validation_fraction: float = 0.2,
+    modulus_margin: float = 0.5,
+    command_limit: float | np.ndarray | None = None,
+    precision: str = "float32",
+    blas_threads: int | None = 1,
+) -> EOFResult:
+    """Train and certify a multi-mode predictor from a pseudo-open-loop record.
+
+    See the module docstring for the cost, the noise, the choice of the weight and the
+    certificate. A diagnostic oracle: ``pseudo_open_loop = z^-1 d`` (the true disturbance
+    one frame late, no noise) gives the predictor an instrument could not train.
+
+    Parameters
+    ----------
+    pseudo_open_loop : array_like, shape (n_frames, n_modes)
+        POL ``p = m + G u = z^-1 d + n`` [units], frames along the first axis, all finite.
+    fs : float
+        Loop rate [Hz].
+    latency_frames : float
+        RTC latency beyond the one-frame WFS integration [frames], that of the loop the
+        controller will run in (:func:`aocontrol.plant.loop_plant`).
+    history : int, default 5
+        POL frames per command ``h`` (>= 1).
+    regularisation : float, optional
+        Tikhonov weight ``lam >= 0`` (relative to the regressors' mean energy, module
+        docstring); ``None`` (default): chosen on the held-back telemetry.
+    validation_fraction : float, default 0.2
+        Fraction of the frames held back (the last ones) when ``regularisation`` is
+        ``None``, in ``(0, 0.5]``.
+    modulus_margin : float, default 0.5
+        Required multivariable modulus margin ``min sigma_min(I + G K)``, in ``(0, 1)``.
+    command_limit : float or array_like of shape (n_modes,), optional
+        The controller's limit on its command (see :class:`MultiModeBank`).
+    precision : {"float32", "float64"}, default "float32"
+        Precision of the controller's real-time product.
+    blas_threads : int or None, default 1
+        BLAS threads of the training (``None``: the BLAS's own setting). One by default: on
+        a shared machine a second OpenBLAS thread mostly waits (measured, 2 cores at load
+        ~3: 540 modes the same 8 s with one or two threads, 100 modes 0.14 s with one and
+        7.6 s with two); on a dedicated machine more threads speed the ``N^3`` steps up.
+
+    Returns
+    -------
+    EOFResult
+
+    Raises
+    ------
+    ValueError
+        ``history < 1``, ``regularisation < 0``, a record with NaN/inf, too few frames
+        (the message says how many are needed: ``n_modes * history`` training equations,
+        more with a held-back fraction, plus ``history + k + 1`` frames), or a given
+        ``regularisation`` that leaves the normal equations singular.
+    EOFNotCertifiedError
+        If no weight up to ``4^40`` times the chosen one meets the required margin.
+    """
+    p = check_finite_array("pseudo_open_loop", pseudo_open_loop, ndim=2)
+    fs = check_positive("fs", fs)
+    k0, f = split_latency(latency_frames)
+    h = check_int("history", history, minimum=1)
+    if regularisation is not None:
+        regularisation = check_nonnegative("regularisation", regularisation)
+        validation = None
+    else:
+        validation = check_in_range("validation_fraction", validation_fraction, 0.0, 0.5,
+                                    low_inclusive=False, high_inclusive=True)  # fmt: skip
+    modulus_margin = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0,
+                                    low_inclusive=False)  # fmt: skip
+    n_frames, n = p.shape
+    _check_length("pseudo_open_loop", n_frames, n, h, latency_frames, validation, h + k0 + 1)
+    if blas_threads is not None:
+        blas_threads = check_int("blas_threads", blas_threads, minimum=1)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=blas_threads, user_api="blas"):
+        t_start = time.perf_counter()
+        p = np.ascontiguousarray(p, dtype=float)
+        q = np.empty_like(p)
+        q[0] = (1.0 - f) * p[0]
+        q[1:] = (1.0 - f) * p[1:] + f * p[:-1]
+        s_first, s_last = h, n_frames - k0 - 2  # rows s: q[s - h + 1 - 1] and p[s + k0 + 1] exist
+        grid = np.empty(0)
+        scores = np.empty(0)
+        chosen = None
+        if validation is None:
+            normal = _normal_equations(p, q, h, k0, s_first, s_last)
+            lam = float(regularisation)
+            n_valid = 0
+        else:
+            n_rows = s_last - s_first + 1
+            n_valid = max(1, int(round(validation * n_rows)))
+            split = s_last - n_valid  # last training row
+            train = _normal_equations(p, q, h, k0, s_first, split)
+            valid = _normal_equations(p, q, h, k0, split + 1, s_last)
+            grid = np.array(REGULARISATION_GRID)
+            scores = _scan(train, valid, grid)
+            chosen = lam = float(grid[int(np.argmin(scores))])
+            normal = train + valid
+            logger.info(
+                "eof: regularisation %.3g chosen on %d held-back frames (residual %.4g)",
+                lam,
+                n_valid,
+                float(scores.min()),
+            )
+        fit_seconds = time.perf_counter() - t_start
+        design = _Certifier(normal, h, fs, latency_frames, modulus_margin, command_limit, precision)
+        bank, cert, lam = design.smallest_certified(lam)
+    return EOFResult(
+        controller=bank,
+        certificate=cert,
+        regularisation=lam,
+        validation_regularisation=chosen,
+        regularisation_grid=grid,
+        validation_residual=scores,
+        history=h,
+        latency_frames=float(latency_frames),
+        n_training_frames=normal.rows,
+        n_validation_frames=n_valid,
+        fit_seconds=fit_seconds + design.fit_seconds,
+        certify_seconds=design.certify_seconds,
+    )
+
+
+def eof_predictor(
+    telemetry: LoopTelemetry,
+    *,
+    history: int = 5,
+    latency_frames: float | None = None,
+    regularisation: float | None = None,
+    validation_fraction: float = 0.2,
+    modulus_margin: float = 0.5,
+    command_limit: float | np.ndarray | None = None,
+    precision: str = "float32",
+    blas_threads: int | None = 1,
+) -> EOFResult:
+    """Train and certify a multi-mode predictor from closed-loop telemetry.
+
+    The pseudo-open loop ``p = m + G u`` is rebuilt with
+    :func:`aocontrol.synthesis.pseudo_open_loop` and the loop plant of the telemetry's
+    latency; its first ``k + 2`` frames (which depend on commands before the record) are
+    dropped; then :func:`eof_from_pseudo_open_loop`.
+
+    Parameters
+    ----------
+    telemetry : LoopTelemetry
+        Closed-loop measurements and commands ``(n_frames, n_modes)``, rate and latency.
+    history : int, default 5
+        POL frames per command (>= 1).
+    latency_frames : float, optional
+        Latency beyond the WFS frame [frames] when the telemetry does not say it (or to
+        override it).
+    regularisation : float, optional
+        Tikhonov weight ``>= 0``; ``None``: chosen on held-back telemetry.
+    validation_fraction : float, default 0.2
+        Fraction of the frames held back to choose the weight, in ``(0, 0.5]``.
+    modulus_margin : float, default 0.5
+        Required multivariable modulus margin, in ``(0, 1)``.
+    command_limit : float or array_like of shape (n_modes,), optional
+        The controller's limit on its command.
+    precision : {"float32", "float64"}, default "float32"
+        Precision of the real-time product.
+    blas_threads : int or None, default 1
+        BLAS threads of the training (see :func:`eof_from_pseudo_open_loop`).
+
+    Returns
+    -------
+    EOFResult
+
+    Raises
+    ------
+    TypeError
+        If ``telemetry`` is not a :class:`LoopTelemetry`.
+    ValueError
+        No latency known, or the errors of :func:`eof_from_pseudo_open_loop`.
+    EOFNotCertifiedError
+        If no weight meets the required margin.
+    """
+    check_instance("telemetry", telemetry, LoopTelemetry)
+    latency = telemetry.latency_frames if latency_frames is None else latency_frames
+    if latency is None:
+        where = f" of {telemetry.source}" if telemetry.source else ""
+        raise ValueError(
+            f"latency_frames must be given: the telemetry{where} does not say its loop's latency"
+        )
+    k0, _ = split_latency(latency)
+    h = check_int("history", history, minimum=1)
+    validation = None
+    if regularisation is None:
+        validation = check_in_range("validation_fraction", validation_fraction, 0.0, 0.5,
+                                    low_inclusive=False, high_inclusive=True)  # fmt: skip
+    _check_length("telemetry", telemetry.n_frames, telemetry.n_modes, h, latency, validation,
+                  h + 2 * k0 + 3)  # fmt: skip
+    plant = loop_plant(telemetry.fs, latency)
+    pol = pseudo_open_loop(telemetry.measurements, telemetry.commands, plant)
+    return eof_from_pseudo_open_loop(
+        pol[k0 + 2 :],
+        telemetry.fs,
+        latency,
+        history=history,
+        regularisation=regularisation,
+        validation_fraction=validation_fraction,
+        modulus_margin=modulus_margin,
+        command_limit=command_limit,
+        precision=precision,
+        blas_threads=blas_threads,
+    )
