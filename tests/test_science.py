@@ -284,3 +284,23 @@ def test_bad_inputs_raise_clear_errors(pupil, camera):
         camera.mean_contrast(camera.diffraction_psf, 4.0, 40.0)
     with pytest.raises(ValueError, match="rms_nm"):
         marechal_strehl(-1.0)
+
+
+def test_contrast_at_small_separations_sees_a_close_speckle(pupil, camera):
+    # Oracle: a sine ripple of k = 1.5 cycles per pupil puts its speckles at 1.5 lambda/D:
+    # the 1-2 lambda/D contrast holds them (a few (a/2)^2 spread over the annulus), the 4-6
+    # lambda/D contrast only Airy wings; a ripple at k = 5 does the opposite. The result
+    # carries both; a file without the 1-2 figure (written before it) reads NaN.
+    a = 0.05
+    out = {}
+    for k in (1.5, 5.0):
+        exposure = camera.long_exposure()
+        opd = a * np.sin(2 * np.pi * k * pupil.x / pupil.diameter) * NM_PER_RAD
+        exposure.add(np.asarray(opd)[None])
+        out[k] = exposure.result()
+    near, far = out[1.5], out[5.0]
+    assert near.mean_contrast_1_2 > 10 * near.mean_contrast_4_6
+    assert far.mean_contrast_4_6 > 10 * far.mean_contrast_1_2
+    d = near.to_dict()
+    d.pop("mean_contrast_1_2")
+    assert np.isnan(type(near).from_dict(d).mean_contrast_1_2)

@@ -643,8 +643,8 @@ class LongExposure:
         Returns
         -------
         ScienceResult
-            Strehl (PSF peak), mean contrast over 4-6 lambda/D and the radial profile, of the
-            coronagraphic image (of the PSF if the camera has no coronagraph).
+            Strehl (PSF peak), mean contrast over 4-6 and 1-2 lambda/D and the radial profile,
+            of the coronagraphic image (of the PSF if the camera has no coronagraph).
         """
         cam = self.camera
         psf = self.psf
@@ -658,6 +658,7 @@ class LongExposure:
             n_frames=self._n,
             wavelength=cam.wavelength,
             coronagraph=cam.coronagraph,
+            mean_contrast_1_2=cam.mean_contrast(image, 1.0, 2.0),
         )
 
 
@@ -681,6 +682,9 @@ class ScienceResult:
         Science wavelength [m].
     coronagraph : bool
         True if the contrast is after the perfect coronagraph (else the raw PSF).
+    mean_contrast_1_2 : float
+        Mean raw contrast over 1 <= r < 2 lambda/D, where prediction matters most (``nan``
+        in results written before it was recorded).
 
     Notes
     -----
@@ -694,6 +698,7 @@ class ScienceResult:
     n_frames: int
     wavelength: float = H_BAND
     coronagraph: bool = True
+    mean_contrast_1_2: float = float("nan")
 
     def __post_init__(self) -> None:
         radii = np.array(self.radii_ld, dtype=float)
@@ -716,6 +721,7 @@ class ScienceResult:
         object.__setattr__(self, "contrast_profile", prof)
         object.__setattr__(self, "strehl", float(self.strehl))
         object.__setattr__(self, "mean_contrast_4_6", float(self.mean_contrast_4_6))
+        object.__setattr__(self, "mean_contrast_1_2", float(self.mean_contrast_1_2))
         object.__setattr__(self, "n_frames", int(self.n_frames))
         object.__setattr__(self, "wavelength", float(self.wavelength))
         object.__setattr__(self, "coronagraph", bool(self.coronagraph))
@@ -730,6 +736,7 @@ class ScienceResult:
             "n_frames": self.n_frames,
             "wavelength": self.wavelength,
             "coronagraph": self.coronagraph,
+            "mean_contrast_1_2": self.mean_contrast_1_2,
         }
 
     @classmethod

@@ -76,6 +76,7 @@ class Cell:
     bank: ControllerBank | None = field(default=None, repr=False)
     predicted_rms_se_nm: float = math.nan
     residual_rms_se_nm: float = math.nan
+    mean_contrast_1_2: float = math.nan
 
     def ratio_interval(self, z: float = 2.0) -> tuple[float, float, float]:
         """Predicted / measured RMS and its interval ``ratio (1 -+ z s)``, ``s`` the two

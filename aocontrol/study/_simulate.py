@@ -203,10 +203,11 @@ class UpstreamRecords:
 
 
 def run_summary(result: Any) -> dict:
-    """Strehl, mean contrast 4-6 lambda/D and stage 2's modal residual RMS [nm] of a run."""
+    """Strehl, mean contrast 4-6 and 1-2 lambda/D and stage 2's modal residual RMS [nm]."""
     sci = result.science
     return {
         "strehl": float(sci.strehl) if sci is not None else math.nan,
         "mean_contrast_4_6": float(sci.mean_contrast_4_6) if sci is not None else math.nan,
+        "mean_contrast_1_2": float(sci.mean_contrast_1_2) if sci is not None else math.nan,
         "residual_rms_nm": float(stage2_result(result).residual_rms),
     }

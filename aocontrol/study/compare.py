@@ -51,7 +51,7 @@ import numpy as np
 
 from aocontrol._deprecation import deprecated_function
 from aocontrol._version import __version__
-from aocontrol.controllers import ControllerBank, Integrator
+from aocontrol.controllers import ControllerBank, Integrator, MultiModeBank
 from aocontrol.sim.loop import UpstreamRecord
 from aocontrol.study._calibration import calibrate_scene, calibration_seconds, design_inputs
 from aocontrol.study._comparison import (
@@ -337,7 +337,10 @@ def _predicted(
 ) -> tuple[float, float, float]:
     """Predicted RMS [nm] and the relative standard errors of the prediction (a
     ``calibration``-second record) and of an ``exposure``-second measurement (NaN without
-    telemetry)."""
+    telemetry, and for a multi-mode controller: it uses the modes' cross-spectra, which the
+    per-mode PSDs of the prediction do not hold)."""
+    if isinstance(ctrl, MultiModeBank):
+        return math.nan, math.nan, math.nan
     if model is not None:
         rms, rel = model.predicted(design.plant, ctrl, (calibration, exposure))
     elif design.freqs.size == 0:
@@ -499,6 +502,7 @@ def compare_case(
                     scheme=scheme,
                     strehl=out.summary["strehl"],
                     mean_contrast_4_6=out.summary["mean_contrast_4_6"],
+                    mean_contrast_1_2=out.summary["mean_contrast_1_2"],
                     residual_rms_nm=meas,
                     predicted_rms_nm=pred,
                     radii_ld=np.asarray(sci.radii_ld),

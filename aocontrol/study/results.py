@@ -208,6 +208,14 @@ def _write_science(group: Any, science: Any) -> None:
         "1",
         long_name="mean raw contrast over 4-6 lambda/D",
     )
+    _write_variable(
+        group,
+        "mean_contrast_1_2",
+        (),
+        sci.mean_contrast_1_2,
+        "1",
+        long_name="mean raw contrast over 1-2 lambda/D",
+    )
     group.attrs["science_n_frames"] = sci.n_frames
     group.attrs["science_wavelength_m"] = sci.wavelength
     group.attrs["science_coronagraph"] = int(sci.coronagraph)
@@ -219,6 +227,9 @@ def _read_science(group: h5py.Group) -> ScienceResult | None:
     return ScienceResult(
         strehl=float(group["strehl"][()]),
         mean_contrast_4_6=float(group["mean_contrast_4_6"][()]),
+        mean_contrast_1_2=(
+            float(group["mean_contrast_1_2"][()]) if "mean_contrast_1_2" in group else np.nan
+        ),
         radii_ld=group["radius"][()],
         contrast_profile=group["contrast_profile"][()],
         n_frames=int(_attr(group, "science_n_frames")),
