@@ -28,10 +28,12 @@ from aocontrol.analysis import (
     constrained_bound,
     is_stable,
     margins,
+    multimode_certificate,
     residual_variance,
     wiener_bound,
 )
-from aocontrol.plant import loop_plant, plant_fs
+from aocontrol.controllers import MultiModeBank
+from aocontrol.plant import loop_plant, plant_fs, split_latency
 from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._loop_check import (
     MIN_CHECK_FRAMES,
@@ -97,6 +99,48 @@ def _as_loop(
         "telemetry must be a LoopTelemetry (e.g. aocontrol.io.read_aot), a TelemetryPSD or a "
         f"(measurements, commands) pair, got {type(telemetry).__name__}"
     )
+
+
+def multimode_residual_variance(
+    bank: MultiModeBank, pseudo_open_loop: np.ndarray, noise_variance: np.ndarray
+) -> np.ndarray:
+    """Per-mode residual variance a multi-mode controller would give on this telemetry.
+
+    The bank's predictor ``u[k] = sum_j A_j p[k-j]`` on the pseudo-open loop ``p`` (``p[k] =
+    d[k-1] + n[k]``), the DM shape ``y[k]`` through the plant's latency, and the residual
+    ``p[k+1] - y[k]``: the loop's residual ``d[k] - y[k]`` plus the target's white noise
+    ``n[k+1]``, whose variance is subtracted (the noise's own path through the loop is
+    ``-T n``, and for white noise and a loop delayed by at least a frame ``E|S n|^2 = E|T
+    n|^2 + sigma^2``: the same subtraction). An estimate on one record (its sampling
+    scatter as any residual's).
+
+    Parameters
+    ----------
+    bank : MultiModeBank
+    pseudo_open_loop : ndarray, shape (n_frames, n_modes)
+        ``m + G u`` of the telemetry [units].
+    noise_variance : ndarray, shape (n_modes,)
+        White measurement-noise variance per frame [units^2].
+
+    Returns
+    -------
+    ndarray, shape (n_modes,)
+    """
+    p = np.asarray(pseudo_open_loop, dtype=float)
+    taps = np.asarray(bank.taps, dtype=float)  # (h, n, n): u[k] = sum_j taps[j] @ p[k-j]
+    h = taps.shape[0]
+    k0, f = split_latency(bank.latency_frames)
+    n_frames = p.shape[0]
+    u = np.zeros_like(p)
+    for j in range(h):
+        u[j:] += p[: n_frames - j] @ taps[j].T
+    y = np.zeros_like(p)
+    y[k0:] += (1.0 - f) * u[: n_frames - k0]
+    if f:
+        y[k0 + 1 :] += f * u[: n_frames - k0 - 1]
+    start = h + k0 + 1
+    e = p[start + 1 :] - y[start:-1]
+    return np.maximum(np.mean(e**2, axis=0) - np.asarray(noise_variance, dtype=float), 0.0)
 
 
 def _per_mode_margins(plant: Any, bank: Any, label: str) -> tuple:
@@ -322,12 +366,24 @@ def design_from_telemetry(
     timings["reference"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    mar = _per_mode_margins(plant, bank, controller)
+    multimode = isinstance(bank, MultiModeBank)
+    if multimode:
+        # One multivariable certificate for the whole loop (no per-mode margins): each mode
+        # reports its stability verdict, its margins nan.
+        cert = multimode_certificate(bank)
+        mar = tuple(Margins.unknown(cert.stable) for _ in range(est.n_modes))
+    else:
+        mar = _per_mode_margins(plant, bank, controller)
     ref_mar = _per_mode_margins(plant, reference, "reference")
     timings["margins"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    var = np.atleast_1d(residual_variance(plant, bank, est.freqs, est.psd, est.noise_psd))
+    if multimode:
+        # Its residual comes from the modes' cross-correlations, which the per-mode PSDs
+        # lack: predicted on the telemetry's own pseudo-open loop (time domain).
+        var = multimode_residual_variance(bank, est.pseudo_open_loop, est.noise_psd * fs_ / 2)
+    else:
+        var = np.atleast_1d(residual_variance(plant, bank, est.freqs, est.psd, est.noise_psd))
     ref_var = np.atleast_1d(residual_variance(plant, reference, est.freqs, est.psd, est.noise_psd))
     nan = np.full(est.n_modes, np.nan)
     wiener = nan.copy()
