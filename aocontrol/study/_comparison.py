@@ -251,7 +251,8 @@ def format_table(case: str, cells: Sequence[Any]) -> str:
     case : str
         Title.
     cells : sequence of Cell or dict
-        Objects or dicts with ``scheme``, ``controller``, ``mean_contrast_4_6``, ``strehl``.
+        Objects or dicts with ``scheme``, ``controller``, ``mean_contrast_4_6``, ``strehl``
+        (and ``mean_contrast_1_2``, NaN where missing).
 
     Returns
     -------
@@ -265,6 +266,12 @@ def format_table(case: str, cells: Sequence[Any]) -> str:
         f"{'avg contrast 4-6 l/D':22}"
         + "".join(f"{get(c, 'mean_contrast_4_6'):>{w + 2}.3e}" for c in cells)
     )
+
+    def near(c: Any) -> float:  # results written before the 1-2 lambda/D figure: nan
+        v = c.get("mean_contrast_1_2", math.nan) if isinstance(c, dict) else c.mean_contrast_1_2
+        return float(v)
+
+    lines.append(f"{'avg contrast 1-2 l/D':22}" + "".join(f"{near(c):>{w + 2}.3e}" for c in cells))
     lines.append(
         f"{'Strehl [%]':22}" + "".join(f"{100 * get(c, 'strehl'):>{w + 2}.2f}" for c in cells)
     )
