@@ -300,12 +300,18 @@ def table_from_files(paths: Sequence[str | os.PathLike]) -> str:
         sci = res.science
         strehl = sci["strehl"] if isinstance(sci, dict) else sci.strehl
         con = sci["mean_contrast_4_6"] if isinstance(sci, dict) else sci.mean_contrast_4_6
+        near = (
+            sci.get("mean_contrast_1_2", math.nan)
+            if isinstance(sci, dict)
+            else sci.mean_contrast_1_2
+        )
         rows.setdefault(st["case"], []).append(
             {
                 "scheme": st["scheme"],
                 "controller": st["controller"]["name"],
                 "strehl": float(strehl),
                 "mean_contrast_4_6": float(con),
+                "mean_contrast_1_2": float(near),
             }
         )
     return "\n\n".join(format_table(k, v) for k, v in rows.items())
