@@ -14,17 +14,15 @@ in how a chunk's disturbance reaches the stages.
 Linear stages (a linear modal sensor, no optical-gain tracker, no DM clip, an
 :class:`~aocontrol.controllers.IIRBank` without a command limit) run the frames of a chunk in
 one fused loop (:meth:`_StageRun.run_frames`): the same operations as :meth:`_StageRun.step`
-frame after frame, bit for bit, compiled with numba (:mod:`aocontrol.sim._fused`; ~2 us
-instead of ~35 us per frame at 540 modes) or, without numba, in numpy.
+frame after frame, bit for bit, compiled with numba (:mod:`aocontrol.sim._fused`) or,
+without numba, in numpy.
 
 BLAS threads (engine setting): :func:`drive` runs a whole run with at most
 :func:`engine_blas_threads` BLAS threads, 1 by default. The engine's products are small
 (a frame's vectors) or medium (a chunk's projection, ~100 ms): a multithreaded OpenBLAS
 spends more CPU on them than it saves in wall time, and much more on a machine shared with
-other jobs (measured on 2 cores loaded by other jobs, the 5.1-s two-stage exposure of
-``benchmarks/bench_cascade.py``, back to back: 1 thread 0.75-0.82x the CPU time of 2 threads,
-and no longer in wall time; 3000 frames: 449 against 687 us CPU per fast frame). On a machine with
-idle cores where wall time matters more than CPU, set the environment variable
+other jobs (the default chosen by ``benchmarks/bench_cascade.py``, ``docs/benchmarks.md``).
+On a machine with idle cores where wall time matters more than CPU, set the environment variable
 ``AOCONTROL_ENGINE_BLAS_THREADS`` to a number of threads, or to ``0`` to leave the BLAS's
 own setting. The thread count changes the rounding of float32 products (the projection):
 runs are reproducible for one setting, and agree across settings to the projection's
@@ -526,7 +524,7 @@ def _sequential_sum(total: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
     A reduction along the first (outer) axis of a C-ordered array adds the rows in order,
     element by element (numpy's pairwise summation applies along the contiguous axis only):
-    bit-identical to the per-frame sum (tested), ~6x cheaper than ``cumsum``.
+    bit-identical to the per-frame sum (tested), and cheaper than ``cumsum``.
     """
     stacked = np.concatenate([total[None], rows])
     return np.add.reduce(stacked, axis=0)

@@ -279,12 +279,8 @@ def datadriven(
         radius, or, where the integrator starts at least 10 % better (low-order modes whose
         power spans decades below the loop bandwidth), ``F = 1 - z^-1`` with the integrator's
         pole at z = 1 fixed (integral action). The default 0.9999 (a 3.3 s time constant at 3
-        kHz: an open loop's command decays, where an integrator's holds) was chosen on the 60
-        lowest of 540 synthetic turbulence modes at 3 kHz, 0.83 frame, order 5
-        (``benchmarks/bench_synthesis.py`` settings, one serial run): median residual / Wiener
-        bound 1.044 at 0.9999 (90th percentile 1.094), 1.045 at 0.9995, 1.047 at 0.999, 1.103 at
-        0.995 (tip/tilt 1.59), 1.060 unconstrained (``None``: tip/tilt 1.16 against 1.21, the
-        other modes worse, 5.7x the CPU).
+        kHz: an open loop's command decays, where an integrator's holds) was chosen by
+        ``benchmarks/bench_synthesis.py`` (``docs/benchmarks.md``).
     bound_start : bool or None, default None
         Also start from the margin-constrained bound, reduced to the design's order: the
         sensitivity of :func:`aocontrol.analysis.constrained_bound` (FIR Youla parameter of
@@ -295,22 +291,17 @@ def datadriven(
         on the dense grid, closed-loop stability, pole radius) with a lower objective (the
         result is never worse than the best certified start; ``ModeReport.start`` says
         "bound reduction"). The convex-concave iterations from an integrator stop in a local
-        optimum on resonant spectra: measured on the 6 resonant modes of
-        ``benchmarks/bench_synthesis.py`` part (f), residual / bound 1.24 median at order 5
-        (worst 1.56) without it, 1.045 (worst 1.058) with it on every mode (``order="auto"``;
-        the default selects every mode there). It costs one bound per mode: measured (one
-        thread) about 5 s CPU per mode there, 31 s for a 0.3 Hz wide line at 1 kHz (the
-        bound's cutting-plane solves at 256 taps).
+        optimum on resonant spectra, which this start avoids (``benchmarks/bench_synthesis.py``
+        part (f), ``docs/benchmarks.md``). It costs one bound per mode: seconds of CPU, more
+        for a narrow line (the bound's cutting-plane solves at 256 taps).
         ``None``: with a stable transfer-function plant, on the modes with a line
         (``_dd_starts.has_lines``: the PSD half a decade above its
         running median over +-0.15 decades of frequency) in the disturbance PSD of a model
         (every local maximum a line: an estimate's scatter is not) or in disturbance plus
-        noise. A line under the noise counts: it marks a resonant spectrum, and the bound
-        start paid on such modes (part (f): 1.07 -> 1.03 for a mode whose only line is 100x
-        under the noise; the gain comes from the start, not from the line); measured, no
-        mode of the 540-mode turbulence bank and 0 to 4 of 40 turbulence modes estimated from
-        telemetry (:func:`disturbance_from_telemetry`) are selected. ``True``: every mode (a
-        stable transfer-function plant needed); ``False``: never.
+        noise. A line under the noise counts: it marks a resonant spectrum, where the bound
+        start pays. Turbulence modes are rarely selected, whether from a model or estimated
+        from telemetry (:func:`disturbance_from_telemetry`; ``docs/benchmarks.md``).
+        ``True``: every mode (a stable transfer-function plant needed); ``False``: never.
     max_iter : int, default 60
         Maximum convex solves per mode (at most ``MAX_ITER`` = 10000).
     tol : float, default 1e-3
@@ -320,9 +311,8 @@ def datadriven(
         Design-grid size (8 to ``MAX_N_GRID`` = 4096): an input grid with more points is
         subsampled (log- and linearly-spaced points and the PSD peaks), with quadrature
         weights that keep the integral exact for a ``|S|^2`` linear between design points.
-        Measured on 108 modes of turbulence: 64 points give the same residuals as 80
-        (median 1.020 vs 1.024 of the Wiener bound) in 26 % less time; the dense
-        verification certifies either.
+        The default was chosen by measurement (``docs/benchmarks.md``); the dense
+        verification certifies any size.
     n_jobs : int, optional
         Worker processes (joblib); ``None`` uses every core this process may use
         (``joblib.cpu_count()``: CPU affinity, cgroup limits and ``LOKY_MAX_CPU_COUNT``, which

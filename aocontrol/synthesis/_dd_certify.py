@@ -196,9 +196,7 @@ class _ModeCertifier(Certifier):
         """The start's ``|S|`` peaks inside the input range: H2 and margin points.
 
         The certified local minima of ``|1 + G K|`` below 1 (``|S| > 1``, worst first), not
-        on the design grid: the steps tend to deepen such a dip between design points
-        (measured on turbulence modes at 3 kHz: a dip near 870 Hz, one margin and one peak
-        cut per mode started from its neighbour's design).
+        on the design grid: the steps tend to deepen such a dip between design points.
         """
         cert = self.margin(v)
         ctx = self.ctx

@@ -261,9 +261,7 @@ def _design_chunk(ctx: DesignContext, items: list) -> list:
     """Design a chunk of modes in one worker; failures are returned, not raised.
 
     BLAS runs on one thread here (as in joblib's workers): the products are of a few thousand
-    rows by ~11 columns, where a second thread only waits (measured on a loaded 2-core
-    machine: 0.1 to 28 ms for one 6,203 x 11 complex product with two OpenBLAS threads,
-    0.05 ms with one; 10-20 % of a serial design's CPU).
+    rows by ~11 columns, where a second thread only waits (``docs/benchmarks.md``).
     """
     from threadpoolctl import threadpool_limits
 

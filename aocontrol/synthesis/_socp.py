@@ -61,7 +61,7 @@ logger = logging.getLogger(__name__)
 # is scaled by construction (Y monic, G normalised, g = s u), and it halves the IPM iterations.
 # Gap 1e-4: each convex step is only a surrogate of the true problem; measured on 6 modes it
 # saves ~35 % of the solver time and moves the final objectives by < 0.5 % either way.
-# Feasibility 1e-6 (1e-7 before): 8 % fewer IPM iterations (23.8 vs 25.8 on 8 recorded
+# Feasibility 1e-6 rather than 1e-7: 8 % fewer IPM iterations (23.8 vs 25.8 on 8 recorded
 # problems), objectives within 3e-4; every iterate is certified on the exact constraints.
 # Iterative refinement to 1e-9 (1e-13 by default): Clarabel's KKT products and triangular
 # solves of the refinement are a third of its time; measured on 52 recorded problems, 10 %
@@ -330,9 +330,9 @@ def _assign(param: cp.Parameter, value: np.ndarray) -> None:
     """Set ``param`` to ``value`` (float array of its shape) without cvxpy's validation.
 
     The ``value`` setter projects every assignment onto the parameter's attributes to
-    validate it (measured: a third of cvxpy's per-solve time on a warm redesign, ~14 values
-    per solve). The values here are built with the parameter's shape; the only attribute
-    used is ``nonneg``, checked here.
+    validate it, a large share of cvxpy's per-solve time on a warm redesign
+    (``docs/benchmarks.md``). The values here are built with the parameter's shape; the only
+    attribute used is ``nonneg``, checked here.
     """
     value = np.asarray(value, dtype=float)
     if value.shape != param.shape:  # pragma: no cover - construction bug
@@ -373,9 +373,8 @@ class SizedProblem:
     Same interface as :class:`ConvexifiedProblem` (``slots``, ``set_grid``, ``set_winding``,
     ``solve``); each solve uses a compiled problem with the grid's number of points rounded
     up to a multiple of ``step`` (at most ``slots``). The neutral slots of a problem compiled
-    for the largest grid are cones Clarabel iterates on all the same (a quarter of them on
-    the first steps of a 64-point design with 24 spare slots); a compiled problem costs
-    ~70 ms once per worker and size.
+    for the largest grid are cones Clarabel iterates on all the same; a compiled problem
+    costs one compilation per worker and size (``docs/benchmarks.md``).
 
     Parameters
     ----------
@@ -578,10 +577,8 @@ def ccp(
     it passes the same checks and lowers the objective. When the last solve allowed
     (``max_iter``) gives a step refused for a margin or peak cut, the cut points join the
     grid and the step is damped instead of lost (the longest of ``t = 1/2, 1/4, ...`` that
-    lowers the objective on the refined grid and passes every certificate): measured on 63
-    turbulence modes warm-started after a 20 % wind change (32 points, one solve each), 40
-    of the 63 steps were refused and the modes kept their start; damped, every mode
-    improves, 98 % of the gain of 64 points and 8 solves instead of 89 %. The objective history is
+    lowers the objective on the refined grid and passes every certificate), so a one-solve
+    warm redesign still improves its mode (``docs/benchmarks.md``). The objective history is
     non-increasing on a fixed grid; when the grid grows, the current objective is re-evaluated
     on it first.
 
