@@ -419,7 +419,7 @@ class IIRBank(ControllerBank):
     def _recursion_state(self) -> tuple | None:
         """The state of the plain recursion, for the simulator's fused frame loop.
 
-        ``aocontrol.sim._runner`` runs the frames of a chunk of a linear stage in one loop
+        ``aocontrol.sim._stage_run`` runs the frames of a chunk of a linear stage in one loop
         that performs, per frame, exactly the operations of :meth:`step` on a finite
         measurement (same values bit for bit, tested), without the per-call checks it makes
         redundant (its measurements are finite by construction; a non-finite command is

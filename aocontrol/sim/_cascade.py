@@ -62,12 +62,12 @@ from aocontrol.sim._runner import (
     _check_finite_disturbance,
     _ResidualMap,
     _settle,
-    _StageRun,
     drive,
     science_frames,
 )
 from aocontrol.sim._sources import PhaseDisturbance, check_rate
 from aocontrol.sim._stage import Stage
+from aocontrol.sim._stage_run import _StageRun
 from aocontrol.sim.science import LongExposure
 
 __all__ = ["run_cascade", "projection_matrix", "SCHEMES", "UpstreamRecord"]

@@ -1,6 +1,6 @@
 """The frames of a linear stage's chunk as one compiled loop (numba), same values bit for bit.
 
-:meth:`aocontrol.sim._runner._StageRun.run_frames` runs a linear stage (linear modal sensor,
+:meth:`aocontrol.sim._stage_run._StageRun.run_frames` runs a linear stage (linear modal sensor,
 no optical-gain tracker, no DM clip, an :class:`~aocontrol.controllers.IIRBank` without a
 command limit) in one fused loop per chunk. In numpy that loop still costs ~15 calls per
 frame, most of its time call overhead (the arithmetic is ~10 operations per mode);
