@@ -17,18 +17,12 @@ import numpy as np
 
 from aocontrol._validation import is_programming_error
 from aocontrol.plant import frequency_response
+from aocontrol.synthesis._ccp import PATIENCE, ccp
 from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
 from aocontrol.synthesis._dd_context import DesignContext
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._dd_starts import bound_candidate, bound_targets, start_certified
-from aocontrol.synthesis._socp import (
-    PATIENCE,
-    GridData,
-    SolveFailure,
-    ccp,
-    get_problem,
-    true_objective,
-)
+from aocontrol.synthesis._socp import GridData, SolveFailure, get_problem, true_objective
 
 logger = logging.getLogger(__name__)
 # Modes per work item; within a chunk each mode may start from the previous mode's design.
