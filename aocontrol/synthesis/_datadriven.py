@@ -21,6 +21,7 @@ from __future__ import annotations
 import inspect
 
 import control
+import numpy as np  # noqa: F401 - the namespace of datadriven's doctest
 
 from aocontrol._deprecation import renamed_keyword
 from aocontrol._validation import check_int
