@@ -76,8 +76,8 @@ from aocontrol.analysis import residual_psd, white_noise_psd
 from aocontrol.analysis._wiener import wiener_bound
 from aocontrol.controllers import Integrator
 from aocontrol.disturbance import synthetic_turbulence_psd
+from aocontrol.synthesis import _ccp, _socp
 from aocontrol.synthesis import _datadriven as dd
-from aocontrol.synthesis import _socp
 from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._dd_mode import _design_chunk
@@ -180,8 +180,8 @@ def naive_mode(setup: dd._Setup, item: tuple) -> tuple[float, int, bool]:
             break
         vc, J, Pc = np.array(v.value), Jn, Pn
         history.append(J)
-        if len(history) > _socp.PATIENCE:
-            past = history[-1 - _socp.PATIENCE]
+        if len(history) > _ccp.PATIENCE:
+            past = history[-1 - _ccp.PATIENCE]
             if past - J <= ctx.tol * past:
                 break
     dense = ctx.grid_data(ctx.dense_freqs, ctx.dense_response, ctx.modulus_margin)

@@ -19,8 +19,7 @@ from aocontrol import loop_plant
 from aocontrol.adaptive import certify, lqg_designer
 from aocontrol.adaptive._redesign import MAX_RECURSION_GAIN, recursion_gain
 from aocontrol.controllers import IIRBank, Integrator
-from aocontrol.synthesis import TelemetryPSD, lqg
-from aocontrol.synthesis._armodel import DisturbanceModel
+from aocontrol.synthesis import DisturbanceModel, TelemetryPSD, lqg
 
 FS = 3000.0
 LATENCY = 0.828

@@ -13,19 +13,20 @@ import pytest
 from scipy import signal
 
 from aocontrol import loop_plant
-from aocontrol.adaptive import AdaptiveController, certify, lqg_designer
-from aocontrol.adaptive._realisation import (
+from aocontrol.adaptive import (
+    AdaptiveController,
     RealisedBank,
     StateSpaceRows,
     bumpless_state,
+    certify,
+    lqg_designer,
     state_space_gain,
     state_space_gains,
 )
 from aocontrol.adaptive._redesign import MAX_RECURSION_GAIN, recursion_gain
 from aocontrol.controllers import IIRBank, Integrator, LQGBank
 from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, run_loop
-from aocontrol.synthesis import TelemetryPSD, lqg
-from aocontrol.synthesis._armodel import DisturbanceModel
+from aocontrol.synthesis import DisturbanceModel, TelemetryPSD, lqg
 
 FS = 3000.0
 LATENCY = 0.828

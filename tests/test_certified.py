@@ -8,6 +8,7 @@ grid; the refinement around the poles is what finds it.
 
 from __future__ import annotations
 
+import inspect
 from unittest import mock
 
 import numpy as np
@@ -23,9 +24,10 @@ from aocontrol.analysis import margins, modulus_certificate, residual_variance
 from aocontrol.controllers import Integrator
 from aocontrol.plant import tf_from_z_inverse, z_inverse_coefficients
 from aocontrol.synthesis import InitialPoleRadiusError, _dd_starts, datadriven
-from aocontrol.synthesis._datadriven import DEFAULT_POLE_RADIUS
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*encountered in divide:RuntimeWarning:scipy")
+# The documented default of max_pole_radius (the public signature's).
+DEFAULT_POLE_RADIUS = inspect.signature(datadriven).parameters["max_pole_radius"].default
 
 # Relative agreement of the certificate with the brute force (both polish to ~1e-12 in theta;
 # the minimum is flat there, so the values agree far better than the angles).

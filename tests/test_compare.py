@@ -19,7 +19,6 @@ from aocontrol.study.compare import (
     CONTROLLERS,
     MODULUS_MARGIN,
     ControllerSpec,
-    _check_names,
     calibration_seconds,
     compare_case,
     register_controller,
@@ -27,6 +26,7 @@ from aocontrol.study.compare import (
     table_from_files,
 )
 from aocontrol.study.scene import build_scene
+from aocontrol.synthesis import get_controller
 
 # Relative slack on the designed modulus margin: the design verifies it on a dense grid,
 # margins() refines crossings, so they agree to well below 1 %.
@@ -58,7 +58,7 @@ def test_registry_has_the_paper_controllers_and_refuses_duplicates():
     assert {"reference", "omgi", "datadriven"} <= set(CONTROLLERS)
     # One controller, one spec: "integrator" is an alias of the reference, not a second entry.
     assert "integrator" not in CONTROLLERS and CONTROLLER_ALIASES["integrator"] == "reference"
-    assert _check_names("integrator", "single") is CONTROLLERS["reference"]
+    assert get_controller("integrator") is CONTROLLERS["reference"]
     assert not CONTROLLERS["reference"].needs_telemetry
     with pytest.raises(ValueError, match="already registered"):
         register_controller(CONTROLLERS["omgi"])

@@ -9,9 +9,13 @@ import pytest
 from aocontrol import loop_plant
 from aocontrol.analysis import modulus_certificate
 from aocontrol.disturbance import synthetic_turbulence_psd
-from aocontrol.synthesis import datadriven, datadriven_neighbours
-from aocontrol.synthesis._dd_neighbours import nearest_designed
-from aocontrol.synthesis._registry import CONTROLLERS, DesignInputs
+from aocontrol.synthesis import (
+    CONTROLLERS,
+    DataDrivenError,
+    DesignInputs,
+    datadriven,
+    datadriven_neighbours,
+)
 
 FS = 3000.0
 MARGIN = 0.5
@@ -30,9 +34,17 @@ def setting():
     return plant, f, psd, noise, kw, cold, near
 
 
-def test_nearest_designed():
-    np.testing.assert_array_equal(nearest_designed(7, 3), [0, 0, 1, 1, 1, 2, 2])
-    np.testing.assert_array_equal(nearest_designed(3, 1), [0, 1, 2])
+def test_each_mode_starts_from_its_nearest_designed_mode(setting):
+    # Oracle, by hand: stride 4 on 12 modes designs 0, 4, 8 cold; every other mode starts
+    # from the nearest of them, a tie (modes 2 and 6) going to the lower mode, and its report
+    # names it ("mode j (...)").
+    *_, near = setting
+    nearest = {1: 0, 2: 0, 3: 4, 5: 4, 6: 4, 7: 8, 9: 8, 10: 8, 11: 8}
+    for m, r in enumerate(near.reports):
+        if m in nearest:
+            assert r.start.startswith(f"mode {nearest[m]} ("), (m, r.start)
+        else:
+            assert not r.start.startswith("mode"), (m, r.start)
 
 
 def test_tolerance_against_cold_bank(setting):
@@ -89,8 +101,7 @@ def test_refused_warm_start_is_designed_cold(setting, monkeypatch):
     # The first warm-started mode of each warm call is refused (as the synthesis does when
     # its convexified problem is infeasible around the neighbour's design): it is designed
     # cold, alone, and reported as such; every mode stays certified.
-    from aocontrol.synthesis import _dd_neighbours
-    from aocontrol.synthesis._dd_results import DataDrivenError
+    from aocontrol.synthesis import _dd_neighbours  # the warm call, to refuse it
 
     plant, f, psd, noise, kw, *_ = setting
     real = _dd_neighbours.datadriven

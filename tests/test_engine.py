@@ -6,7 +6,8 @@ import pytest
 from threadpoolctl import threadpool_info
 
 from aocontrol.controllers import Integrator
-from aocontrol.sim._runner import _sequential_sum, drive
+from aocontrol.sim._runner import drive
+from aocontrol.sim._stage_run import _sequential_sum
 from aocontrol.sim.atmosphere import Atmosphere, Layer
 from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.loop import (

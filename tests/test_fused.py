@@ -1,4 +1,4 @@
-"""The fused frame loop of a linear stage (aocontrol.sim._runner, aocontrol.sim._fused).
+"""The fused frame loop of a linear stage (aocontrol.sim._stage_run, aocontrol.sim._fused).
 
 Oracle: the per-frame path (``_StageRun.step`` frame after frame, the controller's public
 ``step``), which the golden runs of tests/test_loop.py pin down. The numpy fused loop and
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from aocontrol.controllers import IIRBank, Integrator
-from aocontrol.sim import _fused, _runner
+from aocontrol.sim import _fused, _stage_run
 from aocontrol.sim.loop import LinearModalSensor, ModalTimeSeries, Stage, run_loop
 
 FS = 3000.0
@@ -23,14 +23,14 @@ PATHS = ("per_frame", "numpy", "compiled")
 def _run(path, monkeypatch, controller, *, latency, og=1.0, noise=0.5, n_frames=700, d=None):
     with monkeypatch.context() as mp:
         if path == "per_frame":
-            mp.setattr(_runner._StageRun, "fusable", False, raising=False)
-            orig = _runner._StageRun.__init__
+            mp.setattr(_stage_run._StageRun, "fusable", False, raising=False)
+            orig = _stage_run._StageRun.__init__
 
             def init(self, *args, **kwargs):
                 orig(self, *args, **kwargs)
                 self.fusable = False
 
-            mp.setattr(_runner._StageRun, "__init__", init)
+            mp.setattr(_stage_run._StageRun, "__init__", init)
         if path == "numpy":
             mp.setenv(_fused.ENV_NO_NUMBA, "1")
         else:
@@ -74,15 +74,15 @@ def test_fused_loops_go_on_when_the_energy_guard_trips(monkeypatch):
     # With the divergence factor at 2, the residual energy of 60 modes of equal size exceeds
     # limit^2 = (2 scale + 1)^2 in most frames while no mode exceeds the limit: the guard's
     # element-wise check runs and the loop goes on (the path of GUARD in the compiled loop).
-    monkeypatch.setattr(_runner, "_DIVERGENCE_FACTOR", 2.0)
+    monkeypatch.setattr(_stage_run, "_DIVERGENCE_FACTOR", 2.0)
     calls = []
-    orig = _runner._StageRun._diverged
+    orig = _stage_run._StageRun._diverged
 
     def counted(self, k, ae):
         calls.append(k)
         return orig(self, k, ae)
 
-    monkeypatch.setattr(_runner._StageRun, "_diverged", counted)
+    monkeypatch.setattr(_stage_run._StageRun, "_diverged", counted)
     d = np.tile(np.sign(np.sin(np.arange(400) / 7.0))[:, None], (1, 60)) * 3.0
     runs = {}
     for p in PATHS:
@@ -110,7 +110,7 @@ def test_linear_stages_take_the_fused_loop():
     # (and not for a controller with a command limit, which keeps the per-frame path).
     def fusable(controller):
         stage = Stage(controller, LinearModalSensor(1.0, 0.5), 0.5)
-        run = _runner._StageRun(
+        run = _stage_run._StageRun(
             stage, n_frames=10, record=(), settle=0, rng=np.random.default_rng(0)
         )
         return run.fusable

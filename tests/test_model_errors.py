@@ -243,16 +243,30 @@ def test_case_model_errors_are_checked_and_reach_the_loop_not_the_design():
             apply_overrides(case, {key: value})
 
 
-def test_cli_set_passes_case_values():
-    from aocontrol.study.cli import UserError, _settings
+def test_cli_set_passes_case_values(tmp_path, monkeypatch, capsys):
+    # Through the command line: `compare --set KEY=VALUE` hands the case overrides to
+    # compare_case (numbers as numbers, the rest strings), stubbed here to stop the run.
+    from aocontrol.study import compare
+    from aocontrol.study.cli import main
 
-    assert _settings(
-        ["stage2.latency_error=0.3", "seeing=0.6", "stage2.dm_time_constant=0.2 ms"]
-    ) == {
+    seen = []
+
+    def stub(case, *, overrides=None, **kwargs):
+        seen.append(overrides)
+        raise RuntimeError("stub: no run")
+
+    monkeypatch.setattr(compare, "compare_case", stub)
+    cmd = ["compare", "bright1-best", "--out", str(tmp_path)]
+    sets = ["stage2.latency_error=0.3", "seeing=0.6", "stage2.dm_time_constant=0.2 ms"]
+    assert main([*cmd, *(a for s in sets for a in ("--set", s))]) == 1
+    assert seen.pop() == {
         "stage2.latency_error": 0.3,
         "seeing": 0.6,
         "stage2.dm_time_constant": "0.2 ms",
     }
-    assert _settings([]) is None
-    with pytest.raises(UserError, match="--set takes KEY=VALUE"):
-        _settings(["latency"])
+    assert main(cmd) == 1
+    assert seen.pop() is None
+    capsys.readouterr()
+    assert main([*cmd, "--set", "latency"]) == 2  # a user error, before any run
+    assert "--set takes KEY=VALUE" in capsys.readouterr().err
+    assert seen == []

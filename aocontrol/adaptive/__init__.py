@@ -13,13 +13,11 @@ commands it returns, and every ``period`` seconds (:func:`redesign` is steps 2 t
 2. **Select** (optional, ``select``, ``max_modes``): only the modes predicted to gain the
    most are redesigned (:func:`select_modes`), ranked by ``rank``: the residual a redesign
    is predicted to recover (:func:`recoverable_gain`, ``"bound"``) or how far the residual
-   moved (:func:`residual_shift`, ``"shift"``); the others keep their controller. Measured on
-   540 turbulence modes after a 20 % wind change (``benchmarks/bench_adaptive.py --parts c
-   --sweep``): the gain of a redesign is spread over hundreds of modes, so a mode budget
-   buys time in proportion to the gain it forgoes (120 modes: 22 % of the gain; the two
-   rankings within a few per cent of each other); a coarser, shorter warm design of every
-   mode (``warm_n_grid=32``, ``warm_max_iter=1``: 76 % of the gain for a third of the CPU)
-   is the better trade.
+   moved (:func:`residual_shift`, ``"shift"``); the others keep their controller. The gain
+   of a redesign is spread over hundreds of modes, so a mode budget buys time in proportion
+   to the gain it forgoes, and a coarser, shorter warm design of every mode
+   (``warm_n_grid``, ``warm_max_iter`` of :func:`datadriven_designer`) is usually the better
+   trade (``benchmarks/bench_adaptive.py --parts c --sweep``, ``docs/benchmarks.md``).
 3. **Design.** A *designer* proposes new controllers for those modes, warm-started from the
    current ones: :func:`datadriven_designer` (``datadriven(..., initial=current)``, each
    mode's structure kept, few iterations),

@@ -192,14 +192,9 @@ class AdaptiveController(ControllerBank):
         The predicted gain of a mode (with ``select``): the residual a redesign is predicted
         to recover (:func:`recoverable_gain`: the current residual minus the design's
         efficiency times the Wiener bound on the new estimate) or how far the residual moved
-        since the design (:func:`residual_shift`). Measured (``benchmarks/bench_adaptive.py
-        --parts c --sweep``: 540 synthetic turbulence modes at 3 kHz, the wind from 10 to
-        12 m/s; CPU time, the machine loaded by other jobs): redesigning every mode with
-        ``warm_n_grid=64, warm_max_iter=8`` costs 128 s of CPU; the gain is spread over
-        hundreds of modes, so 120 modes (``select=1, max_modes=120``, 10 s of CPU) recover
-        22 % of its gain, while every mode at ``warm_n_grid=32, warm_max_iter=1`` (44 s)
-        recovers 76 %. On 54 modes each designed exactly on the old PSD the two rankings
-        give 1 to 15 % of the gain for 7 to 22 % of the modes: neither concentrates it.
+        since the design (:func:`residual_shift`). Neither ranking concentrates the gain
+        in a few modes (``benchmarks/bench_adaptive.py --parts c --sweep``,
+        ``docs/benchmarks.md``).
 
     Attributes
     ----------

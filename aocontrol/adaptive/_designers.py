@@ -83,24 +83,19 @@ def datadriven_designer(
     n_jobs : int or None, default 1
         Worker processes of the synthesis.
     warm_max_iter : int or None, default 8
-        ``max_iter`` of a warm-started design (``None``: that of ``options``). Measured on
-        turbulence modes after a 20 % wind change (3 kHz, 0.83 frame): 5 iterations reach
-        the residual of 60 within 0.5 %.
+        ``max_iter`` of a warm-started design (``None``: that of ``options``); chosen by
+        ``benchmarks/bench_adaptive.py`` (``docs/benchmarks.md``).
     warm_tol : float, default 1e-2
         ``tol`` of a warm-started design.
     warm_n_grid : int or None, default None
         ``n_grid`` of a warm-started design (``None``: that of ``options``). A warm
         redesign needs less resolution than a cold one: the exact modulus certificate
         still guards the margin, and the synthesis' fine-grid check still refuses a design
-        worse than the current controller. Measured on 540 modes after a 20 % wind change
-        (``benchmarks/bench_adaptive.py --parts c --sweep``): ``warm_n_grid=32`` with
-        ``warm_max_iter=1`` keeps 76 % of the gain of 64 points and 8 iterations for a third
-        of the CPU (a later run, after the synthesis certified each candidate once and
-        damped a refused last step: 72 % of the gain for 46 s of CPU against 60 s, on a
-        machine at load 17 to 22); with ``select=1, max_modes=230``
-        (:class:`AdaptiveController`) it is the setting that fits 10 s on 2 idle cores (18 to
-        21 s of CPU, 40 % of the gain). The loop's defaults stay 8 iterations on the cold
-        design's grid: a 24-mode loop affords them.
+        worse than the current controller. ``warm_n_grid=32`` with ``warm_max_iter=1`` keeps
+        most of the gain for a fraction of the CPU on a large bank
+        (``benchmarks/bench_adaptive.py --parts c --sweep``, ``docs/benchmarks.md``). The
+        loop's defaults stay 8 iterations on the cold design's grid: a small loop affords
+        them.
     **options
         Other keyword arguments of :func:`~aocontrol.synthesis.datadriven` (``n_grid``,
         ``max_iter``, ``hinf_weight``...).
@@ -261,23 +256,16 @@ def lqg_designer(
     ``controller_matrices``; the applied command enters the delay line, ``E = B``), its exact
     transfer function (``ss2tf``) held in the proposal's :class:`IIRBank` for the
     certificates and the mode selection; the certificate's conditioning check is then the
-    state-space gain of that realisation (:class:`Proposal.realisation`). Measured on the
-    issue's disturbance model: gains of 4e2 to 1e4 against ``1e11`` to ``1e13`` for the
-    Direct-Form I recursion of the same transfer function. No cancellation is needed.
-    Measured on ``bright1-best`` (quick scene, 24 modes), the wind doubling over 60 s,
-    W = 1 s, ``select=0.9``, latency 0.5 s (machine loaded by other jobs; residuals do not
-    depend on it): the adaptive LQG's residual 23.7 nm^2 at T = 5 s (late 25.0) and 21.7 at
-    T = 1 s, against 141.7 (late 381.9) and 49.2 in Direct-Form I with 61 and 223 mode
-    designs refused; the adaptive data-driven bank 22.5, its fixed design 27.8. No mode
-    design is refused for conditioning; those refused are LQGs predicted worse than the
-    current controller (``no_worse``).
+    state-space gain of that realisation (:class:`Proposal.realisation`), orders of magnitude
+    below that of the Direct-Form I recursion of the same transfer function. No cancellation
+    is needed (figures in ``docs/benchmarks.md``).
 
     ``realisation="direct"``: run as its transfer function in Direct-Form I. The LQG's exact
     transfer function (``ss2tf`` of its state space) carries nearly
     cancelling pole/zero pairs at the disturbance model's poles, close to ``z = 1``; in
     Direct-Form I they are internal modes with a closed-loop gain of ``1e7`` to ``1e9`` from
-    any mismatch of the recursion's state, so a bumpless switch diverged (issue 17: 8th-order
-    filters, ``a(1) = 4e-13``). They are cancelled (``cancel_near_pairs``) when the reduced
+    any mismatch of the recursion's state, so a bumpless switch can diverge. They are
+    cancelled (``cancel_near_pairs``) when the reduced
     transfer function stays within ``cancel_max_error`` of the LQG's state-space response
     (measured on the unit circle); the certificate (:func:`certify`, its recursion gain
     included) then decides what is switched in: a mode whose recursion stays ill-conditioned
@@ -301,9 +289,7 @@ def lqg_designer(
         from than the current controller (:func:`aocontrol.analysis.residual_variance`; the
         disturbance model fit failed, e.g. a 1-s window that does not resolve a slow mode's
         turbulence pole) is reported as not designed and keeps its controller, as the
-        data-driven synthesis never returns a design worse than its start. Measured (issue
-        17, ``bright1-best`` wind-doubles, T = 5 s): one such LQG, predicted 202 nm^2 against
-        the current 4, cost 600 nm^2 on its mode for a whole period.
+        data-driven synthesis never returns a design worse than its start.
     """
     cancel_rtol = check_in_range("cancel_rtol", cancel_rtol, 0.0, 1.0, high_inclusive=False)
     max_error = check_nonnegative("cancel_max_error", cancel_max_error)

@@ -1,4 +1,4 @@
-"""Well-conditioned realisations of high-order controllers in the adaptive loop (issue 17).
+"""Well-conditioned realisations of high-order controllers in the adaptive loop.
 
 A controller is one transfer function, but the loop runs a *realisation* of it, and the
 realisation decides how a mismatch of its state (a switch's initial state, round-off) reaches
@@ -181,7 +181,7 @@ def state_space_gains(plant: control.TransferFunction, rows: StateSpaceRows) -> 
     command (an observer form: the LQG's disturbance-model states reach the command only
     through the estimate) has a gain of tens to thousands; the Direct-Form I recursion of
     the same transfer function (as a state space: past measurements and commands) has
-    ``1e10`` and more (measured in ``tests/test_adaptive_realisation.py``).
+    ``1e10`` and more (``tests/test_adaptive_realisation.py`` checks both).
 
     Parameters
     ----------
@@ -366,21 +366,18 @@ def bumpless_state(
     measurements and commands, stable whatever controller applied them: the state is the
     new controller's own estimate of the loop (converged at the estimator's rate from the
     prior mean), and its first command is the command it would give on that loop: it differs
-    from the last applied command by what the two controllers disagree on (measured in
-    ``tests/test_adaptive_realisation.py``: an integrator lagging slow turbulence, a jump of
-    4 to 20 % of the command where a cold start jumps by all of it; in the issue's study the
-    residual after a switch is no higher than before). Matching the last command exactly
-    (a correction of the state of least transient energy) was tried: it vanished within a
-    frame and left the next command where it was. Returned: the state after the last frame,
+    from the last applied command by what the two controllers disagree on
+    (``tests/test_adaptive_realisation.py`` checks that it jumps by a fraction of the
+    command where a cold start jumps by all of it). Returned: the state after the last frame,
     ready for the next one. For the controller that produced the commands, started at zero at
     the same frame, it is exactly its own state.
 
     A least-squares fit of the initial state to the applied commands over the last frames
     (what :func:`~aocontrol.adaptive.bumpless_outputs` does for Direct-Form I) is used only
     for a mode whose tracking form is not stable (spectral radius of ``F - E H`` at least 1):
-    for an observer form it was measured to put a large error along the estimator's slow,
-    weakly observable directions (nearly cancelled poles near ``z = 1``), a command offset
-    that lasted the whole period (issue 17: 1e4 nm^2 on one mode).
+    for an observer form such a fit puts a large error along the estimator's slow, weakly
+    observable directions (nearly cancelled poles near ``z = 1``), a command offset that
+    lasts the whole period.
 
     Parameters
     ----------

@@ -473,8 +473,7 @@ def redesign(
     rank : {"bound", "shift"}, default "shift"
         What ranks the modes (with ``select``): the residual a redesign is predicted to
         recover (:func:`recoverable_gain`) or how far the residual moved since the design
-        (:func:`residual_shift`). Measured (``benchmarks/bench_adaptive.py`` (c), 540 modes,
-        wind 10 to 12 m/s): see :mod:`aocontrol.adaptive`.
+        (:func:`residual_shift`); see :mod:`aocontrol.adaptive`.
 
     Returns
     -------

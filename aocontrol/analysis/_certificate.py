@@ -21,8 +21,8 @@ candidates too.
 
 In floating point that polynomial can lose a dip: where the controller's poles crowd near
 ``z = 1`` (or ``-1``), ``|D|^2`` is tiny there and ``N' M - N M'`` falls to round-off, so its
-roots mean nothing (measured: a controller with five poles at radius 0.996-0.998 between 0
-and 63 Hz at 3 kHz, whose dip at 92.7 Hz, 0.899, the roots missed: they reported 1.045).
+roots mean nothing (``tests/test_certified.py`` holds such a controller, five poles at radius
+0.996-0.998, whose dip the roots miss).
 The candidates therefore also include the local minima of ``|1 + G K|``, evaluated directly
 (Horner on the circle, accurate where the polynomial in ``x`` is not), on a grid of uniform
 steps refined around every closed-loop and open-loop pole within radius 0.9 to 1.1 of the

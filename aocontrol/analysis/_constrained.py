@@ -26,9 +26,9 @@ number.
 The objective's grid must resolve ``S``: the trapezoid on ``N`` equal intervals of [0, fs/2]
 sees ``|S|^2`` (a trigonometric polynomial of degree ``L``) only at its points, and an FIR of
 ``n_taps ~ L`` taps fits a grid of ``N <= L / 2`` intervals exactly, with peaks between its
-points that the objective never sees (issue 30: a 100-point grid gave a bound 8x lower at 200
-taps than at 128, and failed at 256); short of that the bound is still low (3 % at one
-interval per degree). So a grid with an interval wider than ``fs / (4 L)`` (two intervals per
+points that the objective never sees (the bound then comes out far too low, or the solve
+fails); short of that the bound is still low by a few per cent at one interval per degree.
+So a grid with an interval wider than ``fs / (4 L)`` (two intervals per
 degree) has its intervals split into equal parts of at most ``fs / 4096`` (the constraint
 grid's resolution), the PSDs interpolated linearly there (as
 :func:`aocontrol.synthesis.datadriven`'s fine check): the bound is then the residual for the PSD
@@ -39,8 +39,8 @@ the input grid, by cutting planes: the unconstrained optimum first (often it alr
 the margin: no solve), then a problem with cones at a coarse base grid (one point per degree
 of ``S``, constant cones shared by every mode) and at the worst violating local maxima of
 ``|S|`` on the constraint grid (parameter slots), re-solved with the new violators until none
-is left. Clarabel's cost grows with the number of cones times ``n_taps^2`` (measured: 2048
-cones at 128 taps, ~10 s per solve), which the cutting planes keep small.
+is left. Clarabel's cost grows with the number of cones times ``n_taps^2``, which the
+cutting planes keep small.
 """
 
 from __future__ import annotations

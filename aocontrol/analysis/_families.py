@@ -84,7 +84,7 @@ def _im_chebyshev(c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
 
 def horner(c: np.ndarray) -> callable:
     """``theta -> c(exp(-j theta))`` for one scalar angle (Horner in plain Python: the root
-    polish calls it thousands of times, where ``numpy`` costs 20 us a call)."""
+    polish calls it thousands of times, where a ``numpy`` call's overhead dominates)."""
     coeffs = [complex(x) for x in np.asarray(c, dtype=float)[::-1]]
 
     def value(theta: float) -> complex:

@@ -141,10 +141,8 @@ def wiener_bound(
       with the FFT size doubled (those modes only) until two successive sizes agree, up to
       ``max_n_fft``; a mode still unresolved there raises a ``UserWarning`` naming it.
       Low-order turbulent modes put most of their variance below ~1 Hz, a few points of a
-      ``2**15`` grid at kHz rates: a tip PSD on a linear 2049-point grid at 3 kHz moved by
-      15x between 2**15 and 2**16 and settled at 2**19 on the bound of the same PSD
-      sampled log-spaced (within 0.3 %); a telemetry estimate of a 1.4-s record's tip/tilt
-      (variance below 0.7 Hz) at 2**18. A grid log-spaced at low frequency is still the
+      ``2**15`` grid at kHz rates, and a tip PSD may need ``2**18`` to ``2**19`` points to
+      settle (``docs/benchmarks.md``). A grid log-spaced at low frequency is still the
       better input (fewer interpolation artefacts).
     * Spectral factorisation by the cepstrum (FFT of size ``n_fft``): the total PSD must be
       > 0; it is floored at ``1e-14`` of its maximum (Paley-Wiener), and ``n_fft`` must
@@ -272,8 +270,7 @@ def _to_circle(psd: np.ndarray, freqs: np.ndarray, f_half: np.ndarray) -> np.nda
     Rows that are positive everywhere are interpolated geometrically (log-PSD linear in
     frequency): turbulence spectra fall by decades between the points of a coarse linear grid,
     and linear interpolation there would invent high-frequency power, hence unpredictability
-    (a 2049-point grid gave a tip "bound" 800x too high). Rows with zeros are interpolated
-    linearly.
+    (a "bound" far too high). Rows with zeros are interpolated linearly.
     """
     half = np.empty((psd.shape[0], f_half.size))
     for i, row in enumerate(psd):

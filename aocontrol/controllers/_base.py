@@ -83,7 +83,7 @@ _REJECT_LOG_EVERY = 1000
 
 
 def _all_finite(x: np.ndarray) -> bool:
-    """True if every element of the 1-D float array ``x`` is finite (the real-time check, ~1 us).
+    """True if every element of the 1-D float array ``x`` is finite (the real-time check).
 
     A finite ``x . x`` proves every element finite (an inf or NaN element makes it inf or
     NaN), so the common case costs one BLAS dot product, which raises no floating-point
@@ -424,7 +424,7 @@ class IIRBank(ControllerBank):
     def _recursion_state(self) -> tuple | None:
         """The state of the plain recursion, for the simulator's fused frame loop.
 
-        ``aocontrol.sim._runner`` runs the frames of a chunk of a linear stage in one loop
+        ``aocontrol.sim._stage_run`` runs the frames of a chunk of a linear stage in one loop
         that performs, per frame, exactly the operations of :meth:`step` on a finite
         measurement (same values bit for bit, tested), without the per-call checks it makes
         redundant (its measurements are finite by construction; a non-finite command is

@@ -26,8 +26,8 @@ def blas_threads(n: int):
     the same ``n`` costs nothing).
 
     The WFS products (pyramid propagation, reconstructor) are small enough that a
-    multi-threaded OpenBLAS stalls on them on a machine shared with other jobs (measured: a
-    400 x 2496 reconstructor product 25x slower in CPU time with 2 threads than with 1).
+    multi-threaded OpenBLAS stalls on them on a machine shared with other jobs (see
+    ``docs/benchmarks.md``).
     """
     if _blas_limit and _blas_limit[-1] == n:
         yield

@@ -62,12 +62,12 @@ from aocontrol.sim._runner import (
     _check_finite_disturbance,
     _ResidualMap,
     _settle,
-    _StageRun,
     drive,
     science_frames,
 )
 from aocontrol.sim._sources import PhaseDisturbance, check_rate
 from aocontrol.sim._stage import Stage
+from aocontrol.sim._stage_run import _StageRun
 from aocontrol.sim.science import LongExposure
 
 __all__ = ["run_cascade", "projection_matrix", "SCHEMES", "UpstreamRecord"]
@@ -216,10 +216,9 @@ def run_cascade(
         Default: at most 1200, and few enough that the chunk's phase in float32 stays within
         ``_CHUNK_PHASE_BYTES`` (24 MiB; 888 frames on 7084 pupil pixels). glibc's allocator
         returns a larger block to the system when it is freed (above its largest dynamic
-        mmap threshold, 32 MiB), so every chunk's phase would be fresh pages: measured on the
-        5.1-s exposure of ``benchmarks/bench_cascade.py``, 1200 frames (34 MB) against 888:
-        60 000 against 28 000 page faults, 0.53 against 0.28-0.40 s of system time. The
-        chunking changes the results at the float32 rounding of the projection only.
+        mmap threshold, 32 MiB), so every chunk's phase would be fresh pages (chosen by
+        ``benchmarks/bench_cascade.py``, ``docs/benchmarks.md``). The chunking changes the
+        results at the float32 rounding of the projection only.
     progress : bool
         Show a tqdm progress bar.
     metadata : dict, optional

@@ -1,11 +1,11 @@
 """The frames of a linear stage's chunk as one compiled loop (numba), same values bit for bit.
 
-:meth:`aocontrol.sim._runner._StageRun.run_frames` runs a linear stage (linear modal sensor,
+:meth:`aocontrol.sim._stage_run._StageRun.run_frames` runs a linear stage (linear modal sensor,
 no optical-gain tracker, no DM clip, an :class:`~aocontrol.controllers.IIRBank` without a
 command limit) in one fused loop per chunk. In numpy that loop still costs ~15 calls per
-frame (~35 us at 540 modes on the benchmark machine, most of it call overhead: the
-arithmetic is ~10 operations per mode); :func:`linear_frames` is the same loop compiled, a
-few microseconds per frame. It performs, per mode and frame, exactly the floating-point
+frame, most of its time call overhead (the arithmetic is ~10 operations per mode);
+:func:`linear_frames` is the same loop compiled. It performs, per mode and frame, exactly
+the floating-point
 operations of the numpy path in the same order (IEEE double, no fused multiply-add: numba
 contracts nothing without ``fastmath``), so the results are bit-identical (tested against
 the numpy loop and the golden runs). The one difference is the guard's residual energy,
@@ -67,7 +67,7 @@ def kernel() -> Callable | None:
 
 def warm_up() -> None:
     """Import numba and compile (or load from its cache) :func:`linear_frames` now, e.g.
-    before timing runs (~0.6 s of CPU for the import, ~1 s per signature to compile)."""
+    before timing runs (the import and each signature's compilation take seconds)."""
     compiled = kernel()
     if compiled is None:
         return

@@ -3,8 +3,8 @@
 A diffractive sensor in the loop (:class:`aocontrol.sim.wfs.DiffractiveSensor`) reads the
 residual OPD map of every frame, so the engine synthesises the stage's DM shape once per
 frame. ``basis.synthesize`` is a float64 product with the whole ``(n_modes, n_valid)`` mode
-matrix (15 MB for 400 modes on an 80-pixel pupil, read once per frame: memory bound, measured
-~5 ms per frame on a loaded machine). :class:`ShapeSynthesizer` gives the same shape:
+matrix (15 MB for 400 modes on an 80-pixel pupil, read once per frame: memory bound).
+:class:`ShapeSynthesizer` gives the same shape:
 
 * through the mirror's separable Gaussian influences when the basis carries them
   (``basis.mirror``, :class:`aocontrol.sim._projection.SeparableMirror`, and ``basis.m2c``):
@@ -12,8 +12,8 @@ matrix (15 MB for 400 modes on an 80-pixel pupil, read once per frame: memory bo
   pupil mean removed (``modes = m2c^T (F - f 1^T)``), in float32;
 * otherwise as the product with a float32 copy of the modes.
 
-Precision: float32 (relative rounding ~1e-7 of the shape, measured < 1e-5 of its largest
-value in ``tests/test_phase_maps.py``), far below what the pyramid's own single-precision
+Precision: float32 (relative rounding ~1e-7 of the shape, < 1e-5 of its largest value:
+``tests/test_phase_maps.py``), far below what the pyramid's own single-precision
 propagation rounds (complex64).
 """
 

@@ -23,8 +23,7 @@ product (else it logs why and projects densely). Precision: both paths run in fl
 coefficients are returned in float64); the separable one adds the rounding of the
 ``m2c`` product (KL command vectors of up to ~50 nm per nm RMS, whose float32 rounding
 partly cancels): relative error up to ~2e-4 of the largest coefficient of a mode instead of
-~2e-5 for the dense product -- both far below the AO residuals (measured, see
-``tests/test_projection.py``).
+~2e-5 for the dense product -- both far below the AO residuals (``tests/test_projection.py``).
 """
 
 from __future__ import annotations
@@ -59,8 +58,8 @@ def _flush_subnormal(a: np.ndarray, dtype: type) -> np.ndarray:
 
     The Gaussian influences' far tails (``exp(k d^2)`` over the whole grid) fall below the
     smallest normal number of float32 (1.2e-38): as operands of the BLAS products they cost a
-    microcode assist per multiply on x86 (measured: one row's product 2.9 ms with them, 0.2 ms
-    flushed, 1500 frames x 60 pixels x 41 actuators). Their contribution is below any float32
+    microcode assist per multiply on x86 (figures in ``docs/benchmarks.md``). Their
+    contribution is below any float32
     sum of the projection, so flushing them changes no result beyond its rounding.
     """
     out = np.array(a, dtype=dtype, order="C", copy=True)

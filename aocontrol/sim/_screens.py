@@ -206,13 +206,12 @@ class Extruder:
         Notes
         -----
         The conditional means ``A z`` are BLAS matrix-vector products, one per new column
-        (each column conditions the next), 2.5-3x cheaper than ``numpy.einsum`` (measured,
-        192-pixel screens, ``A`` of 192 x 584: 22 against 61-75 us per column); small and
+        (each column conditions the next), cheaper than ``numpy.einsum``; small and
         sequential, they want one BLAS thread (a multithreaded BLAS waking its threads for
-        each is several times slower on a loaded machine): the atmosphere extrudes under
+        each is slower on a loaded machine): the atmosphere extrudes under
         ``aocontrol.sim._blas.blas_threads(1)``. The noise terms ``B w`` are matrix-vector
-        products too, one per column (the same sums whatever ``k``; one ``numpy.einsum`` over
-        the ``k`` columns, as before, cost ~10x more).
+        products too, one per column (the same sums whatever ``k``). Figures in
+        ``docs/benchmarks.md``.
         """
         k = white.shape[0]
         n = self.size

@@ -34,9 +34,9 @@ effect is confined to spatial frequencies near the pixel Nyquist frequency ``1/(
 also modulates the pixel-scale variance at the pixel-crossing rate ``v / dx``.
 
 Low orders: with the default screen of ``2 n_pix`` pixels (16 m for the VLT) the extruded
-screens reproduce the von Kármán (L0 = 25 m) tip/tilt variance within 2 % and the
-piston-removed pupil variance within 1 % (measured over 600-3200 L0 of extrusion, 16-64
-pixels across the pupil); the tests check 10 %.
+screens reproduce the von Kármán (L0 = 25 m) tip/tilt variance and the piston-removed pupil
+variance within a few per cent over long extrusions (the tests check 10 %; figures in
+``docs/benchmarks.md``).
 
 Drifting turbulence (argument ``drift``, a :class:`aocontrol.sim.drift.Drift`): frame ``k`` is
 multiplied by ``seeing(k dt)^(5/6)`` (the phase of a screen scales as ``r0^(-5/6)``, so the
@@ -498,8 +498,8 @@ class Atmosphere:
         sub-block of ``_SUB_BLOCK`` frames, the frames are one dense product of their weights
         on the sub-block's windows (a layer moves by well under a pixel per frame, so a
         sub-block uses few more windows than one frame: ~1.4x the multiply-adds of the sparse
-        product at 10 layers, through the BLAS instead of scipy's scalar sparse loop, ~4x
-        faster). Sub-blocks are aligned on the block's start whatever the calls (a call that
+        product at 10 layers, but through the BLAS instead of scipy's scalar sparse loop,
+        hence faster). Sub-blocks are aligned on the block's start whatever the calls (a call that
         covers part of one computes it whole), so the frames do not depend on how a run is
         split into calls.
         """

@@ -27,14 +27,10 @@ multiple of stage 1's, in the ``standalone`` or ``dcao`` scheme). A run uses at 
 """
 
 from aocontrol.sim._cascade import UpstreamRecord, projection_matrix, run_cascade
+from aocontrol.sim._closed_loop import closed_loop_pole_radius
 from aocontrol.sim._gain_tracking import DitherGainTracker
 from aocontrol.sim._result import TELEMETRY, CascadeResult, LoopDivergedError, LoopResult
-from aocontrol.sim._runner import (
-    ENV_BLAS_THREADS,
-    closed_loop_pole_radius,
-    engine_blas_threads,
-    run_loop,
-)
+from aocontrol.sim._runner import ENV_BLAS_THREADS, engine_blas_threads, run_loop
 from aocontrol.sim._sources import (
     DisturbanceSource,
     ModalTimeSeries,

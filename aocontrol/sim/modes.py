@@ -41,10 +41,9 @@ convolution with ``-D(r)/2`` (``D`` the structure function; the huge von Kármá
 cancels exactly), computed by FFT on the pupil grid; all other steps work on
 ``(n_act, n_act)`` command-space matrices. Memory is three ``(n_act, n_valid)`` arrays, the
 cost ``n_act`` FFTs of ``(2 n_pix)^2`` plus two ``n_act^2 n_valid`` products and
-``n_act^3`` eigendecompositions. Measured (one thread): 540 modes of a 28x28 DM on a
-56-pixel VLT pupil, 0.5 s; 1200 modes of SAXO's 41x41 DM on 80 pixels, 3.6 s. So the
-pixel-space method is used at every size; a pupil much finer than 2-4 pixels per pitch only
-costs memory.
+``n_act^3`` eigendecompositions: seconds for SAXO's 1200 modes (``docs/benchmarks.md``). So
+the pixel-space method is used at every size; a pupil much finer than 2-4 pixels per pitch
+only costs memory.
 """
 
 from __future__ import annotations

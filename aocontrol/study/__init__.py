@@ -1,11 +1,11 @@
 """Study layer: cases, comparisons, sweeps, results files, command line and plots.
 
-Imports control and sim, never imported by them. Only :mod:`aocontrol.study.plot` imports
-matplotlib. The main jobs are here: :func:`run_configuration` (one case, controller and
-scheme), :func:`compare_case` (the paper's protocol on a case), :func:`build_scene` (what a
-case builds: pupil, bases, sensors) and :func:`run_sweep` (cases x controllers x schemes x
-seeds, local or on Dask); they are imported on first use, so ``import aocontrol.study`` stays
-light.
+Imports control and sim, never imported by them. Only :mod:`aocontrol.study.plot` (and its
+private modules) imports matplotlib. The main jobs are here: :func:`run_configuration` (one
+case, controller and scheme), :func:`compare_case` (the paper's protocol on a case),
+:func:`build_scene` (what a case builds: pupil, bases, sensors) and :func:`run_sweep` (cases x
+controllers x schemes x seeds, local or on Dask); they are imported on first use, so
+``import aocontrol.study`` stays light.
 """
 
 from aocontrol.study.aot import write_run_aot

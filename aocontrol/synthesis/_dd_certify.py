@@ -4,7 +4,7 @@ Private module of :mod:`aocontrol.synthesis._datadriven`: the controller ``K = X
 parameter vector ``v`` (see :mod:`aocontrol.synthesis._socp`), the design and dense grids,
 and :class:`_ModeCertifier`, which certifies every candidate (modulus margin over the whole
 circle, closed-loop stability, controller pole radius, ``|S|`` peaks between design points)
-and supplies :func:`~aocontrol.synthesis._socp.ccp` with grid rows, H2 weights and the
+and supplies :func:`~aocontrol.synthesis._ccp.ccp` with grid rows, H2 weights and the
 winding blocks.
 """
 
@@ -24,9 +24,10 @@ from aocontrol.analysis import (
     winding_zeros,
 )
 from aocontrol.plant import frequency_response_unchecked, tf_from_z_inverse
+from aocontrol.synthesis._ccp import Certifier, Check
 from aocontrol.synthesis._dd_context import DesignContext
 from aocontrol.synthesis._dd_grids import _interp_matrix
-from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, Certifier, Check, GridData
+from aocontrol.synthesis._socp import _P_FLOOR, POLE_FLOOR, GridData
 
 logger = logging.getLogger(__name__)
 
@@ -196,9 +197,7 @@ class _ModeCertifier(Certifier):
         """The start's ``|S|`` peaks inside the input range: H2 and margin points.
 
         The certified local minima of ``|1 + G K|`` below 1 (``|S| > 1``, worst first), not
-        on the design grid: the steps tend to deepen such a dip between design points
-        (measured on turbulence modes at 3 kHz: a dip near 870 Hz, one margin and one peak
-        cut per mode started from its neighbour's design).
+        on the design grid: the steps tend to deepen such a dip between design points.
         """
         cert = self.margin(v)
         ctx = self.ctx

@@ -26,8 +26,8 @@ def _trapezoid_weights(f: np.ndarray) -> np.ndarray:
 # A grid does not resolve the PSD when one of its intervals holds more than this share of the
 # PSD's trapezoid integral while the PSD changes across it by more than this factor (e.g. a
 # turbulence knee below the first nonzero point: the trapezoid there is a triangle whose area
-# the design, seeing two points, cannot weigh; issue 30: a 4.7-Hz first point above a 0.42-Hz
-# knee made the design a near-zero-gain integrator).
+# the design, seeing two points, cannot weigh: a 4.7-Hz first point above a 0.42-Hz knee
+# makes the design a near-zero-gain integrator).
 UNRESOLVED_SHARE, UNRESOLVED_RATIO = 0.25, 100.0
 
 

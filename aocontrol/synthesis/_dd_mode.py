@@ -17,18 +17,12 @@ import numpy as np
 
 from aocontrol._validation import is_programming_error
 from aocontrol.plant import frequency_response
+from aocontrol.synthesis._ccp import PATIENCE, ccp
 from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
 from aocontrol.synthesis._dd_context import DesignContext
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._dd_starts import bound_candidate, bound_targets, start_certified
-from aocontrol.synthesis._socp import (
-    PATIENCE,
-    GridData,
-    SolveFailure,
-    ccp,
-    get_problem,
-    true_objective,
-)
+from aocontrol.synthesis._socp import GridData, SolveFailure, get_problem, true_objective
 
 logger = logging.getLogger(__name__)
 # Modes per work item; within a chunk each mode may start from the previous mode's design.
@@ -261,9 +255,7 @@ def _design_chunk(ctx: DesignContext, items: list) -> list:
     """Design a chunk of modes in one worker; failures are returned, not raised.
 
     BLAS runs on one thread here (as in joblib's workers): the products are of a few thousand
-    rows by ~11 columns, where a second thread only waits (measured on a loaded 2-core
-    machine: 0.1 to 28 ms for one 6,203 x 11 complex product with two OpenBLAS threads,
-    0.05 ms with one; 10-20 % of a serial design's CPU).
+    rows by ~11 columns, where a second thread only waits (``docs/benchmarks.md``).
     """
     from threadpoolctl import threadpool_limits
 

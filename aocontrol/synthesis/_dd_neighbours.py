@@ -13,10 +13,10 @@ exact modulus margin over the whole circle and closed-loop stability, not grid s
 grid: a sample, not a certificate.
 
 It changes results: the tolerance against the full cold bank is measured, not assumed
-(``tests/test_datadriven_neighbours.py`` and the figures in the function's docstring). The
-cold bank itself already starts each mode from the previous mode's design within a chunk
-(2.4 to 4.6 convex solves per mode on the paper's telemetry), so the saving is the per-mode
-overhead of the coarser, shorter warm designs, not a 1-iteration-for-60 trade.
+(``tests/test_datadriven_neighbours.py`` and ``docs/benchmarks.md``). The cold bank itself
+already starts each mode from the previous mode's design within a chunk (a few convex solves
+per mode), so the saving is the per-mode overhead of the coarser, shorter warm designs, not
+a 1-iteration-for-60 trade.
 """
 
 from __future__ import annotations
@@ -93,23 +93,13 @@ def datadriven_neighbours(
     free otherwise). Every mode is certified as in a cold bank (exact modulus margin and
     stability): the warm calls are the same synthesis, which never returns a design worse
     than its start on its fine-grid residual check. A warm start the
-    synthesis refuses (its convexified problem infeasible around the neighbour's design,
-    seen on 4 of 60 dCAO modes of bright1-best) is designed cold.
+    synthesis refuses (its convexified problem infeasible around the neighbour's design) is
+    designed cold.
 
-    Measured (``stride=4``, defaults, ``n_jobs=1``, CPU time of the bank against the cold
-    bank on the same modes, calibration telemetry of ``compare_case`` seed 0, 60-mode
-    blocks, commit bea2afb, load 17 to 27): bright1-best standalone modes 0-59 1.49x less
-    CPU, summed fine residual +0.62 %, worst mode +19.8 % (mode 40),
-    95th percentile +7.2 %; bright1-best dCAO modes 200-259 1.43x, +0.35 %,
-    worst +2.1 %; red5-best standalone modes 0-59 1.94x, +0.21 %, worst +10.3 %; red5-best
-    dCAO modes 200-259 2.77x, -0.03 %, worst +2.7 %. ``stride=2``: 1.33x, +0.17 %, worst
-    +6.8 % (bright1-best standalone). Whole 400-mode banks of bright1-best (commit 98d0dc6):
-    standalone 52.6 -> 29.8 s CPU (1.77x), summed +0.18 %, 95th percentile +2.9 %, worst
-    mode +19.6 % (mode 40); dCAO 57.6 -> 39.6 s (1.46x), +0.11 %, worst +4.9 %; red5-best
-    standalone 54.8 -> 25.5 s (2.15x), -0.10 %, worst +10.9 %; dCAO 52.6 -> 31.6 s (1.67x),
-    +0.26 %, worst +9.7 % (load 5 to 27). The summed
-    residual holds 0.5 % on whole banks, but single modes lose up to 20 %: the paper's
-    comparison keeps the cold bank (option ``stride`` of the registry's design, default 1).
+    The summed residual of a whole bank stays within a fraction of a per cent of the cold
+    bank's for less CPU, but single modes can lose up to ~20 % (``docs/benchmarks.md``): the
+    paper's comparison keeps the cold bank (option ``stride`` of the registry's design,
+    default 1).
 
     Parameters
     ----------

@@ -2,11 +2,11 @@
 
 Private module of :mod:`aocontrol.synthesis._datadriven`. On resonant spectra the
 convex-concave iterations stop in a local optimum far from the margin-constrained bound
-(:func:`aocontrol.analysis.constrained_bound`) when started from an integrator: measured on the
-resonant modes of ``benchmarks/bench_synthesis.py`` part (f), 1.24 times the bound at order 5
-(worst 1.56). The bound's own controller, ``K_b = Q / (1 - G Q)`` with an FIR Youla parameter
-``Q`` of a few hundred taps, has a stable closed loop but unstable poles of its own (8 to 14
-outside the unit circle there), so it is not a start. Its sensitivity ``S_b = 1 - G Q`` is a
+(:func:`aocontrol.analysis.constrained_bound`) when started from an integrator
+(``benchmarks/bench_synthesis.py`` part (f), ``docs/benchmarks.md``). The bound's own
+controller, ``K_b = Q / (1 - G Q)`` with an FIR Youla parameter ``Q`` of a few hundred taps,
+has a stable closed loop but, in general, unstable poles of its own, so it is not a start.
+Its sensitivity ``S_b = 1 - G Q`` is a
 target instead: a controller ``K = X / Y`` of the design's order (``Y = F Y'``, ``F`` the
 fixed factor, ``Y'`` monic) whose sensitivity ``Y / (Y + G X)`` matches ``S_b`` is fitted by
 Sanathanan-Koerner iterations (each a linear least-squares problem),
@@ -118,14 +118,8 @@ def has_lines(freqs: np.ndarray, psd: np.ndarray, *, model: bool = False) -> np.
 
     Notes
     -----
-    Measured with ``bound_start_modes`` (the model test on the disturbance, the plain test
-    on disturbance plus noise): every mode of seeds 1 to 10 of ``bench_synthesis.py`` part
-    (f)'s generator (60 modes, lines 3 to 30 times the turbulence, damping 0.002 to 0.05;
-    disturbance plus noise alone: 14 of 30 for seeds 1 to 5); no mode of the 540-mode
-    turbulence bank (no local maximum; 0.04 s CPU for the bank, the former test 0.06 s); of 40
-    turbulence modes estimated from telemetry (four records), 0 or 1 with the pre-whitened
-    estimate (the default), 2 to 4 with plain Welch (its scatter above the noise), 39 or
-    40 without the model test.
+    Which modes it selects on the benchmark's resonant and turbulence banks and on modes
+    estimated from telemetry: ``docs/benchmarks.md``.
     """
     psd = np.atleast_2d(psd)
     out = np.zeros(psd.shape[0], dtype=bool)
@@ -367,9 +361,9 @@ def start_certified(ctx, cert, dense, v: np.ndarray) -> bool:
 
     Besides the certificates of the iterations (``cert.check``), the margin is also checked on
     the dense grid: a second, independent test for a start that did not come from the
-    iterations (measured: the stationary-point certificate can miss a dip when controller
-    poles crowd near ``z = 1``; this test refuses such a start where the dip is below the
-    margin on the grid).
+    iterations (the stationary-point certificate can miss a dip when controller poles crowd
+    near ``z = 1``; this test refuses such a start where the dip is below the margin on the
+    grid).
     """
     if not cert.check(v).ok:
         return False

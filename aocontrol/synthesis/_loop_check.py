@@ -1,9 +1,9 @@
 """Is this telemetry the loop it claims to be? The command sign and scale, from the data alone.
 
 A file whose commands enter with the other sign, or in another unit than its measurements, is
-read without complaint and gives a wrong pseudo-open loop ``pol = m + G u``: issue 30 measured a
-predicted residual of 26.76 nm instead of 14.64 and modes designed with gains of 4.5e-7. This
-module tells it from the telemetry itself, before a design is made.
+read without complaint and gives a wrong pseudo-open loop ``pol = m + G u``, hence a wrong
+predicted residual and wrong designs. This module tells it from the telemetry itself, before
+a design is made.
 
 Sign. With the loop conventions of :mod:`aocontrol.synthesis._telemetry` (``u = K m``, the
 residual ``d - G u``), the measurement is ``m = S pol`` with ``S = 1 / (1 + L)``, ``L = G K``,
@@ -18,8 +18,8 @@ outside the unit circle (Jensen's formula; Kolmogorov-Szego). ``(1 - L) / (1 + L
 loop closed with positive feedback, unstable for any controller with integral action (``L``
 is large and positive at low frequency). So the wrong sign's pseudo-open loop is strictly
 less predictable, by the factor ``prod |z_i|^2`` whatever the disturbance and the noise:
-``1 / 1.274^2 = 0.616`` for an integrator of gain 0.3 with 0.4 frame of latency (measured
-0.611-0.619 on simulated telemetry), 0.52 at gain 0.5, 0.91 at gain 0.05 and 1.5 frames.
+``1 / 1.274^2 = 0.616`` for an integrator of gain 0.3 with 0.4 frame of latency, 0.52 at
+gain 0.5, 0.91 at gain 0.05 and 1.5 frames.
 The statistic is the ratio of the innovation variances of ``m + G u`` and ``m - G u``
 (least-squares AR fits, one per mode, the median over the modes checked): below 1 the sign is
 the loop's, above 1 it is the other one; near 1 (a loop without integral action, open-loop

@@ -18,8 +18,7 @@ re-injects it), the disturbance through ``S``. The telemetry alone estimates ``P
 :func:`aocontrol.synthesis.disturbance_from_telemetry` splits it into a disturbance and a
 white floor; a coloured ``v`` (the aliasing follows the turbulence's temporal spectrum) is
 then counted as disturbance, weighted by ``|S|^2 ~ 0`` at the low frequencies where ``|T|^2
-~ 1``, and the residual predicted too low (0.4-0.8 of the measured one for a diffractive
-pyramid on the comparison's quick scenes, issue 15).
+~ 1``, and the residual predicted too low (for a diffractive pyramid: ``docs/benchmarks.md``).
 
 Why not from telemetry alone (a gain scan): for a linear time-invariant controller ``m`` and
 ``u`` are filters of ``pol`` (``m = S og pol``, ``u = K m``), and ``pol = z^-1 d + v / og``
@@ -36,8 +35,8 @@ with the estimator of the disturbance (same grid), and :func:`split_sensor_error
 from the telemetry's disturbance PSD to a coloured noise PSD that
 :func:`aocontrol.analysis.residual_variance` sends through ``T``.
 
-Assumptions: ``v`` uncorrelated with the disturbance (measured on the quick scenes: the
-cross term changes the reference integrator's residual by < 2 %), and not changed by the
+Assumptions: ``v`` uncorrelated with the disturbance (checked on the comparison's quick
+scenes, ``docs/benchmarks.md``), and not changed by the
 controller (the error is the sensor's at the residual level of the calibration run; the
 non-linear part grows with the residual).
 """

@@ -339,11 +339,10 @@ def disturbance_from_telemetry(
        extended_noise_level`), corrected from median to mean for the
        chi-square statistics of Welch estimates (``nu ~ 2 K / (1 + 2 c^2)`` degrees of
        freedom for ``K`` segments, ``c = 1/6`` the overlap correlation of Hann at 50 %).
-       The extension cuts the level's per-mode scatter (the top 20 % of a 1.37-s record at
-       3 kHz: +-5-11 %), which steps 4-5 would turn into a positive bias of the disturbance
+       The extension cuts the level's per-mode scatter (several per cent on the top 20 % of
+       a short record), which steps 4-5 would turn into a positive bias of the disturbance
        (a low level leaves its excess over the whole noise-dominated band, a high one is
-       clipped): bright 1 best quick, linear, the predicted / measured residual of the
-       standalone cells 1.050-1.084 before, 0.994-1.040 with it (3 seeds). Robust to a few
+       clipped; ``docs/benchmarks.md``). Robust to a few
        disturbance lines in the band; biased high if the disturbance is not negligible in
        the band itself (bright low-order modes at low ``fs``): then narrow the band or pass
        a known noise level to the synthesis instead.
@@ -352,9 +351,9 @@ def disturbance_from_telemetry(
        the Welch scatter of the noise (relative standard deviation ``sqrt(2 / nu)``, 27 % for
        15 segments) around a disturbance far below it; clipping each bin at zero keeps the
        positive half of that scatter, a bias of ~10 % of the noise level in every such bin,
-       which a loop's ``|S|^2 ~ 1-2`` there turns into a predicted residual 16-33 % above the
-       measured one in noise-limited loops (measured on the comparison's cases and on a
-       synthetic oracle: ``tests/test_telemetry_prediction.py``). So the excess of each bin
+       which a loop's ``|S|^2 ~ 1-2`` there turns into a predicted residual well above the
+       true one in noise-limited loops (``tests/test_telemetry_prediction.py``,
+       ``docs/benchmarks.md``). So the excess of each bin
        below 3 standard deviations of the scatter (disturbance not detected) is first
        replaced by the mean excess of such bins within one octave around it (the scatter
        averaged away, the local disturbance level kept); bins where the disturbance is
@@ -363,8 +362,8 @@ def disturbance_from_telemetry(
        below the first Welch bin (1-6 Hz for segments of 512-1024 frames at 1-3 kHz); the
        Hann window leaks it into the first bins, where a loop's ``|S|^2`` is no longer small,
        and the plain PSD predicts (and the designs fight) a residual several times the real
-       one (measured in the comparison: 14.5 nm predicted for 7.1 nm measured with the plain
-       estimate). The classic cure is pre-whitening: the Welch PSD of the first difference
+       one (``docs/benchmarks.md``). The classic cure is pre-whitening: the Welch PSD of the
+       first difference
        ``Delta pol = Delta m + G Delta u``, flat at low frequency, divided by the expected
        Welch estimate of differenced unit white noise, ``2 (1 - rho cos(2 pi f / fs))``
        (``rho`` the Hann window's lag-1 autocorrelation; ``|1 - z^-1|^2`` up to the window's
@@ -377,9 +376,9 @@ def disturbance_from_telemetry(
        times ... as long, up to 4,096 frames or the whole record if shorter, each give their
        bins 2 and 3 below what
        the shorter segments cover (a dyadic multi-resolution grid, each interval covered
-       once; the finest level also gives its bin 1). Before, that variance sat in the 0-Hz
-       bin, where ``|S|^2 = 0``, and the predicted residual came out 17-19 % low in the
-       comparison's bright dCAO cases (:func:`_below_second_bin`).
+       once; the finest level also gives its bin 1). Left in the 0-Hz bin, where
+       ``|S|^2 = 0``, that variance would be missing from the predicted residual
+       (:func:`_below_second_bin`).
     7. Below the finest bin ``f1`` (0 Hz to ``fs / 4096`` or the finest level's first bin):
        the variance the differenced record cannot see there (the pseudo-open loop's variance
        minus the noise's, minus the PSD's integral from ``f1`` up) is spread with the
@@ -387,11 +386,10 @@ def disturbance_from_telemetry(
        (:func:`_below_finest_bin`; the PSD integrates to at least the pseudo-open loop's
        variance minus the noise, more when the trapezoid between the dyadic points
        overestimates a steep spectrum's integral: up to 6-12 % for ``f^-2`` spectra with
-       corners at 0.3-1 Hz on 4,096 frames). Before, it went into the 0-Hz bin as a spike:
-       weighted by ``|S(0)|^2 = 0`` with integral action (a low-gain integrator's residual
-       on an ``f^-4`` spectrum came out 0.66 of the true one, now 0.985:
-       ``tests/test_telemetry_prediction.py``), and a line the Wiener bound's FFT grid did
-       not resolve.
+       corners at 0.3-1 Hz on 4,096 frames). As a spike in the 0-Hz bin it would be weighted
+       by ``|S(0)|^2 = 0`` with integral action, and be a line the Wiener bound's FFT grid
+       does not resolve (``tests/test_telemetry_prediction.py`` checks a low-gain
+       integrator's predicted residual on an ``f^-4`` spectrum within 10 %).
 
     Parameters
     ----------
@@ -502,9 +500,9 @@ def _welch_differenced(diff: np.ndarray, fs: float, nperseg: int) -> tuple[np.nd
     As :func:`aocontrol.analysis.welch_psd` but without removing the record mean: the
     differenced record has zero mean by construction, and its sample mean ``(pol[-1] -
     pol[0]) / (n - 1)`` is a ramp of ``pol`` that the Hann window puts into bin 1 (``L c /
-    4`` for a segment of ``L`` frames). Removing it biased the first bin of a one-segment
-    estimate high by 1.7x (4,096 frames) to 6x (32,768 frames) on a spectrum flat at low
-    frequency; :func:`_whitening` is the expectation without mean removal.
+    4`` for a segment of ``L`` frames). Removing it would bias the first bin of a one-segment
+    estimate high, by several times on a long record of a spectrum flat at low frequency
+    (``docs/benchmarks.md``); :func:`_whitening` is the expectation without mean removal.
     """
     nper = min(nperseg, diff.shape[0])
     f, pxx = signal.welch(

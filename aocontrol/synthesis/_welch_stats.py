@@ -128,8 +128,8 @@ def extended_noise_level(
 ) -> tuple[np.ndarray, np.ndarray]:
     """White noise level per mode from the noise band extended down while it stays flat.
 
-    The level measured on the band alone scatters with its few bins (the top 20 % of a
-    1.37-s record at 3 kHz: +-5-11 % per mode), and the disturbance estimate turns that
+    The level measured on the band alone scatters with its few bins (several per cent per
+    mode on the top 20 % of a short record), and the disturbance estimate turns that
     scatter into a bias: where the level comes out low the excess ``POL - level`` over the
     whole noise-dominated band is kept as disturbance (weighted by ``|S|^2 ~ 1-2`` in a
     prediction), where it comes out high the negative excess is clipped (docs/fidelity.md,

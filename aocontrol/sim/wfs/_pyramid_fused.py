@@ -1,16 +1,16 @@
 """The pyramid frame's memory-bound element-wise passes as compiled loops (numba; private
 helper of :mod:`._pyramid_propagation`).
 
-Of a closed-loop pyramid frame (80 px, 40x40, 40 modulation points, single precision), the two
-products took 41 % of the CPU time and the element-wise passes around them most of the rest
-(issue 19, measured on main 7fec829): the y tilts of step x's output and the constant row
-(23 %), writing the direct images into the product buffer before the second product (7 %) and
-the intensity sums over the products (13 %), each a separate numpy pass over a few MB. Here:
+Besides its two matrix products, a closed-loop pyramid frame spends most of its CPU time in
+element-wise passes (profile in ``docs/benchmarks.md``): the y tilts of step x's output and
+the constant row, writing the direct images into the product buffer before the second
+product and the intensity sums over the products, each a separate numpy pass over a few MB.
+Here:
 
 * :func:`tilt_rows` writes the y tilts and the constant row in one pass, with the numpy
   path's floating-point operations in its order (float32 products, the constant row summed row
   after row in float32 and scaled in float64): bit for bit the numpy buffers (tested);
-* :func:`intensity_terms` adds the direct images to the product (which the second product now
+* :func:`intensity_terms` adds the direct images to the product (which the second product
   writes with ``beta = 0``: the same sum, the two terms in the other order) and accumulates the
   squares and the cross terms in one pass over the product, in float64 (the numpy path sums
   in float32 with numpy's ``einsum`` order): equal to float32 rounding (tested).

@@ -25,16 +25,13 @@ applied as matrix products (no FFT per frame), exact rewrites of the discrete mo
 
 Step x (complex ``L``, one product per parity class for all pairs) is shared by the two points
 of a pair; step y is one real product ``[u 1; v 0] @ [Y_c, Y_s of every pair; constant row]``
-per parity class for all points: half the FLOPs of the complex per-point products it replaced
-(issue 15: 135 instead of 213 MFLOP per frame at SAXO+ sampling, ``benchmarks/bench_pyramid.py
---flops``). Single precision by default (``complex64`` / ``float32``; the difference from
-double precision is < 1e-5 of the largest pixel, tested against frames of the former
-propagation). The element-wise passes between and after the products (y tilts, constant row,
-direct images, intensity sums) are two compiled loops (:mod:`._pyramid_fused`, numba; the numpy
-passes without numba or with ``$AOCONTROL_NO_NUMBA``): the same frames to float32 rounding (the
-sums in float64); CPU per frame at SAXO+ sampling (80 px, 40x40) 1.21x less at 40 points, 1.35x
-at 20, and 1.18x less for the whole closed-loop frame of ``benchmarks/bench_pyramid.py`` (500
-modes; issue 19, alternating rounds in one process, load 17-24).
+per parity class for all points: half the FLOPs of complex per-point products
+(``benchmarks/bench_pyramid.py --flops``). Single precision by default (``complex64`` /
+``float32``; the difference from double precision is < 1e-5 of the largest pixel, tested
+against reference frames). The element-wise passes between and after the products (y tilts,
+constant row, direct images, intensity sums) are two compiled loops (:mod:`._pyramid_fused`,
+numba; the numpy passes without numba or with ``$AOCONTROL_NO_NUMBA``): the same frames to
+float32 rounding (the sums in float64), in less CPU (``docs/benchmarks.md``).
 
 The functions take the plan (:func:`build_plan`), the work buffers (:func:`work_buffers`) and
 the chunks of modulation pairs explicitly; the sensor (:class:`.pyramid.PyramidWFS`) owns them

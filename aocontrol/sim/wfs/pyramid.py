@@ -114,7 +114,7 @@ class PyramidWFS(WavefrontSensor):
         BLAS threads of the propagation's matrix products, set for the duration of each call
         (``threadpoolctl``; the setting is process-wide while the call runs). 1 by default:
         on a machine shared with other jobs a multi-threaded BLAS stalls on products of this
-        size (measured: 5-10x slower).
+        size (``docs/benchmarks.md``).
 
     Notes
     -----
