@@ -81,12 +81,7 @@ class Cell:
     def ratio_interval(self, z: float = 2.0) -> tuple[float, float, float]:
         """Predicted / measured RMS and its interval ``ratio (1 -+ z s)``, ``s`` the two
         relative standard errors in quadrature: ``(ratio, low, high)`` (NaN bounds when a
-        standard error is not available).
-
-        Issue 15: bright 1 best, quick scene, diffractive stage 2, 0.5-s exposures: a
-        reference integrator predicted at 1.17x its measured residual had ``s`` = 0.13 (the
-        tip and tilt of a 1.4-s calibration and of a 0.5-s exposure); over eight exposure
-        seeds its measured RMS ranged 11.2-16.6 nm around a prediction of 14.2 nm.
+        standard error is not available). An example of its width is in docs/benchmarks.md.
         """
         if not (isinstance(z, (int, float)) and z > 0):
             raise ValueError(f"z must be a number > 0, got {z!r}")

@@ -30,8 +30,7 @@ Reuse: in both cascades stage 1 never sees stage 2, so the gain-scan runs, the t
 runs and the exposures of :func:`compare_case` each compute their stream's atmosphere, its
 projection on both bases and stage 1 once, and replay them for the other stage-2 controllers
 and the other scheme (:class:`aocontrol.sim.loop.UpstreamRecord`): every run's result is the
-same bit for bit as a run alone (tested). Measured at full scale (``bright1-best``, one run,
-loaded machine): the 14 scan runs 2.65x and three 2-s exposures 1.9x fewer CPU seconds. Not
+same bit for bit as a run alone (tested); the saving is measured in docs/benchmarks.md. Not
 with a stage-2 sensor that reads phase maps (the diffractive one), nor with "two-pass"
 optical gains.
 """
