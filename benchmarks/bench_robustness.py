@@ -13,9 +13,14 @@ Protocol, per case (stage 2, standalone cascade, the case's sensor settings):
    under it (the pseudo-open loop rebuilt with the wrong plant) and redesigns from it;
 3. printed per (error, magnitude, controller): the stage-2 residual RMS, the raw contrast at
    1-2 and 4-6 lambda/D, and the fraction of the nominal gain over the reference that remains,
-   ``retained = (1 - v / v_ref)_error / (1 - v / v_ref)_nominal`` (``v`` residual variances);
-   a diverged run is a row ("diverged"), never a crash. The plot: retained gain against the
-   error's magnitude, a line per controller, a panel per error.
+   ``retained = (1 - v / v_ref)_error / (1 - v / v_ref)_nominal`` (``v`` residual variances),
+   and the loss ``v_error / v_nominal`` of the controller itself; a diverged run is a row
+   ("diverged"), never a crash. The plots: retained gain and loss against the error's
+   magnitude, a line per controller, a panel per error;
+4. for the latency and loop-gain errors, whether the stability margins of every mode
+   (:func:`aocontrol.analysis.margins` on the design plant: the exact gain and delay
+   intervals) predict the run stable, and how many runs agree with the simulator (whose own
+   check is the closed-loop poles of the true plant).
 
 Usage: python benchmarks/bench_robustness.py [--quick] [--cases bright1-best,red1-fast]
        [--seconds 1] [--out robustness-output] [--errors latency,gain,...]
@@ -32,6 +37,7 @@ import warnings
 
 import numpy as np
 
+from aocontrol.analysis import margins
 from aocontrol.sim.loop import LoopDivergedError
 from aocontrol.study._simulate import run_summary, simulate_scene
 from aocontrol.study.cases import apply_overrides, load_case
@@ -46,6 +52,7 @@ CONTROLLERS = (
     "datadriven",
     "datadriven-robust",
     "datadriven-integral",
+    "eof",
 )
 #: Model errors: name -> [(label, magnitude, case overrides)].
 ERRORS = {
@@ -53,11 +60,15 @@ ERRORS = {
         ("-0.3 frame", -0.3, {"stage2.latency_error": -0.3}),
         ("+0.3 frame", 0.3, {"stage2.latency_error": 0.3}),
         ("+0.6 frame", 0.6, {"stage2.latency_error": 0.6}),
+        ("+1 frame", 1.0, {"stage2.latency_error": 1.0}),
+        ("+2 frames", 2.0, {"stage2.latency_error": 2.0}),
     ],
     "loop gain": [
         ("x0.7", 0.7, {"stage2.optical_gain_error": 0.7}),
         ("x1.3", 1.3, {"stage2.optical_gain_error": 1.3}),
         ("x1.6", 1.6, {"stage2.optical_gain_error": 1.6}),
+        ("x2.2", 2.2, {"stage2.optical_gain_error": 2.2}),
+        ("x3", 3.0, {"stage2.optical_gain_error": 3.0}),
     ],
     "gain drift": [
         (
@@ -74,6 +85,7 @@ ERRORS = {
     "DM lag": [
         ("0.1 ms", 1e-4, {"stage2.dm_time_constant": "0.1 ms"}),
         ("0.3 ms", 3e-4, {"stage2.dm_time_constant": "0.3 ms"}),
+        ("1 ms", 1e-3, {"stage2.dm_time_constant": "1 ms"}),
     ],
     "misregistration": [
         ("0.1 subap", 0.1, {"stage2.misregistration_shift_x": 0.1}),
@@ -87,6 +99,35 @@ ERRORS = {
         ("+0.3 frame", 0.3, {"stage2.latency_error": 0.3}),
     ],
 }
+#: The unit of each error's magnitude (the plots' axes).
+UNITS = {"latency": "frames", "loop gain": "factor", "gain drift": "amplitude", "DM lag": "s",
+         "misregistration": "subapertures", "pol-latency": "frames"}  # fmt: skip
+
+
+#: Errors the stability margins decide, and how: a latency change [frames] inside every mode's
+#: delay interval, a loop-gain factor inside every mode's gain interval.
+PREDICTED = {
+    "latency": lambda m, x: m.stable and m.delay_interval[0] < x < m.delay_interval[1],
+    "loop gain": lambda m, x: m.stable and m.gain_interval[0] < x < m.gain_interval[1],
+}
+
+
+def _predicted(mar, err, magnitude) -> str:
+    """``"stable"`` / ``"unstable"`` as the margins of every mode (``mar``) predict the loop
+    under ``err`` of ``magnitude``; ``""`` where they do not decide (another error, a bank
+    without per-mode transfer functions)."""
+    if mar is None or err not in PREDICTED:
+        return ""
+    return "stable" if all(PREDICTED[err](m, magnitude) for m in mar) else "unstable"
+
+
+def _bank_margins(plant, bank):
+    """Every mode's :class:`~aocontrol.analysis.Margins` on the design plant, or ``None``
+    (a multi-mode bank: its certificate is multivariable)."""
+    try:
+        return [margins(plant, bank, mode=i) for i in range(bank.n_modes)]
+    except (NotImplementedError, TypeError):
+        return None
 
 
 def _run(case, bank, seconds, quick, overrides, seed):
@@ -153,10 +194,11 @@ def main() -> None:
         gain = scene.case.stage2.gain
         t0 = time.process_time()
         nominal_design = design_inputs(scene, "standalone", gain, seconds=cal, seed=args.seed)
-        banks = {}
+        banks, mar = {}, {}
         for name in ctrls:
             t1 = time.process_time()
             banks[name] = _design(case, name, quick, nominal_design, args.seed)
+            mar[name] = _bank_margins(nominal_design.plant, banks[name])
             base = _run(case, banks[name], args.seconds, quick, {}, args.seed)
             rows.append({"case": case, "error": "nominal", "label": "", "magnitude": 0.0,
                          "controller": name, **base})  # fmt: skip
@@ -173,8 +215,10 @@ def main() -> None:
                     run_banks = {n: _design(case, n, quick, design, args.seed) for n in ctrls}
                 for name in ctrls:
                     r = _run(case, run_banks[name], args.seconds, quick, ov, args.seed)
+                    pred = "" if err == "pol-latency" else _predicted(mar[name], err, mag)
                     rows.append({"case": case, "error": err, "label": label, "magnitude": mag,
-                                 "controller": name, **r})  # fmt: skip
+                                 "unit": UNITS[err], "controller": name, "predicted": pred,
+                                 **r})  # fmt: skip
                     print(f"{case} {err} {label} {name}: {r}", flush=True)
     _retained(rows)
     _report(rows, args.out)
@@ -186,10 +230,14 @@ def main() -> None:
 
 def _retained(rows: list[dict]) -> None:
     """``retained`` of each row: its gain over the reference of the same (case, error,
-    magnitude), over the nominal one's."""
+    magnitude), over the nominal one's; ``loss``: its residual variance over the same
+    controller's on the nominal instrument."""
     key = {(r["case"], r["error"], r["label"], r["controller"]): r for r in rows}
     for r in rows:
-        r["retained"] = math.nan
+        r["retained"] = r["loss"] = math.nan
+        nom = key.get((r["case"], "nominal", "", r["controller"]))
+        if nom is not None and r["status"] == "ok" and nom["status"] == "ok":
+            r["loss"] = (r["residual_nm"] / nom["residual_nm"]) ** 2
         ref = key.get((r["case"], r["error"], r["label"], "reference"))
         nom = key.get((r["case"], "nominal", "", r["controller"]))
         nref = key.get((r["case"], "nominal", "", "reference"))
@@ -203,29 +251,42 @@ def _retained(rows: list[dict]) -> None:
 
 
 def _report(rows: list[dict], out: str) -> None:
-    fields = ["case", "error", "label", "magnitude", "controller", "status", "residual_nm",
-              "contrast_1_2", "contrast_4_6", "strehl", "retained"]  # fmt: skip
+    fields = ["case", "error", "label", "magnitude", "controller", "status", "predicted",
+              "residual_nm", "contrast_1_2", "contrast_4_6", "strehl", "retained",
+              "loss"]  # fmt: skip
     with open(os.path.join(out, "robustness.csv"), "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)
     print(f"\n{'case':14s} {'error':16s} {'magnitude':20s} {'controller':20s} "
-          f"{'resid[nm]':>9s} {'C1-2':>9s} {'C4-6':>9s} {'retained':>8s}")  # fmt: skip
+          f"{'resid[nm]':>9s} {'C1-2':>9s} {'C4-6':>9s} {'retained':>8s} {'loss':>6s} "
+          f"{'margins':>8s}")  # fmt: skip
     for r in rows:
+        head = f"{r['case']:14s} {r['error']:16s} {r['label']:20s} {r['controller']:20s} "
+        pred = r.get("predicted", "")
         if r["status"] != "ok":
-            print(f"{r['case']:14s} {r['error']:16s} {r['label']:20s} {r['controller']:20s} "
-                  f"{'DIVERGED':>9s}")  # fmt: skip
+            print(f"{head}{'DIVERGED':>9s} {'':>9s} {'':>9s} {'':>8s} {'':>6s} {pred:>8s}")
             continue
-        print(f"{r['case']:14s} {r['error']:16s} {r['label']:20s} {r['controller']:20s} "
-              f"{r['residual_nm']:9.2f} {r['contrast_1_2']:9.2e} {r['contrast_4_6']:9.2e} "
-              f"{r['retained']:8.2f}")  # fmt: skip
+        print(f"{head}{r['residual_nm']:9.2f} {r['contrast_1_2']:9.2e} "
+              f"{r['contrast_4_6']:9.2e} {r['retained']:8.2f} {r['loss']:6.2f} {pred:>8s}")
+    decided = [r for r in rows if r.get("predicted")]
+    agree = [r for r in decided if (r["predicted"] == "stable") == (r["status"] == "ok")]
+    print(f"stability predicted by the margins (latency, loop gain): {len(agree)} of "
+          f"{len(decided)} runs agree with the simulator")  # fmt: skip
+    for r in decided:
+        if r not in agree:
+            print(f"  disagree: {r['case']} {r['error']} {r['label']} {r['controller']}: "
+                  f"predicted {r['predicted']}, run {r['status']}")  # fmt: skip
     diverged = [r for r in rows if r["status"] != "ok"]
     print(f"diverged runs: {len(diverged)} of {len(rows)}")
     for r in diverged:
         print(f"  {r['case']} {r['error']} {r['label']} {r['controller']}: {r['detail']}")
     path = os.path.join(out, "robustness.png")
     plot_robustness(rows, title="Gain over the reference integrator retained", path=path)
-    print(f"table: {os.path.join(out, 'robustness.csv')}; plot: {path}")
+    loss = os.path.join(out, "robustness-loss.png")
+    plot_robustness(rows, value="loss", title="Residual variance over the nominal instrument's",
+                    path=loss)  # fmt: skip
+    print(f"table: {os.path.join(out, 'robustness.csv')}; plots: {path}, {loss}")
 
 
 if __name__ == "__main__":

@@ -385,6 +385,24 @@ def test_certified_margin_brackets_a_brute_force_scan(latency):
     assert cert.margin_upper / cert.margin - 1 <= cert.rtol * 1.01
 
 
+@pytest.mark.parametrize("where", [0.2, 0.5, 0.8])
+def test_a_requirement_inside_the_tolerance_is_decided_the_same_in_full(where):
+    # A required margin between the certified bound and the best grid value (within rtol
+    # of each other) is undecided at convergence: the full certificate refines on until it
+    # decides, and decides as decide_only does; a certified verdict has margin >= required.
+    # (Training returned an uncertified predictor before: the search decided, the final
+    # full certificate stopped at its tolerance below the requirement.)
+    rng = np.random.default_rng(3)
+    bank = MultiModeBank(0.2 * rng.standard_normal((3, 6, 6)), FS, 0.4)
+    free = multimode_certificate(bank)
+    required = free.margin + where * (free.margin_upper - free.margin)
+    full = multimode_certificate(bank, modulus_margin=required)
+    decide = multimode_certificate(bank, modulus_margin=required, decide_only=True)
+    assert full.certified == decide.certified
+    assert (full.margin >= required) == full.certified
+    assert full.certified or full.margin_upper < required
+
+
 def test_certificate_refuses_a_predictor_built_to_be_unstable():
     # u = 3 p at latency 0: S = (1 - 3 z^-1) I, max |S| = 4 at Nyquist, margin 1/4 exactly.
     # Nominally every closed-loop map is FIR, but the controller 3 / (1 - 3 z^-1) is unstable

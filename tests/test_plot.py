@@ -183,3 +183,35 @@ def test_adapt_plot_draws_a_single_period_as_markers_and_the_fixed_design_as_a_l
     assert len({str(line.get_color()) for line in by_label.values()}) == 3
     assert [t.get_text() for t in ax.get_xticklabels()] == ["2"]
     assert (tmp_path / "adapt.png").stat().st_size > 0
+
+
+def test_robustness_plot_draws_each_controller_and_marks_a_diverged_run(tmp_path):
+    # Two controllers under one error at two magnitudes, one run diverged: a line per
+    # controller with the diverged point missing, a red cross at the axis' bottom, the
+    # error's unit on the x axis; the loss on a log axis; a bad value is named.
+    rows = [{"case": "c", "error": "nominal", "label": "", "magnitude": 0.0,
+             "controller": c, "status": "ok", "retained": 1.0, "loss": 1.0}
+            for c in ("ref", "dd")]  # fmt: skip
+    for c, (r1, r2) in {"ref": (0.9, 0.8), "dd": (0.95, None)}.items():
+        for mag, r in ((1.0, r1), (2.0, r2)):
+            rows.append({"case": "c", "error": "latency", "label": f"+{mag}", "magnitude": mag,
+                         "unit": "frames", "controller": c,
+                         "status": "ok" if r else "diverged", "retained": r or float("nan"),
+                         "loss": 1.0 / r if r else float("nan")})  # fmt: skip
+    fig = plot.plot_robustness(rows, path=tmp_path / "rob.png")
+    _png_ok(tmp_path / "rob.png")
+    ax = fig.axes[0]
+    _labelled(ax)
+    assert "frames" in ax.get_xlabel()
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert list(lines["ref"].get_ydata()) == [0.9, 0.8]
+    dd = np.asarray(lines["dd"].get_ydata(), dtype=float)
+    assert dd[0] == 0.95 and np.isnan(dd[1])
+    crosses = [ln for ln in ax.get_lines() if ln.get_marker() == "x"]
+    assert len(crosses) == 1 and list(crosses[0].get_xdata()) == [2.0]
+    fig = plot.plot_robustness(rows, value="loss")
+    assert fig.axes[0].get_yscale() == "log"
+    with pytest.raises(ValueError, match="value must be one of"):
+        plot.plot_robustness(rows, value="strehl")
+    with pytest.raises(ValueError, match="at least one model error"):
+        plot.plot_robustness(rows[:2])

@@ -241,11 +241,16 @@ def _refine(norm, n_first, required, rtol, max_evaluations, decide_only):
         bound = max(float(upper.max()), float(bounds.max()))
         converged = bound <= lo * (1.0 + rtol)
         decided = limit is not None and (lo > limit or (decide_only and bound <= limit))
-        if converged or decided:
+        # A requirement between the largest value found and the bound is not yet decided,
+        # however close the two: the verdict is the certificate, so refine on.
+        open_verdict = limit is not None and lo <= limit < bound
+        if decided or (converged and not open_verdict):
             break
         # Bisect every interval that could hold a value above the target: the largest value
-        # found (within rtol), or the requirement's limit when only the decision is wanted.
-        target = limit if decide_only and limit is not None else lo * (1.0 + rtol)
+        # found (within rtol), or the requirement's limit when only the decision is wanted
+        # or the only thing left open.
+        on_limit = limit is not None and (decide_only or converged)
+        target = limit if on_limit else lo * (1.0 + rtol)
         refine = np.flatnonzero(bounds > target)
         if theta.size + refine.size > max_evaluations:
             logger.warning(

@@ -41,6 +41,8 @@ class Cell:
         Long-exposure Strehl ratio at the science wavelength, in (0, 1].
     mean_contrast_4_6 : float
         Mean raw contrast over 4-6 lambda/D after the perfect coronagraph.
+    mean_contrast_1_2 : float
+        The same over 1-2 lambda/D (NaN in a cell read from a file written before it).
     residual_rms_nm : float
         Stage-2 modal residual RMS [nm] (measured).
     predicted_rms_nm : float

@@ -76,10 +76,12 @@ def plot_adapt(
 def plot_robustness(
     rows: Sequence[Mapping[str, Any]],
     *,
+    value: str = "retained",
     title: str | None = None,
     path: str | os.PathLike | None = None,
 ) -> Any:
-    """Gain retained under model errors: a panel per (case, error), a line per controller.
+    """Gain retained (or loss) under model errors: a panel per (case, error), a line per
+    controller.
 
     Parameters
     ----------
@@ -87,7 +89,11 @@ def plot_robustness(
         One per run: ``case``, ``error`` (``"nominal"`` for the reference point), ``magnitude``
         (the error's size, in its own unit), ``controller``, ``status`` (``"ok"`` or
         ``"diverged"``) and ``retained`` (the fraction of the nominal gain over the reference
-        integrator that remains). A diverged run is a red cross at 0.
+        integrator that remains) or ``loss`` (the residual variance over the same
+        controller's on the nominal instrument), as ``value`` says. A diverged run is a red
+        cross at the bottom of its panel.
+    value : {"retained", "loss"}, default "retained"
+        The figure plotted (the loss on a log axis).
     title : str, optional
         Figure title.
     path : str or os.PathLike, optional
@@ -97,6 +103,9 @@ def plot_robustness(
     -------
     matplotlib.figure.Figure
     """
+    labels = {"retained": "gain retained [1]", "loss": "residual variance / nominal [1]"}
+    if value not in labels:
+        raise ValueError(f"value must be one of {list(labels)}, got {value!r}")
     errors = [e for e in dict.fromkeys(r["error"] for r in rows) if e != "nominal"]
     cases = list(dict.fromkeys(r["case"] for r in rows))
     if not errors or not cases:
@@ -119,16 +128,20 @@ def plot_robustness(
                 if not pts:
                     continue
                 x = np.array([m for m, _ in pts])
-                y = np.array([r["retained"] if r["status"] == "ok" else np.nan for _, r in pts])
+                y = np.array([r[value] if r["status"] == "ok" else np.nan for _, r in pts])
                 ax.plot(x, y, "o-", ms=3, lw=1.0, color=colors[c],
                         label=c if (i, j) == (0, 0) else None)  # fmt: skip
                 bad = np.array([r["status"] != "ok" for _, r in pts])
-                if bad.any():
-                    ax.plot(x[bad], np.zeros(bad.sum()), "x", color="r", ms=8)
+                if bad.any():  # at the bottom of the axis, whatever its scale
+                    ax.plot(x[bad], np.zeros(bad.sum()), "x", color="r", ms=8,
+                            transform=ax.get_xaxis_transform())  # fmt: skip
             ax.axhline(1.0, color="k", lw=0.6, ls=":")
+            if value == "loss":
+                ax.set_yscale("log")
             ax.set_title(f"{case}: {err}", fontsize="small")
-            ax.set_xlabel("error magnitude")
-            ax.set_ylabel("gain retained [1]")
+            units = {r.get("unit") for r in rows if r["error"] == err} - {None, ""}
+            ax.set_xlabel(f"error [{units.pop()}]" if len(units) == 1 else "error magnitude")
+            ax.set_ylabel(labels[value])
             ax.grid(True, alpha=0.3)
     fig.legend(loc="outside lower center", ncol=min(len(ctrls), 6), fontsize="small")
     if title:

@@ -314,6 +314,11 @@ class _Certifier:
             else:
                 low = mid
         bank, cert = self(high)
+        if not cert.certified:  # the full certificate decides as decide_only did; a guard
+            raise EOFNotCertifiedError(
+                f"the predictor at regularisation {high:.3g} passed the search but not its "
+                f"full certificate (margin bound {cert.margin:.4g}, required {self.margin:g})"
+            )
         return bank, cert, high
 
 
