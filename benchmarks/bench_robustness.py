@@ -267,8 +267,10 @@ def _report(rows: list[dict], out: str) -> None:
         if r["status"] != "ok":
             print(f"{head}{'DIVERGED':>9s} {'':>9s} {'':>9s} {'':>8s} {'':>6s} {pred:>8s}")
             continue
-        print(f"{head}{r['residual_nm']:9.2f} {r['contrast_1_2']:9.2e} "
-              f"{r['contrast_4_6']:9.2e} {r['retained']:8.2f} {r['loss']:6.2f} {pred:>8s}")
+        print(
+            f"{head}{r['residual_nm']:9.2f} {r['contrast_1_2']:9.2e} "
+            f"{r['contrast_4_6']:9.2e} {r['retained']:8.2f} {r['loss']:6.2f} {pred:>8s}"
+        )
     decided = [r for r in rows if r.get("predicted")]
     agree = [r for r in decided if (r["predicted"] == "stable") == (r["status"] == "ok")]
     print(f"stability predicted by the margins (latency, loop gain): {len(agree)} of "
