@@ -2,7 +2,7 @@
 
 Sources: the API from the docstrings (autodoc + numpydoc), the README's tour and its notes on
 python-control (included, one source), the science cases table (generated from the case files
-at build time), and the five notebooks of ``notebooks/``, executed at build time in their quick
+at build time), and the six notebooks of ``notebooks/``, executed at build time in their quick
 mode (``AOCONTROL_NOTEBOOK_QUICK=1``, a few minutes on 2 cores) by myst-nb, so the rendered
 pages carry their outputs and figures. The notebooks are stored without outputs; a notebook
 that fails to run fails the build. No pandoc, no network: MathJax is served from the site.
