@@ -38,7 +38,8 @@ import warnings
 
 import numpy as np
 
-from aocontrol.analysis import is_stable, margins
+from aocontrol.analysis import is_stable, margins, multimode_closed_loop_poles
+from aocontrol.controllers import MultiModeBank
 from aocontrol.plant import plant_latency, with_latency
 from aocontrol.sim.loop import LoopDivergedError
 from aocontrol.study._simulate import run_summary, simulate_scene
@@ -85,9 +86,9 @@ ERRORS = {
         ),
     ],  # fmt: skip
     "DM lag": [
-        ("0.1 ms", 1e-4, {"stage2.dm_time_constant": "0.1 ms"}),
-        ("0.3 ms", 3e-4, {"stage2.dm_time_constant": "0.3 ms"}),
-        ("1 ms", 1e-3, {"stage2.dm_time_constant": "1 ms"}),
+        ("0.1 ms", 0.1, {"stage2.dm_time_constant": "0.1 ms"}),
+        ("0.3 ms", 0.3, {"stage2.dm_time_constant": "0.3 ms"}),
+        ("1 ms", 1.0, {"stage2.dm_time_constant": "1 ms"}),
     ],
     "misregistration": [
         ("0.1 subap", 0.1, {"stage2.misregistration_shift_x": 0.1}),
@@ -102,7 +103,7 @@ ERRORS = {
     ],
 }
 #: The unit of each error's magnitude (the plots' axes).
-UNITS = {"latency": "frames", "loop gain": "factor", "gain drift": "amplitude", "DM lag": "s",
+UNITS = {"latency": "frames", "loop gain": "factor", "gain drift": "amplitude", "DM lag": "ms",
          "misregistration": "subapertures", "pol-latency": "frames"}  # fmt: skip
 
 
@@ -121,7 +122,14 @@ def _predicted(plant, bank, mar, err, magnitude) -> str:
     (:func:`aocontrol.analysis.is_stable`: outside its interval a loop may be stable again,
     a conditionally stable loop at a longer latency); ``""`` where the analysis does not
     decide (another error, a bank without per-mode transfer functions)."""
-    if mar is None or err not in CERTIFIED:
+    if err not in CERTIFIED:
+        return ""
+    if isinstance(bank, MultiModeBank):  # the multivariable loop's poles, the plant changed
+        lat = bank.latency_frames + magnitude if err == "latency" else None
+        og = magnitude if err == "loop gain" else 1.0
+        poles = multimode_closed_loop_poles(bank, latency_frames=lat, optical_gain=og)
+        return "stable" if np.abs(poles).max() < 1.0 else "unstable"
+    if mar is None:
         return ""
     if all(CERTIFIED[err](m, magnitude) for m in mar):
         return "certified"

@@ -93,7 +93,7 @@ def plot_robustness(
         controller's on the nominal instrument), as ``value`` says. A diverged run is a red
         cross at the bottom of its panel.
     value : {"retained", "loss"}, default "retained"
-        The figure plotted (the loss on a log axis).
+        The figure plotted (the loss on a log axis where it spans more than 20x).
     title : str, optional
         Figure title.
     path : str or os.PathLike, optional
@@ -136,8 +136,14 @@ def plot_robustness(
                     ax.plot(x[bad], np.zeros(bad.sum()), "x", color="r", ms=8,
                             transform=ax.get_xaxis_transform())  # fmt: skip
             ax.axhline(1.0, color="k", lw=0.6, ls=":")
-            if value == "loss":
-                ax.set_yscale("log")
+            finite = [
+                r[value]
+                for r in rows
+                if r["case"] == case and r["error"] == err and r["status"] == "ok"
+                and np.isfinite(r[value]) and r[value] > 0
+            ]  # fmt: skip
+            if value == "loss" and finite and max(finite) / min(finite) > 20:
+                ax.set_yscale("log")  # only where the spread needs it
             ax.set_title(f"{case}: {err}", fontsize="small")
             units = {r.get("unit") for r in rows if r["error"] == err} - {None, ""}
             ax.set_xlabel(f"error [{units.pop()}]" if len(units) == 1 else "error magnitude")
