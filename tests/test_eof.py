@@ -1,7 +1,11 @@
-"""Multi-mode (EOF / LMMSE) predictor: oracles, real-time path, certificate, bad input.
+"""Multi-mode (EOF / LMMSE) predictor: oracles, integral action, real-time path,
+certificate, bad input.
 
 Loop conventions of :mod:`aocontrol.plant`: ``G = z^-1 ((1 - f) z^-k + f z^-(k+1))``, the
 pseudo-open loop ``p = m + G u = z^-1 d + n`` and the command ``u = sum_j A_j p[k-j]``.
+The oracles of a zero-mean stationary process (VAR(1), AR(2)) are those of the free
+least-squares predictor (``integral_action=False``): its best predictor has a DC gain
+``F(1) != I``, which the default (``F(1) = I``, ``S(1) = 0``) forbids.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.synthesis import (
     DesignInputs,
     DisturbanceModel,
+    EOFNotCertifiedError,
     LoopTelemetry,
     disturbance_from_telemetry,
     eof_from_pseudo_open_loop,
@@ -99,8 +104,10 @@ def test_var1_predictor_reaches_the_one_step_prediction_error(var1):
     # linear predictor is phi d[t-1] and its error is the innovation w[t] exactly. The
     # predictor is trained on the closed-loop telemetry of an integrator (noise-free) and run
     # in the simulator on a fresh record: its residual over the innovation's, same frames.
+    # The free predictor: phi's DC gain is not I.
     phi, train, test, w = var1
-    res = eof_predictor(_telemetry(train, 0.0), history=2, modulus_margin=0.3)
+    res = eof_predictor(_telemetry(train, 0.0), history=2, modulus_margin=0.3,
+                        integral_action=False)  # fmt: skip
     assert res.regularisation == res.validation_regularisation  # the margin did not bind
     np.testing.assert_allclose(res.controller.taps[0], phi, atol=0.05)
     e = _closed_loop_residual(res.controller, test, 0.0)
@@ -117,7 +124,8 @@ def test_var1_per_mode_predictor_fails_the_same_check(var1):
     n = phi.shape[0]
     taps = np.zeros((2, n, n))
     for i in range(n):
-        one = eof_from_pseudo_open_loop(pol[:, [i]], FS, 0.0, history=2, modulus_margin=0.3)
+        one = eof_from_pseudo_open_loop(pol[:, [i]], FS, 0.0, history=2, modulus_margin=0.3,
+                                        integral_action=False)  # fmt: skip
         taps[:, i, i] = one.controller.taps[:, 0, 0]
     e = _closed_loop_residual(MultiModeBank(taps, FS, 0.0), test, 0.0)
     assert np.sum(e**2) / np.sum(w[100:] ** 2) > 1.0 + 5 * ORACLE_RTOL
@@ -143,12 +151,14 @@ def test_independent_ar_modes_match_wiener_bound_and_lqg(ar2_modes):
     # (k-step prediction error; the fractional part handled exactly), and the LQG with the
     # true model reaches it. The predictor, trained on telemetry, must reach both within 2 %.
     # Sampling: 50,000 test frames (relative scatter of the summed variance ~0.5 %); the LQG
-    # runs on the same record, so that ratio is free of the scatter.
+    # runs on the same record, so that ratio is free of the scatter. The free predictor: the
+    # Wiener predictor of a stationary AR process has F(1) != I.
     model, train, test = ar2_modes
     plant = loop_plant(FS, LATENCY_AR)
     f = np.linspace(0.0, FS / 2, 20_001)
     bound = wiener_bound(plant, f, model.psd(f)).sum()
-    res = eof_predictor(_telemetry(train, LATENCY_AR), history=5, modulus_margin=0.1)
+    res = eof_predictor(_telemetry(train, LATENCY_AR), history=5, modulus_margin=0.1,
+                        integral_action=False)  # fmt: skip
     assert res.regularisation == res.validation_regularisation  # the margin did not bind
     eof = np.sum(_closed_loop_residual(res.controller, test, LATENCY_AR) ** 2, axis=0)
     lqg = LQGBank(lqg_state_space(model, LATENCY_AR, 0.0))
@@ -163,9 +173,23 @@ def test_one_frame_history_misses_the_ar2_optimum(ar2_modes):
     model, train, test = ar2_modes
     f = np.linspace(0.0, FS / 2, 20_001)
     bound = wiener_bound(loop_plant(FS, LATENCY_AR), f, model.psd(f)).sum()
-    res = eof_predictor(_telemetry(train, LATENCY_AR), history=1, modulus_margin=0.1)
+    res = eof_predictor(_telemetry(train, LATENCY_AR), history=1, modulus_margin=0.1,
+                        integral_action=False)  # fmt: skip
     e = _closed_loop_residual(res.controller, test, LATENCY_AR)
     assert np.sum(e**2) / e.shape[0] / bound > 1.0 + 5 * ORACLE_RTOL
+
+
+def test_integral_action_misses_the_ar2_optimum_by_its_price(ar2_modes):
+    # Twin of the Wiener oracle: with F(1) = I the predictor cannot be the Wiener predictor
+    # of a stationary AR process (whose DC gain is below 1), so the 2 % check fails; the
+    # price of integral action on these modes stays small (measured 1.080 of the bound).
+    model, train, test = ar2_modes
+    f = np.linspace(0.0, FS / 2, 20_001)
+    bound = wiener_bound(loop_plant(FS, LATENCY_AR), f, model.psd(f)).sum()
+    res = eof_predictor(_telemetry(train, LATENCY_AR), history=5, modulus_margin=0.1)
+    e = _closed_loop_residual(res.controller, test, LATENCY_AR)
+    ratio = np.sum(e**2) / e.shape[0] / bound
+    assert 1.0 + ORACLE_RTOL < ratio < 1.15, ratio
 
 
 # -- frozen flow -----------------------------------------------------------------------------
@@ -198,7 +222,8 @@ def frozen_flow():
 def test_frozen_flow_predictor_beats_the_modal_lqg(frozen_flow):
     # The multi-mode predictor, certified at a multivariable margin of 0.4, against the LQG
     # designed from the same telemetry (AR(2) per mode, noise from the telemetry), both at
-    # latency 1 frame, scored on another stretch of sky. Measured: 2.1x (seeds 1/2).
+    # latency 1 frame, scored on another stretch of sky. Measured: 1.83x (seeds 1/2; 2.08x
+    # for the free predictor on this stationary sky).
     tel, run = frozen_flow
     eof = eof_predictor(tel, history=FF_HISTORY, modulus_margin=FF_MARGIN)
     assert eof.certificate.certified and eof.certificate.margin >= FF_MARGIN
@@ -212,7 +237,7 @@ def test_frozen_flow_predictor_beats_the_modal_lqg(frozen_flow):
 def test_frozen_flow_gain_needs_the_other_modes(frozen_flow):
     # Twin: the same training per mode (each mode from its own past, same history and
     # margin) loses part of the gain; the coupling across modes is worth > 15 % here
-    # (measured 1.34x).
+    # (measured 1.22x; 1.34x for the free predictors).
     tel, run = frozen_flow
     full = eof_predictor(tel, history=FF_HISTORY, modulus_margin=FF_MARGIN).controller
     pol = pseudo_open_loop(tel.measurements, tel.commands, loop_plant(FS, FF_LATENCY))[3:]
@@ -225,6 +250,119 @@ def test_frozen_flow_gain_needs_the_other_modes(frozen_flow):
     r_full = run(full, 2).residual_variance.sum()
     r_diag = run(per_mode, 2).residual_variance.sum()
     assert r_diag / r_full > 1.15, (r_diag, r_full)
+
+
+# -- integral action -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ar2_telemetry(ar2_modes):
+    """6,000 frames of integrator telemetry on the AR(2) modes (zero-mean, stationary)."""
+    _, train, _ = ar2_modes
+    return _telemetry(train[:6000], LATENCY_AR)
+
+
+@pytest.mark.parametrize("regularisation", [1e-8, 1e-2, 1.0, 1e4, None])
+def test_integral_action_puts_a_zero_of_the_sensitivity_at_dc(ar2_telemetry, regularisation):
+    # Oracle: G(1) = 1, so S(1) = I - sum_j A_j, and the constraint F(1) = I makes it 0 to
+    # rounding whatever the weight (given, or chosen on data and raised to a margin of 0.5).
+    # Twin: the free predictor of these zero-mean stationary modes has a DC gain well below I.
+    res = eof_predictor(ar2_telemetry, history=3, regularisation=regularisation,
+                        modulus_margin=0.5)  # fmt: skip
+    assert res.integral_action and res.certificate.certified
+    s_dc = np.eye(4) - res.controller.taps.sum(axis=0)
+    assert np.abs(s_dc).max() < 1e-12
+    free = eof_predictor(ar2_telemetry, history=3, regularisation=regularisation,
+                         modulus_margin=0.5, integral_action=False)  # fmt: skip
+    assert np.abs(np.eye(4) - free.controller.taps.sum(axis=0)).max() > 0.05
+
+
+def test_an_offset_is_rejected_exactly_with_integral_action(ar2_telemetry):
+    # Oracle: S = I - G F is FIR of degree D = k + 1 + ceil(f) + h - 1, so from frame D on the
+    # residual of a constant disturbance c is exactly S(1) c: 0 with integral action, and
+    # (I - F(1)) c for the free predictor trained on zero-mean data (the static error of a
+    # loop without integral action, on an offset the training record did not hold).
+    # Float64 real-time path; the recorded residual is float32 (relative rounding 6e-8).
+    c = np.array([100.0, -50.0, 30.0, 80.0])
+    d = np.tile(c, (60, 1))
+    h = 3
+    k0, f = split_latency(LATENCY_AR)
+    degree = k0 + 1 + (1 if f > 0 else 0) + h - 1
+    for integral in (True, False):
+        res = eof_predictor(ar2_telemetry, history=h, modulus_margin=0.5, precision="float64",
+                            integral_action=integral)  # fmt: skip
+        e = _closed_loop_residual(res.controller, d, LATENCY_AR, settle=0)[degree:]
+        expected = (np.eye(4) - res.controller.taps.sum(axis=0)) @ c
+        np.testing.assert_allclose(e, np.tile(expected, (e.shape[0], 1)), rtol=0,
+                                   atol=1e-6 * np.abs(c).max())  # fmt: skip
+        if not integral:
+            assert np.abs(expected).max() > 0.05 * np.abs(c).max()
+
+
+def test_random_walks_certified_at_half_margin_beat_the_best_integrator():
+    # Four random walks (all power at low frequency, like turbulence seen by a slow loop) plus
+    # 1 nm of white measurement noise, latency 1 frame. The predictor, trained on 6,000 frames
+    # of integrator telemetry and certified at a margin of 0.5, against the best integrator
+    # (gain scanned, no margin required) on the same fresh record and noise. Measured 10.6
+    # against 11.3 nm^2 (gain 0.40). Twin: the free predictor, whose DC gain misses I by
+    # ~1 %, keeps a static error on the walks and loses to the integrator (13.0 nm^2).
+    rng = np.random.default_rng(7)
+    train = np.cumsum(rng.standard_normal((6000, 4)), axis=0)
+    test = np.cumsum(rng.standard_normal((20_000, 4)), axis=0)
+    latency, noise = 1.0, 1.0
+    stage = Stage(Integrator(0.3, fs=FS, n_modes=4), LinearModalSensor(1.0, noise), latency)
+    tel = run_loop(stage, ModalTimeSeries(train, FS), train.shape[0], rng=1,
+                   record=("measurements", "commands")).telemetry  # fmt: skip
+    tel = LoopTelemetry(np.asarray(tel["measurements"], dtype=float),
+                        np.asarray(tel["commands"], dtype=float), FS, latency)  # fmt: skip
+
+    def score(ctrl):
+        e = _closed_loop_residual(ctrl, test, latency, settle=200, noise=noise, rng=2)
+        return float(np.mean(np.sum(e**2, axis=1)))
+
+    gains = np.arange(0.25, 0.6, 0.05)
+    integrators = [score(Integrator(g, fs=FS, n_modes=4)) for g in gains]
+    best = int(np.argmin(integrators))
+    assert 0 < best < gains.size - 1  # the scan brackets the best gain
+    eof = eof_predictor(tel, history=5, modulus_margin=0.5)
+    assert eof.certificate.certified and eof.certificate.margin >= 0.5
+    assert score(eof.controller) <= integrators[best]
+    free = eof_predictor(tel, history=5, modulus_margin=0.5, integral_action=False)
+    assert score(free.controller) > integrators[best]
+
+
+@pytest.mark.parametrize(("history", "latency"), [(2, 1.0), (4, LATENCY_AR), (5, 3.0)])
+def test_large_weight_limit_is_the_mean_of_the_history(ar2_modes, history, latency):
+    # Oracle: lam -> inf gives A_j = I / h (the smallest ||A|| with F(1) = I), whose loop
+    # S = (1 - G M_h) I has the margin 1 / max |1 - G M_h| (brute force on 100,001
+    # frequencies), above 1/2 for h >= 2; the certificate brackets it.
+    _, train, _ = ar2_modes
+    res = eof_from_pseudo_open_loop(train[:3000], FS, latency, history=history,
+                                    regularisation=1e12, modulus_margin=0.5)  # fmt: skip
+    np.testing.assert_allclose(res.controller.taps, np.tile(np.eye(4) / history, (history, 1, 1)),
+                               rtol=0, atol=1e-9)  # fmt: skip
+    theta = np.linspace(0.0, np.pi, 100_001)
+    zi = np.exp(-1j * theta)
+    k0, f = split_latency(latency)
+    g = zi ** (k0 + 1) * ((1 - f) + f * zi)
+    mean = np.mean(zi[:, None] ** np.arange(history), axis=1)
+    brute = 1.0 / np.abs(1.0 - g * mean).max()
+    cert = res.certificate
+    assert 0.5 < brute and cert.margin <= brute <= cert.margin_upper * (1 + 1e-12)
+
+
+def test_a_margin_beyond_the_limit_is_refused_at_once(ar2_modes):
+    # History 1 with integral action is persistence: S = 1 - z^-2 at latency 1, margin 1/2
+    # exactly, which a certificate cannot prove; history 2 has the limit margin 0.549 (the
+    # oracle above): 0.6 is refused naming the limit, 0.5 is certified.
+    _, train, _ = ar2_modes
+    pol = train[:3000]
+    with pytest.raises(EOFNotCertifiedError, match="limit for a large regularisation"):
+        eof_from_pseudo_open_loop(pol, FS, 1.0, history=1, modulus_margin=0.5)
+    with pytest.raises(EOFNotCertifiedError, match=r"mean of the last 2 frames\) at most 0\.5"):
+        eof_from_pseudo_open_loop(pol, FS, 1.0, history=2, modulus_margin=0.6)
+    ok = eof_from_pseudo_open_loop(pol, FS, 1.0, history=2, modulus_margin=0.5)
+    assert ok.certificate.certified and ok.certificate.margin >= 0.5
 
 
 # -- real-time path --------------------------------------------------------------------------

@@ -21,10 +21,37 @@ with ``e = trace(G) / (n h)`` the regressors' mean energy over the data (``G`` t
 matrix): ``lam`` is dimensionless, and the penalty is what white noise of variance
 ``lam x`` (the mean POL variance per mode) added to every regressor would cost, in the
 common unit of the modal coefficients. It bounds the predictor's gain in every direction
-alike, which is what the multivariable margin needs; a penalty scaled per regressor (ridge
-on standardised regressors) leaves the low-variance, high-order directions free and was
-measured much worse for it (margin 0.29 at 9x the residual of the unit penalty at margin
-0.30, on a noise-free frozen-flow record of 30 modes).
+alike, which is what the multivariable margin needs (a penalty scaled per regressor, ridge
+on standardised regressors, was measured much worse: ``docs/benchmarks.md``).
+
+Integral action (``integral_action=True``, the default): the minimum is taken subject to
+
+    F(1) = sum_j A_j = I,
+
+so ``S(1) = I - G(1) F(1) = 0`` for every weight: the loop rejects a constant disturbance
+exactly (``S`` has a zero at ``z = 1``), and the prediction is unbiased whatever the
+disturbance's mean (the condition of "ordinary kriging": the weights of an unbiased linear
+predictor under an unknown constant mean sum to one). Without it (``False``) least squares
+gives the best predictor of the record as if it were zero-mean and stationary; its DC gain
+``F(1)`` falls below ``I`` where the record has little power at low frequency or much
+noise, and the loop keeps a static error ``(I - F(1)) d`` on any offset, drift or slow
+transient the record did not hold (a loop converging upstream, seeing changing over
+minutes). A record of ``T`` frames holds a few independent samples of its frequencies
+below a few ``fs / T``, where turbulence has most of its power: integral action is the
+default, ``False`` the plain LMMSE predictor for a disturbance known to be zero-mean and
+stationary (it reaches a VAR or AR process's prediction error, which the constraint
+misses by its price: ``docs/benchmarks.md``).
+
+The constraint is solved exactly by a change of variables: ``A = A_mean + X (U x I_n)^T``
+with ``A_mean = [I | ... | I] / h`` (the mean of the last ``h`` frames, the smallest
+``||A||_F`` with ``F(1) = I``), ``U`` of shape ``(h, h - 1)`` an orthonormal basis of the
+zero-sum vectors and ``X`` of shape ``(n, n (h - 1))`` free. ``A_mean`` is orthogonal to
+every admissible ``A - A_mean``, so ``||A||_F^2 = ||A_mean||_F^2 + ||X||_F^2``: the problem
+is a ridge regression in ``X`` (same weight ``lam e``) of the target ``p[t+1] - A_mean
+z[t]`` on the regressors ``(U x I_n)^T z[t]``, ``z[t] = [q[t-k]; ...; q[t-k-h+1]]`` (the
+zero-sum combinations of the last ``h`` frames, blind to a constant); its Gram matrix and
+cross terms follow from those of ``z`` by the same small transformation. ``lam -> inf``
+gives ``A -> A_mean``. With ``history=1`` nothing is free: ``A_0 = I``, persistence.
 
 Noise, honestly. The target ``p[t+1] = d[t] + n[t+1]`` and the regressors carry the
 measurement noise, as on an instrument. The noise ``n[t+1]`` is white and later than every
@@ -40,26 +67,43 @@ Choice of ``lam`` (when not given): the last ``validation_fraction`` (default 20
 frames is held back; the predictor is fitted on the first part for every ``lam`` of
 :data:`REGULARISATION_GRID` and ``lam`` is the one with the smallest residual on the held-back
 part (the future of the training data, so a drift counts against overfitting). Every
-weight comes from one eigendecomposition of the scaled Gram matrix ``G / e = V diag(s) V^T``:
-``A(lam) = (B / e) V diag(1 / (s + lam)) V^T`` and the held-back residual is a quadratic form in
-``1 / (s + lam)``. The predictor is then refitted on all frames with that ``lam`` (a
-Cholesky solve): 25 % more data for the final taps; the weight chosen on 80 % is then, if
-anything, slightly too large (a safe bias).
+weight comes from one eigendecomposition of the scaled Gram matrix ``G / e = V diag(s) V^T``
+(with integral action, that of the free variables ``X``): ``A(lam) = (B / e) V diag(1 / (s +
+lam)) V^T`` (``B`` the cross terms) and the held-back residual is a quadratic form in ``1 /
+(s + lam)``. The predictor is then refitted on all frames with that ``lam`` (a Cholesky
+solve): 25 % more data for the final taps; the weight chosen on 80 % is then, if anything,
+slightly too large (a safe bias).
 
 Certificate, never skipped: the controller's loop is certified by
 :func:`aocontrol.analysis.multimode_certificate` (stability structural and checked on the
 real-time path, multivariable margin ``min sigma_min(I + G K)`` bounded over the whole
 circle). Below the required margin, ``lam`` is multiplied by 4 and the predictor refitted
-until it is met (``lam -> inf`` gives ``F -> 0``, ``S = I``, margin 1, so this ends), then
-the last step is bisected to a factor ~1.19; the result says which weight and margin were
-certified. The margin costs residual: ``S = I - G F`` with a short FIR ``F`` cannot shape
-``|S|`` as an IIR controller can, so a margin of 0.5 behind a two-frame delay costs far
-more here than it costs the data-driven modal design (measured in
-``benchmarks/bench_eof.py``).
+until it is met, then the last step is bisected to a factor ~1.19; the result says which
+weight and margin were certified. This ends when the limit ``lam -> inf`` meets the
+requirement, so the limit is certified first whenever the weight chosen on data fails:
+
+* without integral action the limit is ``F = 0``, ``S = I``, margin 1 (an open loop);
+* with it the limit is the mean of the last ``h`` frames, ``F = I M_h``,
+  ``M_h(z) = (1 + z^-1 + ... + z^-(h-1)) / h``: ``S = (1 - G M_h) I``. For ``h >= 2``,
+  ``|M_h| < 1`` off ``z = 1`` and ``|G| <= 1``, so ``max |S| < 2`` and the margin is above
+  1/2 at every latency (at latency 0.83, ``h = 2, 5, 20``: 0.579, 0.654, 0.746; at an
+  integer latency it falls as the latency grows, latency 3 and ``h = 2``: 0.515). With
+  ``h = 1`` (persistence, ``S = 1 - G``) it is exactly 1/2 at an integer latency: a
+  requirement of 1/2 cannot be certified there.
+
+A limit below the requirement ends the search at once with
+:class:`EOFNotCertifiedError` (a longer history, a lower margin or ``integral_action=False``
+are the ways out). The margin costs residual: ``S = I - G F`` with a short FIR ``F`` cannot
+shape ``|S|`` as an IIR controller can, so a margin of 0.5 behind a two-frame delay costs
+far more here than it costs the data-driven modal design; and a short FIR with ``F(1) = I``
+cannot average the noise over as many frames as a low-gain integrator does (its white-noise
+gain is at least ``1 / h``): in a noise-limited loop the history must be long
+(measurements: ``benchmarks/bench_eof.py``, ``docs/benchmarks.md``).
 
 Cost (``n`` modes, history ``h``, ``T`` frames, ``N = n h``): the Gram matrix from ``h``
 products ``n x T x n`` (its block Toeplitz structure: the other blocks by rank-one
-updates) and ``h`` for the cross terms; one ``N x N`` eigendecomposition and two ``N^3``
+updates) and ``h`` for the cross terms; with integral action their transformation to the
+free variables, ``O(h^3 n^2)``; one ``N x N`` eigendecomposition and two ``N^3``
 products for the validation scan; one Cholesky per refit; the certificate's ``O(n^3)``
 per frequency. Memory ``O(N^2)``; the ``T x N`` regressor matrix is never formed.
 
@@ -125,10 +169,11 @@ class EOFResult:
     certificate : MultiModeCertificate
         Its loop's certificate (stability, margin bound, required margin).
     regularisation : float
-        Tikhonov weight of ``controller`` (relative to the regressors' mean energy).
+        Tikhonov weight of ``controller`` (relative to the regressors' mean energy); 0 when
+        nothing was free (``history=1`` with integral action).
     validation_regularisation : float or None
-        The weight the held-back telemetry chose (``None`` when it was given);
-        ``regularisation`` is larger when the margin required more.
+        The weight the held-back telemetry chose (``None`` when it was given or nothing
+        was free); ``regularisation`` is larger when the margin required more.
     regularisation_grid : numpy.ndarray, shape (n_grid,)
         Weights scanned (empty when the weight was given).
     validation_residual : numpy.ndarray, shape (n_grid,)
@@ -148,6 +193,8 @@ class EOFResult:
         excluded.
     certify_seconds : float
         Wall-clock time of the certificates [s].
+    integral_action : bool
+        Whether the DC gain was constrained, ``sum_j A_j = I`` (``S(1) = 0``).
     """
 
     controller: MultiModeBank
@@ -162,6 +209,7 @@ class EOFResult:
     n_validation_frames: int
     fit_seconds: float
     certify_seconds: float
+    integral_action: bool
 
 
 # -- least squares with the Gram matrix's block structure ----------------------------------
@@ -217,10 +265,78 @@ def _energy(gram: np.ndarray) -> float:
     return e if e > 0 else 1.0
 
 
-def _solve(normal: _Normal, lam: float) -> np.ndarray:
-    """``A`` minimising the regularised cost (module docstring), shape ``(n, N)``."""
-    scale = _energy(normal.gram)
-    g = normal.gram / scale
+@dataclass(frozen=True)
+class _Reduced:
+    """Normal equations in the free variables: ``gram`` (M, M), ``cross`` (n, M), ``yy``,
+    ``rows``, and ``scale`` the mean energy ``e`` of the original regressors ``z``."""
+
+    gram: np.ndarray
+    cross: np.ndarray
+    yy: float
+    rows: int
+    scale: float
+
+
+class _Parametrisation:
+    """The taps as ``A = A_fixed + X T^T`` with ``X`` free (module docstring).
+
+    Free taps: ``A_fixed = 0``, ``T = I``. Integral action: ``A_fixed = A_mean``,
+    ``T = U x I_n`` with ``U`` (h, h - 1) orthonormal, its columns orthogonal to ones.
+    """
+
+    def __init__(self, n: int, h: int, integral_action: bool) -> None:
+        self.n, self.h, self.integral_action = n, h, integral_action
+        if integral_action:
+            # Orthonormal basis of the zero-sum vectors of length h (an empty one for h = 1).
+            self.basis = scipy.linalg.null_space(np.ones((1, h))) if h > 1 else np.zeros((1, 0))
+        else:
+            self.basis = None
+
+    @property
+    def n_free(self) -> int:
+        """Free unknowns per mode, ``M``."""
+        return self.n * (self.h if self.basis is None else self.h - 1)
+
+    def reduce(self, normal: _Normal) -> _Reduced:
+        """The normal equations of ``X``: ``T^T G T``, ``(B - A_fixed G) T`` and
+        ``sum ||y - A_fixed z||^2``."""
+        scale = _energy(normal.gram)
+        if self.basis is None:
+            return _Reduced(normal.gram, normal.cross, normal.yy, normal.rows, scale)
+        n, h, U = self.n, self.h, self.basis
+        g4 = normal.gram.reshape(h, n, h, n)
+        c3 = normal.cross.reshape(n, h, n)
+        # A_mean G = (1/h) sum_j G[j, :], a row of blocks; A_mean B^T's trace and
+        # A_mean G A_mean^T's trace for the target's energy.
+        mean_g = g4.sum(axis=0).reshape(n, h * n) / h
+        yy = (normal.yy - 2.0 * float(np.trace(c3.sum(axis=1))) / h
+              + float(np.einsum("jxlx->", g4)) / h**2)  # fmt: skip
+        gram = np.tensordot(np.tensordot(U, g4, axes=(0, 0)), U, axes=(2, 0))  # (a, x, z, b)
+        gram = gram.transpose(0, 1, 3, 2).reshape(self.n_free, self.n_free)
+        cross = np.tensordot((normal.cross - mean_g).reshape(n, h, n), U, axes=(1, 0))
+        cross = cross.transpose(0, 2, 1).reshape(n, self.n_free)
+        return _Reduced(gram, cross, yy, normal.rows, scale)
+
+    def taps(self, X: np.ndarray | None) -> np.ndarray:
+        """Taps ``A_j``, shape ``(h, n, n)``, of the free variables ``X`` (n, M); ``None``
+        for the limit ``lam -> inf`` (``X = 0``)."""
+        n, h = self.n, self.h
+        if self.basis is None:
+            A = np.zeros((n, h, n)) if X is None else X.reshape(n, h, n)
+        else:
+            A = np.broadcast_to(np.eye(n)[:, None, :] / h, (n, h, n)).copy()
+            if X is not None and X.size:
+                A += np.tensordot(X.reshape(n, h - 1, n), self.basis, axes=(1, 1)).transpose(
+                    0, 2, 1
+                )
+        return np.ascontiguousarray(A.transpose(1, 0, 2))
+
+
+def _solve(reduced: _Reduced, lam: float) -> np.ndarray:
+    """``X`` minimising the regularised cost (module docstring), shape ``(n, M)``."""
+    if reduced.gram.shape[0] == 0:
+        return reduced.cross
+    g = reduced.gram / reduced.scale
     g[np.diag_indices_from(g)] += lam
     try:
         factor = scipy.linalg.cho_factor(g, lower=False, check_finite=False)
@@ -230,21 +346,21 @@ def _solve(normal: _Normal, lam: float) -> np.ndarray:
             "without enough independent frames, e.g. noise-free and smooth): give "
             "regularisation > 0 or None (chosen on held-back telemetry)"
         ) from exc
-    return scipy.linalg.cho_solve(factor, (normal.cross / scale).T, check_finite=False).T
+    return scipy.linalg.cho_solve(factor, (reduced.cross / reduced.scale).T, check_finite=False).T
 
 
-def _scan(train: _Normal, valid: _Normal, grid: np.ndarray) -> np.ndarray:
-    """Held-back residual ``sum ||y - A(lam) z||^2 / rows`` for every weight of ``grid``.
+def _scan(train: _Reduced, valid: _Reduced, grid: np.ndarray) -> np.ndarray:
+    """Held-back residual ``sum ||y - X(lam) r||^2 / rows`` for every weight of ``grid``
+    (``y`` and ``r`` the target and the regressors of the free variables ``X``).
 
     With ``G / e = V diag(s) V^T`` (``e`` the training regressors' mean energy) and
-    ``M = (B / e) V``: ``A(lam) = M diag(c) V^T``, ``c = 1 / (s + lam)``, and the held-back
+    ``M = (B / e) V``: ``X(lam) = M diag(c) V^T``, ``c = 1 / (s + lam)``, and the held-back
     residual is ``yy - 2 c . a + c^T (W o K) c`` with ``a_k = sum_i M_ik (Bv V)_ik``,
     ``W = V^T Gv V`` and ``K = M^T M``.
     """
-    scale = _energy(train.gram)
-    s, V = np.linalg.eigh(train.gram / scale)
+    s, V = np.linalg.eigh(train.gram / train.scale)
     s = np.maximum(s, 0.0)
-    M = (train.cross / scale) @ V
+    M = (train.cross / train.scale) @ V
     a = np.einsum("ik,ik->k", M, valid.cross @ V)
     WK = (V.T @ valid.gram @ V) * (M.T @ M)
     out = np.empty(grid.size)
@@ -254,23 +370,20 @@ def _scan(train: _Normal, valid: _Normal, grid: np.ndarray) -> np.ndarray:
     return out / valid.rows
 
 
-def _taps(A: np.ndarray, h: int) -> np.ndarray:
-    n = A.shape[0]
-    return np.ascontiguousarray(A.reshape(n, h, n).transpose(1, 0, 2))
-
-
 class _Certifier:
     """Fits at given weights and certifies them; finds a small weight whose loop is certified.
 
-    From the weight ``lam`` chosen on data: if its loop is not certified, the weight is
-    multiplied by 4 (from at least the grid's smallest) until it is, then the last factor
-    of 4 is bisected in ``log(lam)`` three times (to a factor 4^(1/8) ~ 1.19): the smallest
-    certified weight found is kept. The margin need not be monotone in ``lam``; every
-    returned controller is certified whatever the path.
+    From the weight ``lam`` chosen on data: if its loop is not certified, the limit
+    ``lam -> inf`` is certified (its verdict only); if it fails too, no weight is searched
+    for. Else the weight is multiplied by 4 (from at least the grid's smallest) until the
+    loop is certified, then the last factor of 4 is bisected in ``log(lam)`` three times
+    (to a factor 4^(1/8) ~ 1.19): the smallest certified weight found is kept. The margin
+    need not be monotone in ``lam``; every returned controller is certified whatever the
+    path.
     """
 
-    def __init__(self, normal, h, fs, latency, margin, limit, precision) -> None:
-        self.normal, self.h, self.fs, self.latency = normal, h, fs, latency
+    def __init__(self, reduced, param, fs, latency, margin, limit, precision) -> None:
+        self.reduced, self.param, self.fs, self.latency = reduced, param, fs, latency
         self.margin, self.limit, self.precision = margin, limit, precision
         self.fit_seconds = self.certify_seconds = 0.0
 
@@ -278,9 +391,9 @@ class _Certifier:
         self, lam: float, decide_only: bool = False
     ) -> tuple[MultiModeBank, MultiModeCertificate]:
         t0 = time.perf_counter()
-        A = _solve(self.normal, lam)
+        taps = self.param.taps(None if math.isinf(lam) else _solve(self.reduced, lam))
         t1 = time.perf_counter()
-        bank = MultiModeBank(_taps(A, self.h), self.fs, self.latency, command_limit=self.limit,
+        bank = MultiModeBank(taps, self.fs, self.latency, command_limit=self.limit,
                              precision=self.precision)  # fmt: skip
         cert = multimode_certificate(bank, modulus_margin=self.margin, decide_only=decide_only)
         self.fit_seconds += t1 - t0
@@ -294,6 +407,20 @@ class _Certifier:
         bank, cert = self(lam)
         if cert.certified:
             return bank, cert, lam
+        limit = self(math.inf, decide_only=True)[1]
+        if not limit.certified:
+            if not self.param.integral_action:
+                what = "zero"
+            elif self.param.h == 1:
+                what = "persistence, u = p"
+            else:
+                what = f"the mean of the last {self.param.h} frames"
+            raise EOFNotCertifiedError(
+                f"the predictor at regularisation {lam:.3g} has margin bound {cert.margin:.4g} "
+                f"and its limit for a large regularisation ({what}) at most "
+                f"{limit.margin_upper:.4g}, below modulus_margin {self.margin:g}: predictor "
+                "refused (a longer history, a lower modulus_margin or integral_action=False)"
+            )
         # The search only needs each weight's verdict; the one kept is certified in full.
         low = lam
         high = max(lam * _RAISE_FACTOR, float(REGULARISATION_GRID[0]))
@@ -354,6 +481,7 @@ def eof_from_pseudo_open_loop(
     regularisation: float | None = None,
     validation_fraction: float = 0.2,
     modulus_margin: float = 0.5,
+    integral_action: bool = True,
     command_limit: float | np.ndarray | None = None,
     precision: str = "float32",
     blas_threads: int | None = 1,
@@ -383,6 +511,11 @@ def eof_from_pseudo_open_loop(
         ``None``, in ``(0, 0.5]``.
     modulus_margin : float, default 0.5
         Required multivariable modulus margin ``min sigma_min(I + G K)``, in ``(0, 1)``.
+    integral_action : bool, default True
+        Constrain the predictor's DC gain to ``F(1) = sum_j A_j = I``, so ``S(1) = 0``
+        whatever the weight (module docstring); ``False``: the free least-squares
+        predictor of a zero-mean stationary record. With ``history=1`` and integral action
+        the predictor is persistence, ``u = p``, and nothing is fitted.
     command_limit : float or array_like of shape (n_modes,), optional
         The controller's limit on its command (see :class:`MultiModeBank`).
     precision : {"float32", "float64"}, default "float32"
@@ -405,7 +538,10 @@ def eof_from_pseudo_open_loop(
         more with a held-back fraction, plus ``history + k + 1`` frames), or a given
         ``regularisation`` that leaves the normal equations singular.
     EOFNotCertifiedError
-        If no weight up to ``4^40`` times the chosen one meets the required margin.
+        If the limit of a large weight (module docstring: the mean of the last ``history``
+        frames with integral action) does not meet the required margin while the weight
+        chosen on data does not either, or no weight up to ``4^40`` times the chosen one
+        meets it.
     """
     p = check_finite_array("pseudo_open_loop", pseudo_open_loop, ndim=2)
     fs = check_positive("fs", fs)
@@ -419,6 +555,7 @@ def eof_from_pseudo_open_loop(
                                     low_inclusive=False, high_inclusive=True)  # fmt: skip
     modulus_margin = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0,
                                     low_inclusive=False)  # fmt: skip
+    check_instance("integral_action", integral_action, bool)
     n_frames, n = p.shape
     _check_length("pseudo_open_loop", n_frames, n, h, latency_frames, validation, h + k0 + 1)
     if blas_threads is not None:
@@ -435,10 +572,12 @@ def eof_from_pseudo_open_loop(
         grid = np.empty(0)
         scores = np.empty(0)
         chosen = None
-        if validation is None:
+        n_valid = 0
+        param = _Parametrisation(n, h, integral_action)
+        if validation is None or param.n_free == 0:
+            # Nothing to choose: the weight is given, or nothing is free (persistence).
             normal = _normal_equations(p, q, h, k0, s_first, s_last)
-            lam = float(regularisation)
-            n_valid = 0
+            lam = 0.0 if regularisation is None else float(regularisation)
         else:
             n_rows = s_last - s_first + 1
             n_valid = max(1, int(round(validation * n_rows)))
@@ -446,7 +585,7 @@ def eof_from_pseudo_open_loop(
             train = _normal_equations(p, q, h, k0, s_first, split)
             valid = _normal_equations(p, q, h, k0, split + 1, s_last)
             grid = np.array(REGULARISATION_GRID)
-            scores = _scan(train, valid, grid)
+            scores = _scan(param.reduce(train), param.reduce(valid), grid)
             chosen = lam = float(grid[int(np.argmin(scores))])
             normal = train + valid
             logger.info(
@@ -455,8 +594,10 @@ def eof_from_pseudo_open_loop(
                 n_valid,
                 float(scores.min()),
             )
+        reduced = param.reduce(normal)
         fit_seconds = time.perf_counter() - t_start
-        design = _Certifier(normal, h, fs, latency_frames, modulus_margin, command_limit, precision)
+        design = _Certifier(reduced, param, fs, latency_frames, modulus_margin, command_limit,
+                            precision)  # fmt: skip
         bank, cert, lam = design.smallest_certified(lam)
     return EOFResult(
         controller=bank,
@@ -471,6 +612,7 @@ def eof_from_pseudo_open_loop(
         n_validation_frames=n_valid,
         fit_seconds=fit_seconds + design.fit_seconds,
         certify_seconds=design.certify_seconds,
+        integral_action=integral_action,
     )
 
 
@@ -482,6 +624,7 @@ def eof_predictor(
     regularisation: float | None = None,
     validation_fraction: float = 0.2,
     modulus_margin: float = 0.5,
+    integral_action: bool = True,
     command_limit: float | np.ndarray | None = None,
     precision: str = "float32",
     blas_threads: int | None = 1,
@@ -508,6 +651,8 @@ def eof_predictor(
         Fraction of the frames held back to choose the weight, in ``(0, 0.5]``.
     modulus_margin : float, default 0.5
         Required multivariable modulus margin, in ``(0, 1)``.
+    integral_action : bool, default True
+        Constrain the DC gain to ``F(1) = I`` (see :func:`eof_from_pseudo_open_loop`).
     command_limit : float or array_like of shape (n_modes,), optional
         The controller's limit on its command.
     precision : {"float32", "float64"}, default "float32"
@@ -553,6 +698,7 @@ def eof_predictor(
         regularisation=regularisation,
         validation_fraction=validation_fraction,
         modulus_margin=modulus_margin,
+        integral_action=integral_action,
         command_limit=command_limit,
         precision=precision,
         blas_threads=blas_threads,
