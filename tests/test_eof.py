@@ -33,11 +33,15 @@ from aocontrol.sim.dm import DeformableMirror
 from aocontrol.sim.modes import kl_basis
 from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.synthesis import (
+    EOF_HISTORY,
+    EOF_MAX_HISTORY,
+    EOF_REGRESSORS,
     DesignInputs,
     DisturbanceModel,
     EOFNotCertifiedError,
     LoopTelemetry,
     disturbance_from_telemetry,
+    eof_default_history,
     eof_from_pseudo_open_loop,
     eof_predictor,
     get_controller,
@@ -598,6 +602,24 @@ def test_registry_entry_designs_from_the_telemetrys_pseudo_open_loop(ar2_modes):
     with pytest.raises(ValueError, match="needs telemetry"):
         get_controller("eof").build(DesignInputs(plant, est.freqs, est.psd, est.noise_psd, FS,
                                                  4, 0.3))  # fmt: skip
+    # Without the option, the history the regressor budget allows: 4 modes -> the longest.
+    default = DesignInputs(plant, est.freqs, est.psd, est.noise_psd, FS, 4, 0.3, telemetry=est,
+                           modulus_margin=0.3)  # fmt: skip
+    assert get_controller("eof").build(default)[0].history == EOF_MAX_HISTORY
+
+
+@pytest.mark.parametrize(
+    ("n_modes", "history"), [(1, EOF_MAX_HISTORY), (135, 20), (136, 19), (540, 5), (1200, 5)]
+)
+def test_default_history_keeps_the_regressors_within_budget(n_modes, history):
+    assert eof_default_history(n_modes) == history
+    assert history == EOF_HISTORY or n_modes * history <= EOF_REGRESSORS
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, "24"])
+def test_default_history_names_a_bad_mode_count(bad):
+    with pytest.raises(ValueError, match="n_modes must be an integer >= 1"):
+        eof_default_history(bad)
 
 
 # -- bad input -------------------------------------------------------------------------------

@@ -39,6 +39,9 @@ __all__ = [
     "MODULUS_MARGIN",
     "MPC_HORIZON",
     "EOF_HISTORY",
+    "EOF_MAX_HISTORY",
+    "EOF_REGRESSORS",
+    "eof_default_history",
     "ControllerSpec",
     "DesignInputs",
     "register_controller",
@@ -48,8 +51,33 @@ __all__ = [
 MODULUS_MARGIN = 0.5
 #: Default MPC prediction horizon [frames].
 MPC_HORIZON = 10
-#: Default history of the multi-mode predictor ``eof`` [frames of pseudo-open loop].
+#: Shortest default history of the multi-mode predictor ``eof`` [frames of pseudo-open loop].
 EOF_HISTORY = 5
+#: Longest default history of ``eof`` [frames] (a noise-limited stage needs the longer filter:
+#: docs/benchmarks.md, "Multi-mode (EOF) predictor").
+EOF_MAX_HISTORY = 20
+#: Regressors ``n_modes x history`` the default history keeps within: the training's cost
+#: grows as their cube (540 modes x 5 frames trained in about 7 s on one core).
+EOF_REGRESSORS = 2700
+
+
+def eof_default_history(n_modes: int) -> int:
+    """The registry's history for ``n_modes`` modes: the longest within
+    :data:`EOF_REGRESSORS` regressors, between :data:`EOF_HISTORY` and
+    :data:`EOF_MAX_HISTORY` frames (20 frames up to 135 modes, 5 from 540).
+
+    Parameters
+    ----------
+    n_modes : int
+        Controlled modes (>= 1).
+
+    Returns
+    -------
+    int
+    """
+    if not (isinstance(n_modes, (int, np.integer)) and n_modes >= 1):
+        raise ValueError(f"n_modes must be an integer >= 1, got {n_modes!r}")
+    return int(max(EOF_HISTORY, min(EOF_MAX_HISTORY, EOF_REGRESSORS // int(n_modes))))
 
 
 @renamed_keyword("stroke", "command_limit", "the per-mode bound on the modal command")
@@ -259,7 +287,7 @@ def _eof_details(inp: DesignInputs) -> tuple[ControllerBank, EOFResult]:
         inp.telemetry.pseudo_open_loop[k0 + 2 :],
         inp.fs,
         latency,
-        history=inp.option("history", EOF_HISTORY),
+        history=inp.option("history", eof_default_history(inp.n_modes)),
         regularisation=inp.option("regularisation", None),
         modulus_margin=inp.modulus_margin,
     )
@@ -389,7 +417,8 @@ register_controller(
         _eof,
         parameters={
             "predictor": "multi-mode FIR on the pseudo-open loop",
-            "history": EOF_HISTORY,
+            "history": f"{EOF_HISTORY} to {EOF_MAX_HISTORY} frames, the longest within "
+            f"{EOF_REGRESSORS} regressors",
             "regularisation": "held-back telemetry",
             "modulus_margin": MODULUS_MARGIN,
         },
