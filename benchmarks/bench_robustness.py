@@ -301,8 +301,9 @@ def main() -> None:
 
 def _retained(rows: list[dict]) -> None:
     """``retained`` of each row: its gain over the reference of the same (case, error,
-    magnitude), over the nominal one's; ``loss``: its residual variance over the same
-    controller's on the nominal instrument."""
+    magnitude), over the nominal one's (``nan`` for a controller no better than the reference
+    on the nominal instrument: its ratio would have no meaning); ``loss``: its residual
+    variance over the same controller's on the nominal instrument."""
     key = {(r["case"], r["error"], r["label"], r["controller"]): r for r in rows}
     for r in rows:
         r["retained"] = r["loss"] = math.nan
@@ -317,7 +318,7 @@ def _retained(rows: list[dict]) -> None:
             continue
         g_err = 1 - (r["residual_nm"] / ref["residual_nm"]) ** 2
         g_nom = 1 - (nom["residual_nm"] / nref["residual_nm"]) ** 2
-        if abs(g_nom) > 1e-6:
+        if g_nom > 0:  # no nominal gain over the reference, nothing to retain: nan
             r["retained"] = g_err / g_nom
 
 

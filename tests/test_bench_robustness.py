@@ -46,6 +46,11 @@ def test_retained_is_the_gain_over_the_reference_under_the_error_over_the_nomina
     assert rows[3]["retained"] == pytest.approx(0.36 / 0.4375, rel=1e-12)
     assert rows[3]["loss"] == pytest.approx(16 / 9, rel=1e-12)
     assert math.isnan(rows[5]["retained"]) and rows[5]["loss"] == pytest.approx(2.25)
+    # A controller no better than the reference on the nominal instrument retains nothing.
+    worse = [_row("nominal", "", "reference", 4.0), _row("nominal", "", "w", 4.2),
+             _row("gain", "x2", "reference", 5.0), _row("gain", "x2", "w", 4.0)]  # fmt: skip
+    bench._retained(worse)
+    assert math.isnan(worse[3]["retained"]) and worse[3]["loss"] == pytest.approx((4 / 4.2) ** 2)
 
 
 @pytest.mark.parametrize(
