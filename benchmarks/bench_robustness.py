@@ -118,7 +118,7 @@ ERRORS = {
     ],
 }
 #: The errors of the sensor itself: those run with ``--sensor diffractive`` by default.
-SENSOR_ERRORS = ("loop gain", "gain drift", "misregistration")
+SENSOR_ERRORS = ("gain drift", "misregistration")
 #: The unit of each error's magnitude (the plots' axes).
 UNITS = {"latency": "frames", "loop gain": "factor", "gain drift": "amplitude", "DM lag": "ms",
          "misregistration": "subapertures", "pol-latency": "frames",
