@@ -170,6 +170,7 @@ BENCHMARKS: dict[str, Entry] = {
         ("--quick", "--parts", "c"),
     ),
     "atmosphere": Entry("bench_atmosphere.py", ()),
+    "eof": Entry("bench_eof.py", ()),
     "robustness": Entry(
         "bench_robustness.py",
         ("--cases", "bright1-best,red1-fast", "--seconds", "2"),
