@@ -421,8 +421,8 @@ def _robust_line(rep: Any) -> str:
     u = rep.uncertainty
     head = (
         f"certified over loop gain [{u.gain[0]:g}, {u.gain[1]:g}] x latency change "
-        f"[{u.latency[0]:+g}, {u.latency[1]:+g}] frames (exact in the gain; latency grid of "
-        f"<= {u.latency_step:g} frame with a bound between points): "
+        f"[{u.latency[0]:+g}, {u.latency[1]:+g}] frames (exact in both, "
+        "aocontrol.analysis.robust_margin): "
     )
     parts = []
     for label, robust in (("design", rep.robust_margins), ("OMGI", rep.reference_robust_margins)):
