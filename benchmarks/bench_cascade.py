@@ -48,7 +48,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
-from aocontrol.controllers import Integrator
+from aocontrol.controllers import IIRBank, Integrator, MultiModeBank
 from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._fused import warm_up
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
@@ -152,6 +152,27 @@ def _sensor_parts(sensor, phase, d2, b2, n_frames: int) -> dict[str, float]:
     return out
 
 
+def _stage2_controller(name: str, n: int):
+    """A stage-2 controller of the cost of a design (coefficients that keep the loop stable,
+    seeded): ``iir5`` the integrator as an order-5 recursion (4 cancelled pole-zero pairs,
+    the data-driven bank's arithmetic), ``eof`` a multi-mode predictor of history 5 with
+    dense taps (float32, one matrix-vector product per frame; FIR-stable on the nominal
+    plant whatever the taps)."""
+    if name == "integrator":
+        return Integrator(0.4, fs=FS2, n_modes=n)
+    if name == "iir5":
+        common = np.poly([0.6, 0.3, -0.2, 0.1])
+        b = np.tile(np.append(0.4 * common, 0.0), (n, 1))
+        a = np.tile(np.convolve([1.0, -1.0], common), (n, 1))
+        return IIRBank(b, a, FS2)
+    if name == "eof":
+        rng = np.random.default_rng(0)
+        taps = 1e-3 * rng.standard_normal((5, n, n))
+        taps[0] += 0.4 * np.eye(n)
+        return MultiModeBank(taps, FS2, LAT2)
+    raise SystemExit(f"--stage2-controllers: unknown {name!r}, expected integrator, iir5, eof")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=15300, help="fast frames (5.1 s at 3 kHz)")
@@ -172,6 +193,13 @@ def main() -> None:
         "--optical-gain", choices=("none", "calibrated", "tracked"), default="calibrated"
     )
     p.add_argument("--magnitude", type=float, default=5.2, help="J (diffractive; bright 1)")
+    p.add_argument(
+        "--stage2-controllers",
+        default=None,
+        help="also time the cascade with these stage-2 controllers, back to back, CPU ratios "
+        "to the first: iir5 (an order-5 IIR bank, the data-driven design's cost), eof (a "
+        "multi-mode predictor, history 5, dense taps), integrator",
+    )
     args = p.parse_args()
     if args.quick:
         args.frames, args.n_pix, args.modes1, args.modes2, args.repeat = 3000, 84, 400, 200, 1
@@ -197,7 +225,7 @@ def main() -> None:
     )
     t_wfs = time.perf_counter() - t0
 
-    def stages() -> tuple[Stage, Stage]:
+    def stages(controller2=None) -> tuple[Stage, Stage]:
         s1 = Stage(
             Integrator(0.4, fs=FS1, n_modes=b1.n_modes),
             LinearModalSensor(1.0, 2.0),
@@ -205,7 +233,7 @@ def main() -> None:
             name="SAXO",
         )
         s2 = Stage(
-            Integrator(0.4, fs=FS2, n_modes=b2.n_modes),
+            controller2 or Integrator(0.4, fs=FS2, n_modes=b2.n_modes),
             sensor2,
             LAT2,
             name="SAXO+",
@@ -220,8 +248,8 @@ def main() -> None:
             pupil, SEEING, TAU0, FS2, n_layers=args.layers, rng=1, dtype=np.float32
         )
 
-    def cascade(atm):
-        s1, s2 = stages()
+    def cascade(atm, controller2=None):
+        s1, s2 = stages(controller2)
         return run_cascade(
             s1,
             s2,
@@ -268,6 +296,17 @@ def main() -> None:
                     os.environ.pop(ENV_BLAS_THREADS)
                 else:
                     os.environ[ENV_BLAS_THREADS] = saved
+    compared = []  # (name, median CPU) per --stage2-controllers entry
+    for name in (args.stage2_controllers or "").split(","):
+        if name.strip():
+            ctrl2 = _stage2_controller(name.strip(), b2.n_modes)
+            cpu = []
+            for _ in range(args.repeat):
+                atm = atmosphere()
+                c0 = time.process_time()
+                cascade(atm, ctrl2)
+                cpu.append(time.process_time() - c0)
+            compared.append((name.strip(), statistics.median(cpu)))
     t_run = statistics.median(runs)
     c_run = statistics.median(cpus)
     threads = engine_blas_threads()
@@ -413,6 +452,11 @@ def main() -> None:
             f"wall {t_run / w_o:.2f}, CPU {c_run / c_o:.2f}"
         )
     print(f"  run time / goal ({goal:g} s): wall {t_run / goal:.2f}, CPU {c_run / goal:.2f}")
+    for name, cpu in compared:
+        print(
+            f"  stage 2 with {name}: CPU {cpu:.2f} s (median of {args.repeat}), / "
+            f"{compared[0][0]} {cpu / compared[0][1]:.2f}, / integrator {cpu / c_run:.2f}"
+        )
     if not diffractive:
         print(
             f"  cascade / single-stage loop (stage 2 alone, {t_single:.2f} s wall, "

@@ -38,7 +38,13 @@ import warnings
 
 import numpy as np
 
-from aocontrol.analysis import is_stable, margins, multimode_closed_loop_poles
+from aocontrol.analysis import (
+    UncertaintySet,
+    is_stable,
+    margins,
+    multimode_closed_loop_poles,
+    robust_margin,
+)
 from aocontrol.controllers import MultiModeBank
 from aocontrol.plant import plant_latency, with_latency
 from aocontrol.sim.loop import LoopDivergedError
@@ -101,10 +107,22 @@ ERRORS = {
     "pol-latency": [
         ("+0.3 frame", 0.3, {"stage2.latency_error": 0.3}),
     ],
+    # The corners of the robust design's set (ROBUST_SET): both errors at once.
+    "gain at -0.3 frame": [
+        ("x0.7, -0.3 frame", 0.7, {"stage2.optical_gain_error": 0.7, "stage2.latency_error": -0.3}),
+        ("x1.3, -0.3 frame", 1.3, {"stage2.optical_gain_error": 1.3, "stage2.latency_error": -0.3}),
+    ],
+    "gain at +0.3 frame": [
+        ("x0.7, +0.3 frame", 0.7, {"stage2.optical_gain_error": 0.7, "stage2.latency_error": 0.3}),
+        ("x1.3, +0.3 frame", 1.3, {"stage2.optical_gain_error": 1.3, "stage2.latency_error": 0.3}),
+    ],
 }
+#: The errors of the sensor itself: those run with ``--sensor diffractive`` by default.
+SENSOR_ERRORS = ("gain drift", "misregistration")
 #: The unit of each error's magnitude (the plots' axes).
 UNITS = {"latency": "frames", "loop gain": "factor", "gain drift": "amplitude", "DM lag": "ms",
-         "misregistration": "subapertures", "pol-latency": "frames"}  # fmt: skip
+         "misregistration": "subapertures", "pol-latency": "frames",
+         "gain at -0.3 frame": "factor", "gain at +0.3 frame": "factor"}  # fmt: skip
 
 
 #: Errors the stability margins certify, and how: a latency change [frames] inside every
@@ -115,28 +133,46 @@ CERTIFIED = {
 }
 
 
-def _predicted(plant, bank, mar, err, magnitude) -> str:
+def _gain_and_latency(err: str, magnitude: float, overrides: dict) -> tuple[float, float]:
+    """The loop-gain factor and latency change [frames] of an error the analysis decides."""
+    if err == "latency":
+        return 1.0, magnitude
+    if err == "loop gain":
+        return magnitude, 0.0
+    return overrides["stage2.optical_gain_error"], overrides["stage2.latency_error"]
+
+
+def _predicted(plant, bank, mar, err, magnitude, overrides) -> str:
     """The analysis's verdict on the loop under ``err`` of ``magnitude``: ``"certified"``
-    when every mode's margin interval holds it (:func:`aocontrol.analysis.margins`), else
+    when every mode's margin interval holds it (:func:`aocontrol.analysis.margins`), or,
+    for a corner of both errors, every mode's certified margin over the box from the
+    nominal to the corner (:func:`aocontrol.analysis.robust_margin`) is above 0; else
     ``"stable"`` / ``"unstable"`` from the closed-loop poles of the perturbed plant
     (:func:`aocontrol.analysis.is_stable`: outside its interval a loop may be stable again,
     a conditionally stable loop at a longer latency); ``""`` where the analysis does not
     decide (another error, a bank without per-mode transfer functions)."""
-    if err not in CERTIFIED:
+    if err not in CERTIFIED and not err.startswith("gain at "):
         return ""
+    gain, shift = _gain_and_latency(err, magnitude, overrides)
     if isinstance(bank, MultiModeBank):  # the multivariable loop's poles, the plant changed
-        lat = bank.latency_frames + magnitude if err == "latency" else None
-        og = magnitude if err == "loop gain" else 1.0
-        poles = multimode_closed_loop_poles(bank, latency_frames=lat, optical_gain=og)
+        poles = multimode_closed_loop_poles(
+            bank, latency_frames=bank.latency_frames + shift, optical_gain=gain
+        )
         return "stable" if np.abs(poles).max() < 1.0 else "unstable"
     if mar is None:
         return ""
-    if all(CERTIFIED[err](m, magnitude) for m in mar):
-        return "certified"
-    if err == "latency":
-        true = with_latency(plant, plant_latency(plant) + magnitude)
+    if err in CERTIFIED:
+        certified = all(CERTIFIED[err](m, magnitude) for m in mar)
     else:
-        true = plant * magnitude
+        box = UncertaintySet(gain=(min(gain, 1.0), max(gain, 1.0)),
+                             latency=(min(shift, 0.0), max(shift, 0.0)))  # fmt: skip
+        certified = all(
+            (r := robust_margin(plant, bank, box, mode=i)).stable and r.value > 0
+            for i in range(bank.n_modes)
+        )
+    if certified:
+        return "certified"
+    true = with_latency(plant, plant_latency(plant) + shift) * gain
     ok = all(is_stable(true, bank, mode=i) for i in range(bank.n_modes))
     return "stable" if ok else "unstable"
 
@@ -171,12 +207,12 @@ def _run(case, bank, seconds, quick, overrides, seed):
     }
 
 
-def _design(case, name, quick, design, seed):
+def _design(case, name, quick, design, seed, base):
     """The bank of ``name`` designed from ``design`` (the registry's design, as the
-    comparison runs it)."""
+    comparison runs it) on the instrument ``base`` makes of ``case``."""
     out = run_configuration(
         case, controller=name, scheme="standalone", seconds=0.05, seed=seed, quick=quick,
-        design=design,
+        design=design, overrides=base,
     )  # fmt: skip
     return out.controller
 
@@ -194,12 +230,22 @@ def main() -> None:
     ap.add_argument("--cases", default="bright1-best,red1-fast")
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--errors", default=",".join(ERRORS))
+    ap.add_argument("--errors", default=None,
+                    help=f"default: every error (linear sensor), {','.join(SENSOR_ERRORS)} "
+                    "(diffractive)")  # fmt: skip
+    ap.add_argument("--sensor", choices=("linear", "diffractive"), default="linear",
+                    help="stage 2's sensor, the calibration run's included")  # fmt: skip
     ap.add_argument("--controllers", default=",".join(CONTROLLERS))
     ap.add_argument("--out", default="robustness-output")
     args = ap.parse_args()
     quick = not args.full
+    base = {"stage2.sensor": args.sensor}
+    if args.errors is None:
+        args.errors = ",".join(SENSOR_ERRORS if args.sensor == "diffractive" else ERRORS)
     errors = [e.strip() for e in args.errors.split(",") if e.strip()]
+    unknown = sorted(set(errors) - set(ERRORS))
+    if unknown:
+        ap.error(f"--errors: unknown {unknown}, expected some of {list(ERRORS)}")
     ctrls = [c.strip() for c in args.controllers.split(",") if c.strip()]
     if args.smoke:
         errors, ctrls = errors[:1], ctrls[:2]
@@ -209,7 +255,7 @@ def main() -> None:
     print(f"load average at start: {os.getloadavg()}")
     rows = []
     for case in [c.strip() for c in args.cases.split(",") if c.strip()]:
-        scene = build_scene(case, quick=quick)
+        scene = build_scene(apply_overrides(load_case(case), base), quick=quick)
         cal = calibration_seconds(scene, quick)
         gain = scene.case.stage2.gain
         t0 = time.process_time()
@@ -217,35 +263,36 @@ def main() -> None:
         banks, mar = {}, {}
         for name in ctrls:
             t1 = time.process_time()
-            banks[name] = _design(case, name, quick, nominal_design, args.seed)
+            banks[name] = _design(case, name, quick, nominal_design, args.seed, base)
             mar[name] = _bank_margins(nominal_design.plant, banks[name])
-            base = _run(case, banks[name], args.seconds, quick, {}, args.seed)
+            nom = _run(case, banks[name], args.seconds, quick, base, args.seed)
             rows.append({"case": case, "error": "nominal", "label": "", "magnitude": 0.0,
-                         "controller": name, **base})  # fmt: skip
-            print(f"{case} nominal {name}: {base} (design + run {time.process_time() - t1:.0f} s)",
+                         "controller": name, **nom})  # fmt: skip
+            print(f"{case} nominal {name}: {nom} (design + run {time.process_time() - t1:.0f} s)",
                   flush=True)  # fmt: skip
         print(f"{case}: calibration and designs {time.process_time() - t0:.0f} s CPU")
         for err in errors:
             for label, mag, ov in ERRORS[err]:
                 run_banks = banks
                 if err == "pol-latency":  # the calibration under the error too, redesigned
-                    c = apply_overrides(load_case(case), ov)
+                    c = apply_overrides(load_case(case), {**base, **ov})
                     design = design_inputs(build_scene(c, quick=quick), "standalone", gain,
                                            seconds=cal, seed=args.seed)  # fmt: skip
-                    run_banks = {n: _design(case, n, quick, design, args.seed) for n in ctrls}
+                    run_banks = {n: _design(case, n, quick, design, args.seed, base) for n in ctrls}
                 for name in ctrls:
-                    r = _run(case, run_banks[name], args.seconds, quick, ov, args.seed)
+                    r = _run(case, run_banks[name], args.seconds, quick, {**base, **ov}, args.seed)
                     pred = (
                         ""
                         if err == "pol-latency"
-                        else _predicted(nominal_design.plant, banks[name], mar[name], err, mag)
+                        else _predicted(nominal_design.plant, banks[name], mar[name], err, mag, ov)
                     )
                     rows.append({"case": case, "error": err, "label": label, "magnitude": mag,
                                  "unit": UNITS[err], "controller": name, "predicted": pred,
                                  **r})  # fmt: skip
                     print(f"{case} {err} {label} {name}: {r}", flush=True)
     _retained(rows)
-    _report(rows, args.out)
+    _report(rows, args.out, args.sensor)
+    _targets(rows)
     print(
         f"total: {time.perf_counter() - t_start:.0f} s wall, {time.process_time() - cpu_start:.0f}"
         f" s CPU (this process; load average now {os.getloadavg()})"
@@ -254,8 +301,9 @@ def main() -> None:
 
 def _retained(rows: list[dict]) -> None:
     """``retained`` of each row: its gain over the reference of the same (case, error,
-    magnitude), over the nominal one's; ``loss``: its residual variance over the same
-    controller's on the nominal instrument."""
+    magnitude), over the nominal one's (``nan`` for a controller no better than the reference
+    on the nominal instrument: its ratio would have no meaning); ``loss``: its residual
+    variance over the same controller's on the nominal instrument."""
     key = {(r["case"], r["error"], r["label"], r["controller"]): r for r in rows}
     for r in rows:
         r["retained"] = r["loss"] = math.nan
@@ -270,11 +318,40 @@ def _retained(rows: list[dict]) -> None:
             continue
         g_err = 1 - (r["residual_nm"] / ref["residual_nm"]) ** 2
         g_nom = 1 - (nom["residual_nm"] / nref["residual_nm"]) ** 2
-        if abs(g_nom) > 1e-6:
+        if g_nom > 0:  # no nominal gain over the reference, nothing to retain: nan
             r["retained"] = g_err / g_nom
 
 
-def _report(rows: list[dict], out: str) -> None:
+def _targets(rows: list[dict]) -> None:
+    """Issue 29's targets for the robust design (latency +-0.3 frame, loop gain +-30 %):
+    no diverged run on that grid, the retained gain at its worst corner, its cost at the
+    nominal point; the nominal design's and the LQG's figures at the same corners."""
+    grid = ("latency", "loop gain", "gain at -0.3 frame", "gain at +0.3 frame")
+    inside = {"-0.3 frame", "+0.3 frame", "x0.7", "x1.3"}
+    for case in dict.fromkeys(r["case"] for r in rows):
+        nominal = {
+            r["controller"]: r for r in rows if r["case"] == case and r["error"] == "nominal"
+        }
+        for name in ("datadriven-robust", "datadriven", "lqg", "omgi"):
+            runs = [r for r in rows if r["case"] == case and r["controller"] == name
+                    and r["error"] in grid and (r["error"].startswith("gain at ")
+                                                or r["label"] in inside)]  # fmt: skip
+            if not runs:
+                continue
+            worst = min(runs, key=lambda r: r["retained"] if r["status"] == "ok" else -math.inf)
+            bad = sum(r["status"] != "ok" for r in runs)
+            line = (
+                f"{case} {name}: on the set's grid ({len(runs)} runs) {bad} diverged; worst "
+                f"retained {worst['retained']:.2f} ({worst['error']} {worst['label']})"
+            )
+            ref = nominal.get("datadriven")
+            if name == "datadriven-robust" and ref and name in nominal:
+                cost = (nominal[name]["residual_nm"] / ref["residual_nm"]) ** 2
+                line += f"; nominal residual variance / the nominal design's {cost:.3f}"
+            print(line)
+
+
+def _report(rows: list[dict], out: str, sensor: str = "linear") -> None:
     fields = ["case", "error", "label", "magnitude", "controller", "status", "predicted",
               "residual_nm", "contrast_1_2", "contrast_4_6", "strehl", "retained",
               "loss"]  # fmt: skip
@@ -282,11 +359,11 @@ def _report(rows: list[dict], out: str) -> None:
         w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)
-    print(f"\n{'case':14s} {'error':16s} {'magnitude':20s} {'controller':20s} "
+    print(f"\n{'case':14s} {'error':18s} {'magnitude':20s} {'controller':20s} "
           f"{'resid[nm]':>9s} {'C1-2':>9s} {'C4-6':>9s} {'retained':>8s} {'loss':>6s} "
           f"{'analysis':>9s}")  # fmt: skip
     for r in rows:
-        head = f"{r['case']:14s} {r['error']:16s} {r['label']:20s} {r['controller']:20s} "
+        head = f"{r['case']:14s} {r['error']:18s} {r['label']:20s} {r['controller']:20s} "
         pred = r.get("predicted", "")
         if r["status"] != "ok":
             print(f"{head}{'DIVERGED':>9s} {'':>9s} {'':>9s} {'':>8s} {'':>6s} {pred:>9s}")
@@ -298,7 +375,7 @@ def _report(rows: list[dict], out: str) -> None:
     decided = [r for r in rows if r.get("predicted")]
     agree = [r for r in decided if (r["predicted"] != "unstable") == (r["status"] == "ok")]
     n_cert = sum(r["predicted"] == "certified" for r in decided)
-    print(f"stability from the analysis (latency, loop gain): {len(agree)} of {len(decided)} "
+    print(f"stability from the analysis (latency, loop gain, both): {len(agree)} of {len(decided)} "
           f"runs agree with the simulator; {n_cert} certified by the margin intervals "
           f"({sum(r['predicted'] == 'certified' and r['status'] == 'ok' for r in decided)} of "
           f"them ran stable)")  # fmt: skip
@@ -311,9 +388,11 @@ def _report(rows: list[dict], out: str) -> None:
     for r in diverged:
         print(f"  {r['case']} {r['error']} {r['label']} {r['controller']}: {r['detail']}")
     path = os.path.join(out, "robustness.png")
-    plot_robustness(rows, title="Gain over the reference integrator retained", path=path)
+    plot_robustness(rows, title=f"Gain over the reference integrator retained ({sensor} WFS)",
+                    path=path)  # fmt: skip
     loss = os.path.join(out, "robustness-loss.png")
-    plot_robustness(rows, value="loss", title="Residual variance over the nominal instrument's",
+    plot_robustness(rows, value="loss",
+                    title=f"Residual variance over the nominal instrument's ({sensor} WFS)",
                     path=loss)  # fmt: skip
     print(f"table: {os.path.join(out, 'robustness.csv')}; plots: {path}, {loss}")
 

@@ -170,6 +170,17 @@ BENCHMARKS: dict[str, Entry] = {
         ("--quick", "--parts", "c"),
     ),
     "atmosphere": Entry("bench_atmosphere.py", ()),
+    "eof": Entry("bench_eof.py", ()),
+    "robustness": Entry(
+        "bench_robustness.py",
+        ("--cases", "bright1-best,red1-fast", "--seconds", "2"),
+        ("--smoke", "--seconds", "0.2", "--cases", "bright1-best"),
+    ),
+    "robustness-diffractive": Entry(
+        "bench_robustness.py",
+        ("--cases", "bright1-best,red1-fast", "--seconds", "1", "--sensor", "diffractive"),
+        ("--smoke", "--seconds", "0.2", "--cases", "bright1-best", "--sensor", "diffractive"),
+    ),
 }
 
 

@@ -217,6 +217,28 @@ def test_design_reads_a_results_file_with_telemetry(tmp_path, capsys):
     assert type(bank) is Integrator and bank.n_modes == 2
 
 
+def test_design_reports_the_margin_over_an_uncertainty_set(tmp_path, capsys):
+    # --robust-gain / --robust-latency: a column per mode and one line saying what the
+    # margins cover, for any controller; a reversed interval is refused by name.
+    res = _telemetry(n_frames=2048, n_modes=2)
+    path = save_result(res, tmp_path / "run.h5", telemetry=True)
+    argv = ["design", str(path), "--controller", "omgi", "--out", str(tmp_path / "o.h5"),
+            "--bounds", "none", "--robust-gain", "0.7,1.3",
+            "--robust-latency=-0.3,0.3"]  # fmt: skip
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "MMset[1]" in text
+    assert "certified over loop gain [0.7, 1.3] x latency change [-0.3, +0.3] frames" in text
+    rows = [line.split() for line in text.splitlines() if line[:1].isdigit()]
+    header = next(line.split() for line in text.splitlines() if "MMset[1]" in line)
+    col = header.index("MMset[1]")
+    for r in rows:  # the set's margin cannot exceed the nominal one
+        assert float(r[col]) <= float(r[header.index("MM[1]")]) + 1e-3
+    argv[-2] = "1.3,0.7"  # the gain interval, reversed
+    assert main(argv) == 2
+    assert "--robust-gain / --robust-latency: gain interval reversed" in capsys.readouterr().err
+
+
 def test_read_telemetry_agrees_for_npz_and_results_file(tmp_path):
     res = _telemetry(n_frames=256, n_modes=2)
     np.savez(

@@ -167,3 +167,30 @@ def test_a_mode_whose_margins_fail_is_nan_not_made_up(telemetry, monkeypatch, ca
     assert np.isnan(rep.achieved_modulus_margin[1]) and rep.stable[1]
     assert list(rep.meets_margin) == [True, False, True]
     assert "modes [1]" in caplog.text
+
+
+def test_robust_margins_are_reported_for_any_controller(telemetry):
+    # Issue 29: the same robustness figure for every controller. Oracle: each reported value
+    # equals robust_margin on the design's plant and bank, and at the box's corners the loop's
+    # modulus margin (exact, margins()) is not below it; the nominal margin bounds it above.
+    from aocontrol.analysis import UncertaintySet, robust_margin
+    from aocontrol.plant import with_latency
+
+    uset = UncertaintySet(gain=(0.8, 1.2), latency=(-0.2, 0.2))
+    rep = design_from_telemetry(telemetry, "omgi", bounds=(), uncertainty=uset)
+    assert rep.uncertainty == uset and len(rep.robust_margins) == N_MODES
+    for i, r in enumerate(rep.robust_margins):
+        direct = robust_margin(rep.plant, rep.controller, uset, mode=i)
+        assert r.value == pytest.approx(direct.value, rel=1e-12)
+        assert r.value <= rep.margins[i].modulus_margin + 1e-12
+        for k in uset.gain:
+            for d in uset.latency:
+                corner = with_latency(rep.plant, LATENCY + d) * k
+                assert margins(corner, rep.controller, mode=i).modulus_margin >= r.value - 1e-9
+    ref = [r.value for r in rep.reference_robust_margins]
+    assert rep.rows()[0]["robust_margin"] == pytest.approx(rep.robust_modulus_margin[0])
+    assert np.all(np.isfinite(ref))
+    plain = design_from_telemetry(telemetry, "omgi", bounds=())
+    assert plain.robust_margins is None and np.isnan(plain.rows()[0]["robust_margin"])
+    with pytest.raises(TypeError, match="uncertainty must be an UncertaintySet"):
+        design_from_telemetry(telemetry, "omgi", bounds=(), uncertainty=(0.8, 1.2))

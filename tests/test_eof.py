@@ -29,7 +29,7 @@ from aocontrol.controllers import (
 from aocontrol.plant import split_latency
 from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, TurbulenceSource, run_loop
 from aocontrol.sim.atmosphere import Atmosphere, Layer
-from aocontrol.sim.dm import DeformableMirror
+from aocontrol.sim.dm import DeformableMirror, ModalDM
 from aocontrol.sim.modes import kl_basis
 from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.synthesis import (
@@ -570,6 +570,109 @@ def test_nominal_loop_flushes_and_mismatched_latency_is_decided_by_poles():
     assert np.abs(poles).max() > 1e-3  # not nilpotent any more
     unstable = MultiModeBank(3.0 * np.eye(2)[None], FS, 0.0)
     assert np.abs(multimode_closed_loop_poles(unstable, latency_frames=1.0)).max() > 1.0
+
+
+def _loop_growth_rate(bank, latency, og, mixing, dm, n_frames=400):
+    """Growth rate per frame of the commands of ``bank`` in closed loop with the true plant
+    ``diag(og) M G_t H`` (d = n = 0), by an independent difference-equation loop: the DM
+    filtered by ``scipy.signal.lfilter`` with its state carried, the delay line by hand."""
+    from scipy.signal import lfilter, lfilter_zi
+
+    rng = np.random.default_rng(5)
+    n = bank.n_modes
+    probe = MultiModeBank(bank.taps, bank.fs, bank.latency_frames, precision="float64")
+    probe.set_history(rng.standard_normal((bank.history + 4, n)), np.zeros((bank.history + 4, n)))
+    k, f = split_latency(latency)
+    b, a = dm
+    zi = np.zeros((max(len(a), len(b)) - 1, n)) * lfilter_zi(b, a)[:, None] if len(a) > 1 else None
+    pos = [np.zeros(n)] * (k + 3)  # DM positions, newest first: pos[i] at frame j - i
+    norms = []
+    for _ in range(n_frames):
+        m = -(og * (mixing @ ((1 - f) * pos[k] + f * pos[k + 1])))
+        u = probe.step(m)
+        if zi is None:
+            x = b[0] / a[0] * u
+        else:
+            x, zi = lfilter(b, a, u[None, :], axis=0, zi=zi)
+            x = x[0]
+        pos = [x, *pos[:-1]]
+        norms.append(np.linalg.norm(u))
+    # The slope of log |u| over the second half (a least-squares line averages the beating
+    # of a complex pair); 400 frames keep a decay from 0.5 per frame above underflow.
+    half = n_frames // 2
+    slope = np.polyfit(np.arange(half, n_frames), np.log(norms[half:]), 1)[0]
+    return np.exp(slope)
+
+
+@pytest.mark.parametrize(
+    ("latency", "og", "tau", "shift"),
+    [
+        (1.2, 1.0, 0.0, 0.0),
+        (0.5, 1.4, 0.0, 0.1),
+        (0.5, 1.0, 0.6, 0.0),
+        (0.9, 0.8, 0.3, 0.05),
+        (2.5, 1.2, 0.5, 0.05),
+        (0.5, 3.0, 0.0, 0.1),
+    ],  # fmt: skip
+)
+def test_closed_loop_poles_with_dm_lag_and_mixing_match_a_time_domain_loop(latency, og, tau, shift):
+    # The poles with a true plant other than the model (latency, per-mode optical gains, a DM
+    # first-order lag, a mixing of the modes) against the growth rate of an independent loop:
+    # the largest pole modulus is the commands' growth (or decay) per frame.
+    from aocontrol.sim.model_errors import DMResponse
+
+    rng = np.random.default_rng(11)
+    n = 4
+    bank = MultiModeBank(
+        0.25 * rng.standard_normal((3, n, n)) + 0.4 * np.eye(n)[None] * [[[1]], [[0.5]], [[0]]],
+        FS,
+        0.5,
+    )
+    gains = og * np.linspace(0.9, 1.1, n)
+    mixing = np.eye(n) + shift * rng.standard_normal((n, n))
+    dm = DMResponse(time_constant=tau * 1e-3).coefficients(FS)
+    poles = multimode_closed_loop_poles(
+        bank, latency_frames=latency, optical_gain=gains, mixing=mixing, dm_coefficients=dm
+    )
+    radius = np.abs(poles).max()
+    assert abs(radius - 1.0) > 0.01  # a decided case, not one on the edge
+    assert _loop_growth_rate(bank, latency, gains, mixing, dm) == pytest.approx(radius, abs=5e-3)
+
+
+def test_simulator_checks_a_multimode_loop_under_model_errors_before_the_run():
+    # The simulator's pre-run check covers a MultiModeBank (the coupled loop's poles, the
+    # DM's lag included): 0 on the nominal plant (structurally FIR), the analysis's radius
+    # under a latency error and a DM lag, and a slowly diverging run is reported diverged
+    # (the growth guards alone let this loop, pole radius 1.03, run 300 frames).
+    from aocontrol.sim.loop import LoopDivergedError, closed_loop_pole_radius
+    from aocontrol.sim.model_errors import DMResponse
+
+    rng = np.random.default_rng(11)
+    n = 4
+    taps = 0.25 * rng.standard_normal((3, n, n)) + 0.4 * np.eye(n)[None] * [[[1]], [[0.5]], [[0]]]
+    bank = MultiModeBank(taps, FS, 0.5)
+    assert not np.any(closed_loop_pole_radius(Stage(bank, latency_frames=0.5), np.ones(n)))
+    lag = DMResponse(time_constant=0.5e-3)
+    stage = Stage(bank, latency_frames=2.5, dm=ModalDM(n, response=lag))
+    radius = closed_loop_pole_radius(stage, 1.2 * np.ones(n))
+    expected = np.abs(multimode_closed_loop_poles(
+        bank, latency_frames=2.5, optical_gain=1.2, dm_coefficients=lag.coefficients(FS)
+    )).max()  # fmt: skip
+    np.testing.assert_allclose(radius, expected, rtol=1e-12)
+    assert radius[0] > 1.0
+    d = 1e-3 * rng.standard_normal((300, n))
+    with pytest.raises(LoopDivergedError, match="linear closed loop is unstable"):
+        run_loop(stage, ModalTimeSeries(d, FS), 300)
+
+
+def test_closed_loop_poles_refuse_bad_plant_errors():
+    bank = MultiModeBank(0.5 * np.eye(2)[None], FS, 0.5)
+    with pytest.raises(ValueError, match="optical_gain"):
+        multimode_closed_loop_poles(bank, optical_gain=[1.0, -1.0])
+    with pytest.raises(ValueError, match="mixing must have shape"):
+        multimode_closed_loop_poles(bank, mixing=np.eye(3))
+    with pytest.raises(ValueError, match="dm_coefficients"):
+        multimode_closed_loop_poles(bank, dm_coefficients=([1.0], [0.0, 1.0]))
 
 
 def test_training_regularises_further_until_the_margin_is_certified(ar2_modes):

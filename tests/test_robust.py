@@ -75,6 +75,44 @@ def test_robust_margin_is_a_tight_lower_bound_of_the_brute_force(gain, leak, lea
         assert rm.value >= brute - rm.latency_bound - 0.04
 
 
+def test_latency_is_certified_exactly_for_a_controller_pole_near_the_circle():
+    # A resonant controller (poles at radius 0.9995, 50 Hz, and an integrator): the grid and
+    # Lipschitz bound of the latency the certificate used before could not certify this box
+    # (value -0.33 against a true 0.146). Oracles: the value is attained, the exact
+    # modulus certificate of the loop at the reported worst gain and latency equals it, and
+    # no loop of a 31 x 21 grid of the box is below it.
+    th = 2 * np.pi * 50 / FS
+    a = np.convolve([1, -1], [1, -2 * 0.9995 * np.cos(th), 0.9995**2])
+    b = 0.3 * np.convolve([1, -0.5], [1, -2 * 0.9 * np.cos(th), 0.81])
+    K = tf_from_z_inverse(b, a, 1.0 / FS)
+    G = loop_plant(FS, LATENCY)
+    rm = robust_margin(G, K, BOX)
+    assert rm.stable and rm.latency_bound == 0.0
+    worst = with_latency(G, rm.worst_latency) * rm.worst_gain
+    assert modulus_certificate(worst, K).value == pytest.approx(rm.value, rel=1e-7)
+    brute, stable = _brute(G, K, BOX, n_gain=21, n_lat=31)
+    assert stable and rm.value <= brute + 1e-9
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    gain=st.floats(0.1, 0.6),
+    lead=st.floats(0.0, 0.5),
+    box=st.sampled_from([(0.7, 1.3, -0.3, 0.3), (0.5, 1.0, -0.9, 0.4), (1.0, 1.6, 0.0, 1.2)]),
+)
+def test_the_reported_worst_loop_attains_the_certified_value(gain, lead, box):
+    # Exactness in both directions: the value is the modulus margin of one loop of the box
+    # (the worst gain and latency reported), up to the root finding's accuracy; boxes that
+    # span one and two whole frames.
+    K = tf_from_z_inverse([gain, -gain * lead], [1.0, -1.0], 1.0 / FS)
+    G = loop_plant(FS, LATENCY)
+    rm = robust_margin(G, K, UncertaintySet(gain=box[:2], latency=box[2:]))
+    worst = with_latency(G, rm.worst_latency) * rm.worst_gain
+    assert box[0] - 1e-12 <= rm.worst_gain <= box[1] + 1e-12
+    assert LATENCY + box[2] - 1e-12 <= rm.worst_latency <= LATENCY + box[3] + 1e-12
+    assert modulus_certificate(worst, K).value == pytest.approx(rm.value, rel=1e-6, abs=1e-9)
+
+
 def test_gain_interval_is_exact_at_the_interior_minimum():
     # Oracle: L = g z^-2 / (1 - z^-1) crosses -180 deg at 60 deg (1/6 of fs/2 ... z = e^{j pi/3})
     # where |L| = g: |1 + k L| = 0 at k = 1/g. With g = 0.4 and k in (0.5, 3), the interior

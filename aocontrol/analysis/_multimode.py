@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aocontrol._validation import check_in_range, check_int, check_positive
+from aocontrol._validation import check_in_range, check_int
 from aocontrol.controllers import MultiModeBank
 from aocontrol.plant import split_latency
 
@@ -399,19 +399,24 @@ def multimode_closed_loop_poles(
     controller: MultiModeBank,
     *,
     latency_frames: float | None = None,
-    optical_gain: float = 1.0,
+    optical_gain: float | np.ndarray = 1.0,
+    mixing: np.ndarray | None = None,
+    dm_coefficients: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Eigenvalues of the closed-loop state matrix with a plant that may differ from the model.
 
-    The true plant is ``og G_t`` with ``G_t`` of latency ``latency_frames`` (default the
-    controller's); the controller rebuilds the POL with its own model. The state is the
-    last ``h - 1`` POL frames and the last ``max(k_c, k_t) + 2`` applied commands (the
-    controller's command line and the DM's hold the same commands), dimension
-    ``n_modes (h - 1 + max(k_c, k_t) + 2)``; the eigenvalues come from a dense
-    ``numpy.linalg.eigvals`` (``O(dim^3)``: for tens of modes, not hundreds). The loop is
-    stable iff all have modulus < 1. With the nominal plant the matrix is nilpotent and
-    these eigenvalues are only rounding noise of size ``eps^(1/N)`` around 0 (use
-    :func:`multimode_certificate`, whose verdict is structural).
+    The true plant is ``diag(og) M G_t H``: ``G_t`` the loop plant of latency
+    ``latency_frames`` (default the controller's), ``H`` a response of the DM common to the
+    modes (``dm_coefficients``, e.g. :meth:`aocontrol.sim.model_errors.DMResponse.coefficients`),
+    ``M`` a mixing of the modes (a misregistration's modal matrix) and ``og`` the optical
+    gains; the controller rebuilds the POL with its own model ``G``. The state is the last
+    ``h - 1`` POL frames, the last ``D`` applied commands (``D`` the longer of the model's
+    and the true plant's command memory) and the last ``n_a - 1`` outputs of the true plant
+    (``n_a`` the length of ``H``'s denominator), dimension ``n_modes (h - 1 + D + n_a - 1)``;
+    the eigenvalues come from a dense ``numpy.linalg.eigvals`` (``O(dim^3)``: for tens of
+    modes, not hundreds). The loop is stable iff all have modulus < 1. With the nominal plant
+    the matrix is nilpotent and these eigenvalues are only rounding noise of size
+    ``eps^(1/N)`` around 0 (use :func:`multimode_certificate`, whose verdict is structural).
 
     Parameters
     ----------
@@ -419,8 +424,13 @@ def multimode_closed_loop_poles(
         The controller.
     latency_frames : float, optional
         True latency beyond the WFS frame [frames] (default the controller's model).
-    optical_gain : float, default 1.0
-        True loop gain ``og`` of the plant (> 0), e.g. a pyramid's optical gain.
+    optical_gain : float or ndarray (n_modes,), default 1.0
+        True loop gain ``og`` of the plant (> 0), one or one per mode, e.g. a pyramid's
+        optical gains.
+    mixing : ndarray (n_modes, n_modes), optional
+        ``M``: the modes the DM applies for unit commands (default the identity).
+    dm_coefficients : tuple of ndarray, optional
+        ``(b, a)`` of ``H(z)`` in powers of ``z^-1`` (``a[0] != 0``; default ``H = 1``).
 
     Returns
     -------
@@ -432,38 +442,64 @@ def multimode_closed_loop_poles(
     TypeError
         If ``controller`` is not a :class:`~aocontrol.controllers.MultiModeBank`.
     ValueError
-        A negative latency or a non-positive optical gain.
+        A negative latency, a non-positive optical gain, a mixing or DM response of the
+        wrong shape.
     """
     if not isinstance(controller, MultiModeBank):
         raise TypeError(f"controller must be a MultiModeBank, got {type(controller).__name__}")
-    og = check_positive("optical_gain", optical_gain)
-    kc, fc = split_latency(controller.latency_frames)
+    taps, n, h = controller.taps, controller.n_modes, controller.history
+    og = np.broadcast_to(np.asarray(optical_gain, dtype=float), (n,))
+    if not np.all(np.isfinite(og) & (og > 0)):
+        raise ValueError(f"optical_gain must be > 0 (one or one per mode), got {optical_gain!r}")
+    gain = np.diag(og)
+    if mixing is not None:
+        mixing = np.asarray(mixing, dtype=float)
+        if mixing.shape != (n, n):
+            raise ValueError(f"mixing must have shape ({n}, {n}), got {mixing.shape}")
+        gain = gain @ mixing
+    bh, ah = (np.array([1.0]), np.array([1.0])) if dm_coefficients is None else dm_coefficients
+    bh, ah = np.atleast_1d(np.asarray(bh, float)), np.atleast_1d(np.asarray(ah, float))
+    if bh.ndim != 1 or ah.ndim != 1 or ah[0] == 0:
+        raise ValueError("dm_coefficients must be (b, a), 1-D, in powers of z^-1 with a[0] != 0")
+    bh, ah = bh / ah[0], ah / ah[0]
+    # The model's and the true plant's impulse responses on the command line, in powers of
+    # z^-1 (index i for u[k - i]; index 0 is 0: one frame at least).
+    model = _plant_taps(*split_latency(controller.latency_frames))
     kt, ft = split_latency(controller.latency_frames if latency_frames is None
                            else latency_frames)  # fmt: skip
-    taps, n, h = controller.taps, controller.n_modes, controller.history
-    depth = max(kc, kt) + 2
-    dim = n * (h - 1 + depth)
-    # p[k] = sum_i c_i u[k-1-i] over the command line (i = 0..depth-1):
-    # -og ((1-ft) u[k-1-kt] + ft u[k-2-kt]) + (1-fc) u[k-1-kc] + fc u[k-2-kc].
-    c = np.zeros(depth)
-    c[kt] -= og * (1 - ft)
-    c[kt + 1] -= og * ft
-    c[kc] += 1 - fc
-    c[kc + 1] += fc
-    # Row blocks: p[k] (used, not stored), then u[k] = A_0 p[k] + sum_{j>=1} A_j p[k-j].
-    # State x[k] = (p[k-1], ..., p[k-h+1], u[k-1], ..., u[k-depth]).
-    pol_row = np.zeros((n, dim))  # p[k] as a function of x[k]
-    for i in range(depth):
-        pol_row[:, n * (h - 1 + i) : n * (h + i)] = c[i] * np.eye(n)
+    true = np.convolve(_plant_taps(kt, ft), bh)
+    depth = max(model.size, true.size) - 1  # commands u[k-1] .. u[k-depth]
+    na = ah.size - 1  # true outputs s[k-1] .. s[k-na]
+    dim = n * (h - 1 + depth + na)
+    u0, s0 = n * (h - 1), n * (h - 1 + depth)  # where the command and output blocks start
+    # s[k] = -sum_j ah_j s[k-j] + sum_i true_i (og M) u[k-i]; p[k] = sum_i model_i u[k-i] - s[k].
+    s_row = np.zeros((n, dim))
+    for i in range(1, true.size):
+        s_row[:, u0 + n * (i - 1) : u0 + n * i] += true[i] * gain
+    for j in range(1, na + 1):
+        s_row[:, s0 + n * (j - 1) : s0 + n * j] -= ah[j] * np.eye(n)
+    pol_row = -s_row
+    for i in range(1, model.size):
+        pol_row[:, u0 + n * (i - 1) : u0 + n * i] += model[i] * np.eye(n)
+    # u[k] = A_0 p[k] + sum_{j>=1} A_j p[k-j], x[k] = (p[k-1..k-h+1], u[k-1..], s[k-1..]).
     u_row = taps[0] @ pol_row
     for j in range(1, h):
         u_row[:, n * (j - 1) : n * j] += taps[j]
     A = np.zeros((dim, dim))
     if h > 1:
         A[:n] = pol_row  # p[k] becomes the newest stored POL frame
-        A[n : n * (h - 1), : n * (h - 2)] = np.eye(n * (h - 2))
-    A[n * (h - 1) : n * h] = u_row  # u[k] becomes the newest stored command
-    if depth > 1:
-        start = n * h
-        A[start:, n * (h - 1) : n * (h - 1 + depth - 1)] = np.eye(n * (depth - 1))
+        A[n:u0, : n * (h - 2)] = np.eye(n * (h - 2))
+    A[u0 : u0 + n] = u_row  # u[k] becomes the newest stored command
+    A[u0 + n : s0, u0 : s0 - n] = np.eye(n * (depth - 1))
+    if na:
+        A[s0 : s0 + n] = s_row  # s[k] becomes the newest stored output
+        A[s0 + n :, s0 : dim - n] = np.eye(n * (na - 1))
     return np.linalg.eigvals(A)
+
+
+def _plant_taps(k: int, f: float) -> np.ndarray:
+    """``G(z) = z^-1 ((1 - f) z^-k + f z^-(k+1))`` as coefficients of ``z^-i``, ``i = 0..k+2``."""
+    g = np.zeros(k + 3)
+    g[k + 1] = 1.0 - f
+    g[k + 2] = f
+    return g

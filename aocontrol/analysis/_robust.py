@@ -14,16 +14,24 @@ over the unit circle, and the closed-loop stability of every loop in it:
   :func:`~aocontrol.analysis.modulus_certificate` (polynomial roots); the interior value is a
   ratio of polynomial moduli whose every stationary point is found the same way
   (:func:`~aocontrol.analysis.rational_modulus_minima`), kept where ``k*`` is inside.
-* in the latency, on a grid of latencies (whole-frame boundaries included) with a bound
-  between them: within a whole frame the numerator is affine in the fraction ``f``,
-  ``B_f = B_0 + f B_1``, so ``| |1 + k L_f| - |1 + k L_g| | <= k_hi |B_1 / A| |f - g|``;
-  ``max |B_1 / A|`` over the circle is certified exactly (the certificate of ``|A / B_1|``),
-  and subtracted, times half the grid step, from the grid's margin.
+* in the latency, exactly too. Between two knots (the interval's ends, the nominal latency
+  and the whole frames inside) the numerator is affine in the latency, ``B_t = B_a + t dB``,
+  so with ``m = k t`` the loop's ``A + k B_a + m dB`` is affine in ``(k, m)`` over a
+  trapezoid. At each frequency the smallest ``|1 + k L|`` over it is the distance from 0 to
+  the image polygon, reached on its edges unless 0 is inside; at 0 Hz and Nyquist the
+  polygon is a real segment covered by its edges, and moving with the frequency 0 can only
+  enter it through an edge. So the minimum over the piece is the smallest over its four
+  edges: the gain interval at each of its two latencies (above) and the latency segment at
+  each end of the gain interval, ``min |C + t D| / |A|`` for ``t in [0, 1]``, an end or the
+  foot of the perpendicular ``|D C~ - D~ C| / (2 |D| |A|)``, found the same way.
 * stability: every loop of the box is stable if the nominal one is and the bound is above 0
   (a closed-loop pole reaching the circle would make ``1 + k L_d`` vanish there); the loops at
   the grid latencies are also checked by their poles.
 
-The value is a certificate, conservative by at most the latency bound it reports.
+The value is exact (to the polynomial roots' accuracy). Before 5 Dec the latency was certified
+on a grid with a Lipschitz bound between points, conservative by that bound: for a
+controller with a pole near the circle (an LQG) it could not certify a set that every loop
+of it satisfies.
 """
 
 from __future__ import annotations
@@ -43,14 +51,12 @@ __all__ = ["RobustMargin", "UncertaintySet", "robust_from_coefficients", "robust
 
 # A bound at or below this is zero to round-off: a closed-loop pole may sit on the circle.
 _ZERO = 1e-9
-# First latency grid [frames] of the certificate, refined where it decides the value.
-_COARSE_STEP = 0.1
 _METHOD_GAIN = (
     "exact in the loop gain (polynomial roots: both ends and the interior's stationary points)"
 )
 _METHOD_LATENCY = (
-    "latency on a grid, refined where it decides, with the exact bound k_hi max|dB/df / A| "
-    "step/2 subtracted between points"
+    "exact in the latency (each whole-frame piece a box whose four edges are segment "
+    "families, polynomial roots)"
 )
 
 
@@ -66,8 +72,8 @@ class UncertaintySet:
         Interval of latency changes [frames], ``low <= 0 <= high`` (``(-0.3, 0.3)``), the
         true latency staying >= 0.
     latency_step : float, default 0.025
-        Largest step [frames] of the latency grid of the certificate (the bound between grid
-        points grows with it).
+        Largest step [frames] of :meth:`latencies`, a grid for scans and plots (the
+        certificate, :func:`robust_margin`, is exact in the latency and does not use it).
 
     Raises
     ------
@@ -141,8 +147,8 @@ class UncertaintySet:
         """The set in words (for results and reports)."""
         g, d = self.gain, self.latency
         return (
-            f"loop gain x[{g[0]:g}, {g[1]:g}] (exact), latency {d[0]:+g}..{d[1]:+g} frames "
-            f"(grid of {self.latency_step:g} frame with a bound between points)"
+            f"loop gain x[{g[0]:g}, {g[1]:g}], latency {d[0]:+g}..{d[1]:+g} frames (both "
+            "certified exactly)"
         )
 
 
@@ -159,10 +165,11 @@ class RobustMargin:
     worst_gain, worst_latency, worst_frequency_hz : float
         Where the smallest grid value is reached (gain factor, latency [frames], [Hz]).
     latency_bound : float
-        What the bound between latency grid points costs: the grid's smallest value minus
-        the certified one (0 for a set without latency change).
+        What a bound between latency grid points cost the value: 0, the certificate being
+        exact in the latency (kept for the results written before it was).
     latencies : numpy.ndarray
-        The latency grid [frames].
+        The knots of the latency interval [frames]: its ends, the nominal latency and the
+        whole frames inside (between two, the loop is affine in the latency).
     method : str
         What the value covers.
     """
@@ -272,6 +279,34 @@ def robust_margin(
     return robust_from_coefficients(bg, ag, bk, ak, fs_, uncertainty)
 
 
+def _segment_minimum(C: np.ndarray, D: np.ndarray, A: np.ndarray):
+    """``(value, t, theta)``: ``min |C + t D| / |A|`` over ``t in [0, 1]`` and the circle,
+    exact: at an end (:func:`rational_modulus_minima` of ``C`` and ``C + D`` over ``A``) or
+    where the foot of the perpendicular ``t* = -Re(D conj C) / |D|^2`` lies inside, the
+    distance ``|Im(D conj C)| / (|D| |A|) = |D C~ - D~ C| / (2 |D| |A|)`` (``~``: reversed)."""
+    best = (np.inf, 0.0, 0.0)
+    for t, P in ((0.0, C), (1.0, npoly.polyadd(C, D))):
+        theta, vals = rational_modulus_minima(P, A)
+        i = int(np.argmin(vals))
+        if vals[i] < best[0]:
+            best = (float(vals[i]), t, float(theta[i]))
+    if not np.any(D):
+        return best
+    n = max(C.size, D.size) - 1
+    N = npoly.polysub(npoly.polymul(D, _reversed(C, n)), npoly.polymul(_reversed(D, n), C))
+    theta, vals = rational_modulus_minima(N, 2.0 * npoly.polymul(D, A))
+    w = np.exp(-1j * theta)
+    c, d = npoly.polyval(w, C), npoly.polyval(w, D)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_star = -(d * np.conj(c)).real / np.abs(d) ** 2
+    inside = np.isfinite(vals) & (t_star > 0.0) & (t_star < 1.0)
+    if inside.any():
+        i = int(np.flatnonzero(inside)[np.argmin(vals[inside])])
+        if vals[i] < best[0]:
+            best = (float(vals[i]), float(t_star[i]), float(theta[i]))
+    return best
+
+
 def robust_from_coefficients(
     bg: np.ndarray,
     ag: np.ndarray,
@@ -284,12 +319,8 @@ def robust_from_coefficients(
     """:func:`robust_margin` of ``G = bg / ag`` and ``K = bk / ak`` (powers of ``z^-1``), from
     their coefficients: the synthesis certifies every candidate this way.
 
-    The latency grid starts at steps of ``_COARSE_STEP`` frames (and the whole frames);
-    intervals whose lower bound is the smallest (or, with ``target``, below it) are halved
-    until their step reaches ``uset.latency_step``: the bound between the points of an
-    interval whose ends are far above it never decides the value. ``target``: stop refining
-    once every interval is certified above it (the value is then a bound above ``target``,
-    not the tightest).
+    Exact in the gain and in the latency (module docstring): the value does not depend on
+    ``target``, kept for the callers that pass the margin they need.
 
     Parameters
     ----------
@@ -323,58 +354,40 @@ def robust_from_coefficients(
         raise ValueError("a latency interval needs a plant with a pure delay to move")
     core, nominal = form
     e0 = npoly.polymul(bk, core)
-    # |dB/df / A| = |K core (w - 1) / (A_g A_k)|, the same for every latency (w^(1+k) has
-    # unit modulus): one exact bound. With integral action A has the factor (1 - w) too,
-    # cancelled so that the ratio is finite at 0 Hz as it truly is.
-    num, den = npoly.polysub(np.concatenate([[0.0], e0]), e0), A
-    while den.size > 1 and abs(npoly.polyval(1.0, den)) <= 1e-12 * np.abs(den).sum():
-        q_num, r_num = npoly.polydiv(num, [1.0, -1.0])
-        if np.max(np.abs(r_num)) > 1e-12 * np.abs(num).sum():
-            break
-        num, den = q_num, npoly.polydiv(den, [1.0, -1.0])[0]
-    slope = 0.0
-    if np.any(num):
-        _, inv = rational_modulus_minima(den, num)
-        slope = 1.0 / max(float(np.min(inv)), 1e-300)
 
-    cache: dict[float, tuple] = {}
+    def numerator(tau: float) -> np.ndarray:
+        """``B`` of the loop at latency ``tau``: ``K core z^-(1+k) ((1-f) + f z^-1)``."""
+        k, f = split_latency(tau)
+        e = np.concatenate([np.zeros(1 + k), e0])
+        return npoly.polyadd(e * (1.0 - f), np.concatenate([[0.0], e]) * f)
 
-    def at(tau: float) -> tuple:
-        if tau not in cache:
-            k, f = split_latency(tau)
-            e = np.concatenate([np.zeros(1 + k), e0])
-            B = npoly.polyadd(e * (1.0 - f), np.concatenate([[0.0], e]) * f)
-            val, kk, th = _gain_family_minimum(A, B, k_lo, k_hi)
-            cache[tau] = (val, kk, th, poly_stable(npoly.polyadd(A, B)))
-        return cache[tau]
-
-    coarse = UncertaintySet(uset.gain, uset.latency, max(uset.latency_step, _COARSE_STEP))
-    lats = list(coarse.latencies(nominal))
-    while True:
-        vals = np.array([at(t)[0] for t in lats])
-        steps = np.diff(lats)
-        lower = np.minimum(vals[:-1], vals[1:]) - k_hi * slope * steps / 2.0
-        floor = target if target is not None else vals.min()
-        split = [
-            i for i in range(len(steps))
-            if lower[i] < floor and steps[i] > uset.latency_step * (1 + 1e-9)
-        ]  # fmt: skip
-        if not split:
-            break
-        for i in reversed(split):
-            lats.insert(i + 1, 0.5 * (lats[i] + lats[i + 1]))
-    lats = np.asarray(lats)
-    value = float(min(vals.min(), lower.min())) if lats.size > 1 else float(vals[0])
-    i = int(np.argmin(vals))
-    kk, th = at(lats[i])[1:3]
-    stable = all(at(t)[3] for t in lats)
+    # Knots: the interval's ends, the nominal and the whole frames inside; between two knots
+    # B is affine in the latency, so each piece is a box whose edges are segment families.
+    lo = max(nominal + uset.latency[0], 0.0)
+    hi = nominal + uset.latency[1]
+    knots = np.unique([lo, nominal, hi, *range(math.ceil(lo), math.floor(hi) + 1)])
+    knots = knots[(knots >= lo) & (knots <= hi)]
+    B = {float(t): numerator(float(t)) for t in knots}
+    best = (np.inf, 1.0, nominal, 0.0)  # value, gain, latency, theta
+    for t in knots:  # the edges of constant latency: the gain interval at each knot
+        val, kk, th = _gain_family_minimum(A, B[float(t)], k_lo, k_hi)
+        if val < best[0]:
+            best = (val, kk, float(t), th)
+    for ta, tb in zip(knots[:-1], knots[1:], strict=True):  # edges of constant gain
+        dB = npoly.polysub(B[float(tb)], B[float(ta)])
+        for k in sorted({k_lo, k_hi}):
+            val, t, th = _segment_minimum(npoly.polyadd(A, k * B[float(ta)]), k * dB, A)
+            if val < best[0]:
+                best = (val, k, float(ta + t * (tb - ta)), th)
+    value, kk, tau, th = best
+    stable = poly_stable(npoly.polyadd(A, numerator(nominal)))
     return RobustMargin(
-        value=value,
+        value=float(value),
         stable=bool(stable and value > _ZERO),
         worst_gain=float(kk),
-        worst_latency=float(lats[i]),
+        worst_latency=float(tau),
         worst_frequency_hz=float(th * fs / (2 * np.pi)),
-        latency_bound=float(vals.min() - value),
-        latencies=lats,
-        method=_METHOD_GAIN + f"; {_METHOD_LATENCY} ({lats.size} points)",
+        latency_bound=0.0,
+        latencies=knots,
+        method=_METHOD_GAIN + f"; {_METHOD_LATENCY} ({knots.size - 1} pieces)",
     )

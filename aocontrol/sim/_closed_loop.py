@@ -12,11 +12,17 @@ from typing import Any
 
 import numpy as np
 
-from aocontrol.controllers import IIRBank
-from aocontrol.plant import z_inverse_coefficients
+from aocontrol.analysis import multimode_closed_loop_poles
+from aocontrol.controllers import IIRBank, MultiModeBank
+from aocontrol.plant import split_latency, z_inverse_coefficients
 from aocontrol.sim._stage import Stage
 
 logger = logging.getLogger(__name__)
+
+#: Largest closed-loop state of a multi-mode loop checked before a run (dense eigenvalues,
+#: O(dim^3): 1500 takes about 2 s on one core; a quick scene's 24 modes with 20 frames of
+#: history are ~550, the full scale's 540 modes with 5 are ~3800 and are not checked).
+MULTIMODE_MAX_STATE = 1500
 
 
 def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarray | None:
@@ -26,7 +32,12 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
     gain and the controller's linear part (an :class:`~aocontrol.controllers.IIRBank`'s
     coefficients, else every mode's ``transfer_function``): the characteristic polynomial
     ``A_k + og B_g B_k`` in powers of ``z^-1``, roots from batched companion matrices.
-    ``None`` when the controller has no transfer function. With model errors
+    ``None`` when the controller has no transfer function. A
+    :class:`~aocontrol.controllers.MultiModeBank` couples the modes: the poles of its whole
+    loop (:func:`aocontrol.analysis.multimode_closed_loop_poles`, the DM's response and
+    mixing included), their largest modulus for every mode; 0 when the plant is the
+    controller's model (structurally stable, certified at design), ``None`` when the state
+    exceeds :data:`MULTIMODE_MAX_STATE`. With model errors
     (:mod:`aocontrol.sim.model_errors`): the DM's response in the plant, each mode's own
     part of a mixing (its coupling to the others is not in a per-mode check), a drifting
     optical gain at both ends of its modulation.
@@ -43,6 +54,8 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
     ndarray (n_modes,) or None
     """
     ctrl = stage.controller
+    if isinstance(ctrl, MultiModeBank):
+        return _multimode_radius(stage, np.asarray(optical_gain, dtype=float))
     coeffs = _controller_coefficients(ctrl)
     if coeffs is None:
         return None
@@ -67,6 +80,57 @@ def closed_loop_pole_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarra
         _radius(coeffs, bg, ah, gain * factors * (1.0 - err.drift)),
         _radius(coeffs, bg, ah, gain * factors * (1.0 + err.drift)),
     )
+
+
+def _multimode_radius(stage: Stage, optical_gain: np.ndarray) -> np.ndarray | None:
+    """Largest pole modulus of a multi-mode loop, for every mode (or ``None``, too large)."""
+    ctrl, dm = stage.controller, stage.dm
+    n = ctrl.n_modes
+    err = stage.optical_gain_error
+    nominal = (
+        stage.latency_frames == ctrl.latency_frames
+        and np.all(optical_gain == 1.0)
+        and dm.response is None
+        and dm.mixing is None
+        and err is None
+    )
+    if nominal:
+        return np.zeros(n)
+    dm_coefficients = None if dm.response is None else dm.response.coefficients(stage.fs)
+    depth = split_latency(max(stage.latency_frames, ctrl.latency_frames))[0] + 2
+    na = 0 if dm_coefficients is None else dm_coefficients[1].size - 1
+    nb = 0 if dm_coefficients is None else dm_coefficients[0].size - 1
+    dim = n * (ctrl.history - 1 + depth + nb + na)
+    if dim > MULTIMODE_MAX_STATE:
+        logger.info(
+            "%s: no closed-loop pole check for a multi-mode loop of state %d > %d",
+            stage.name,
+            dim,
+            MULTIMODE_MAX_STATE,
+        )
+        return None
+    gains = [optical_gain]
+    if err is not None:  # a drifting gain: the loop at both ends of the modulation
+        factors = np.broadcast_to(err.factor, (n,))
+        gains = [
+            optical_gain * factors * (1.0 - err.drift),
+            optical_gain * factors * (1.0 + err.drift),
+        ]
+    radius = max(
+        float(
+            np.abs(
+                multimode_closed_loop_poles(
+                    ctrl,
+                    latency_frames=stage.latency_frames,
+                    optical_gain=g,
+                    mixing=dm.mixing,
+                    dm_coefficients=dm_coefficients,
+                )
+            ).max()
+        )
+        for g in gains
+    )
+    return np.full(n, radius)
 
 
 def _radius(coeffs: tuple, bg: np.ndarray, ah: np.ndarray, gain: np.ndarray) -> np.ndarray:

@@ -210,6 +210,10 @@ def _design(args: argparse.Namespace) -> int:
         "n_jobs": args.jobs,
         "progress": not args.no_progress,
     }
+    uncertainty = _uncertainty(args)
+    if uncertainty is not None:  # the robust design's own set, where it takes one
+        given["gain_interval"] = uncertainty.gain
+        given["latency_interval"] = uncertainty.latency
     # The registry says which options a design reads; the CLI offers them all.
     options = {k: v for k, v in given.items() if k in get_controller(controller).options}
     bounds = () if args.bounds == "none" else tuple(args.bounds.split(","))
@@ -225,6 +229,7 @@ def _design(args: argparse.Namespace) -> int:
         bounds=bounds,
         check_telemetry=not args.no_telemetry_check,
         override_metadata=args.override_metadata,
+        uncertainty=uncertainty,
     )
     n_modes = rep.n_modes
     unit = unit_label(rep.unit)
@@ -251,6 +256,7 @@ def _design(args: argparse.Namespace) -> int:
             "mm": r["modulus_margin"],
             "dm_removed": r["delay_margin_removed_frames"],
             "dm": r["delay_margin_frames"],
+            "robust": r["robust_margin"],
             "rms": r["residual_nm"],
             "ref": r["reference_nm"],
             "wiener": r["wiener_nm"],
@@ -267,6 +273,7 @@ def _design(args: argparse.Namespace) -> int:
         ("mm", "MM[1]", ".3f"),
         ("dm_removed", "lat-[fr]", ".2f"),
         ("dm", "lat+[fr]", ".2f"),
+        *([("robust", "MMset[1]", ".3f")] if rep.robust_margins is not None else []),
         ("rms", f"resid[{unit}]", ".2f"),
         ("ref", f"OMGI resid[{unit}]", ".2f"),
         ("wiener", f"Wiener[{unit}]", ".2f"),
@@ -292,6 +299,8 @@ def _design(args: argparse.Namespace) -> int:
         f"{total_ref:.2f} {unit} RMS (ratio {total / total_ref:.3f}); Wiener bound "
         f"{rep.wiener_rms:.2f} {unit}, modulus-margin bound {rep.constrained_rms:.2f} {unit}"
     )
+    if uncertainty is not None:
+        print(_robust_line(rep))
     if rep.bound_failures:
         first = next(iter(rep.bound_failures.items()))
         print(
@@ -379,6 +388,54 @@ def _design(args: argparse.Namespace) -> int:
     info = {"telemetry": args.telemetry, "frames": telemetry.n_frames, "unit": unit}
     print(f"report: {_design_report(rep, stem + '_report.html', info=info)}")
     return 0
+
+
+def _uncertainty(args: argparse.Namespace) -> Any:
+    """The :class:`~aocontrol.analysis.UncertaintySet` of ``--robust-gain`` and
+    ``--robust-latency`` (``None`` when neither is given)."""
+    from aocontrol.analysis import UncertaintySet
+
+    if args.robust_gain is None and args.robust_latency is None:
+        return None
+    pairs = {}
+    for option, text, default in (
+        ("--robust-gain", args.robust_gain, (1.0, 1.0)),
+        ("--robust-latency", args.robust_latency, (0.0, 0.0)),
+    ):
+        if text is None:
+            pairs[option] = default
+            continue
+        try:
+            lo, hi = (float(x) for x in text.split(","))
+        except ValueError:
+            raise UserError(f"{option}: expected LOW,HIGH (two numbers), got {text!r}") from None
+        pairs[option] = (lo, hi)
+    try:
+        return UncertaintySet(gain=pairs["--robust-gain"], latency=pairs["--robust-latency"])
+    except ValueError as exc:
+        raise UserError(f"--robust-gain / --robust-latency: {exc}") from None
+
+
+def _robust_line(rep: Any) -> str:
+    """One line: what the robust margins cover and their smallest values."""
+    u = rep.uncertainty
+    head = (
+        f"certified over loop gain [{u.gain[0]:g}, {u.gain[1]:g}] x latency change "
+        f"[{u.latency[0]:+g}, {u.latency[1]:+g}] frames (exact in both, "
+        "aocontrol.analysis.robust_margin): "
+    )
+    parts = []
+    for label, robust in (("design", rep.robust_margins), ("OMGI", rep.reference_robust_margins)):
+        if robust is None:
+            parts.append(f"{label} not computed (a multi-mode bank or a measured plant)")
+            continue
+        values = np.array([r.value for r in robust])
+        ok = sum(r.stable and r.value >= rep.modulus_margin - 1e-9 for r in robust)
+        parts.append(
+            f"{label} min {values.min():.3f}, {ok}/{len(robust)} modes >= {rep.modulus_margin:g}"
+            f" and stable over the set"
+        )
+    return head + "; ".join(parts)
 
 
 def _units_line(unit: str | None, args: argparse.Namespace) -> str:
@@ -492,6 +549,21 @@ def design_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=0.0,
         help="LQ weight of u^2 for --controller lqg (default 0: minimum variance)",
+    )
+    p.add_argument(
+        "--robust-gain",
+        default=None,
+        metavar="LOW,HIGH",
+        help="report every mode's modulus margin certified over loop-gain factors in "
+        "[LOW, HIGH] (e.g. 0.7,1.3), the design's and the reference's; the set of "
+        "--controller datadriven-robust when given (its default: 0.7,1.3 and -0.3,0.3)",
+    )
+    p.add_argument(
+        "--robust-latency",
+        default=None,
+        metavar="LOW,HIGH",
+        help="the same over latency changes [frames] in [LOW, HIGH] (a negative LOW after an "
+        "equals sign: --robust-latency=-0.3,0.3)",
     )
     p.add_argument("--stage", default=None, help="stage group of a cascade results file")
     p.add_argument(

@@ -91,6 +91,13 @@ class TelemetryDesign:
         ``None`` when nobody stated it (printed ``"a.u."``).
     telemetry_check : LoopTelemetryCheck or None
         The command sign and scale check of the telemetry (``None`` when not run).
+    uncertainty : UncertaintySet or None
+        The box of loop gains and latency changes the robust margins cover (``None``: none
+        asked).
+    robust_margins, reference_robust_margins : tuple of RobustMargin or None
+        Per mode, the certified modulus margin over :attr:`uncertainty` of the design and of
+        the reference (:func:`aocontrol.analysis.robust_margin`; ``None`` when not asked or
+        not computable: a multi-mode bank, a measured plant).
     """
 
     controller_name: str
@@ -113,6 +120,9 @@ class TelemetryDesign:
     bound_failures: dict = field(default_factory=dict)
     unit: str | None = "nm"
     telemetry_check: Any = None
+    uncertainty: Any = None
+    robust_margins: tuple | None = None
+    reference_robust_margins: tuple | None = None
 
     def __post_init__(self) -> None:
         n = self.controller.n_modes
@@ -121,8 +131,8 @@ class TelemetryDesign:
                 f"controller, reference and estimate must have the same n_modes, got "
                 f"{n}, {self.reference.n_modes} and {self.estimate.n_modes}"
             )
-        for name in ("margins", "reference_margins"):
-            if len(getattr(self, name)) != n:
+        for name in ("margins", "reference_margins", "robust_margins", "reference_robust_margins"):
+            if getattr(self, name) is not None and len(getattr(self, name)) != n:
                 raise ValueError(f"{name} must have {n} entries, got {len(getattr(self, name))}")
         for name in _PER_MODE:
             arr = np.asarray(getattr(self, name), dtype=float)
@@ -153,6 +163,15 @@ class TelemetryDesign:
         return self.stable & (self.achieved_modulus_margin >= self.modulus_margin - 1e-9)
 
     @property
+    def robust_modulus_margin(self) -> np.ndarray:
+        """Certified modulus margin over :attr:`uncertainty` per mode (``nan`` where not
+        computed), shape ``(n_modes,)``; a mode not certified stable over the whole set reads
+        its (possibly negative) bound."""
+        if self.robust_margins is None:
+            return np.full(self.n_modes, np.nan)
+        return np.array([r.value for r in self.robust_margins])
+
+    @property
     def residual_rms(self) -> float:
         """Predicted residual over all modes, ``sqrt(sum residual_variance)`` [units]."""
         return float(np.sqrt(np.sum(self.residual_variance)))
@@ -179,11 +198,13 @@ class TelemetryDesign:
         ``gain_margin_down_db`` (fall; ``-inf``: any smaller gain is stable),
         ``phase_margin_deg`` (smallest over every crossover), ``modulus_margin``,
         ``delay_margin_frames`` (latency that can be added), ``delay_margin_removed_frames``
-        (removed), ``residual_nm`` (RMS, units),
+        (removed), ``robust_margin`` (certified over :attr:`uncertainty`, ``nan`` if not
+        asked), ``residual_nm`` (RMS, units),
         ``reference_nm``, ``wiener_nm``, ``constrained_nm``, ``ratio_to_constrained``
         (residual variance / constrained bound).
         """
         out = []
+        robust = self.robust_modulus_margin
         for i, m in enumerate(self.margins):
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = self.residual_variance[i] / self.constrained_variance[i]
@@ -197,6 +218,7 @@ class TelemetryDesign:
                     "modulus_margin": float(m.modulus_margin),
                     "delay_margin_frames": float(m.delay_margin),
                     "delay_margin_removed_frames": float(m.delay_margin_removed),
+                    "robust_margin": float(robust[i]),
                     "residual_nm": float(np.sqrt(self.residual_variance[i])),
                     "reference_nm": float(np.sqrt(self.reference_residual_variance[i])),
                     "wiener_nm": float(np.sqrt(self.wiener_variance[i])),

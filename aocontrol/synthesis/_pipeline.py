@@ -19,17 +19,20 @@ from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import Any
 
+import control
 import numpy as np
 
 from aocontrol._deprecation import renamed_keyword
 from aocontrol._validation import check_in_range, check_int
 from aocontrol.analysis import (
     Margins,
+    UncertaintySet,
     constrained_bound,
     is_stable,
     margins,
     multimode_certificate,
     residual_variance,
+    robust_margin,
     wiener_bound,
 )
 from aocontrol.controllers import MultiModeBank
@@ -187,6 +190,7 @@ def design_from_telemetry(
     n_taps: int = 128,
     check_telemetry: bool = True,
     override_metadata: bool = False,
+    uncertainty: UncertaintySet | None = None,
 ) -> TelemetryDesign:
     """Design a controller bank from closed-loop telemetry and certify it.
 
@@ -211,6 +215,11 @@ def design_from_telemetry(
        reference (closed-loop stability and the modulus margin on the whole circle). A mode
        whose margins cannot be computed keeps the :func:`aocontrol.analysis.is_stable`
        verdict and ``nan`` margins (logged; it does not count as meeting the margin).
+       With ``uncertainty``, also the certified modulus margin over that box of loop gains
+       and latency changes, per mode, of the design and the reference
+       (:func:`aocontrol.analysis.robust_margin`: exact in the gain, a latency grid with a
+       bound between points), the same figure whatever the controller (a multi-mode bank
+       or a measured plant: not computed, ``None``).
     4. Predict and bound: :func:`aocontrol.analysis.residual_variance` on the estimate's
        grid; the Wiener bound (any causal linear controller) and the constrained bound
        (linear controllers with ``modulus_margin``, FIR Youla of ``n_taps`` taps), each
@@ -258,6 +267,10 @@ def design_from_telemetry(
         Run step 0 (False: design from telemetry whose sign or scale looks wrong).
     override_metadata : bool, default False
         Let ``fs`` and ``latency_frames`` replace a :class:`LoopTelemetry`'s own values.
+    uncertainty : UncertaintySet, optional
+        Report the certified modulus margin over this set (step 3); it does not change the
+        design (``"datadriven-robust"`` designs for a set: its options ``gain_interval``,
+        ``latency_interval``).
 
     Returns
     -------
@@ -376,6 +389,17 @@ def design_from_telemetry(
         mar = _per_mode_margins(plant, bank, controller)
     ref_mar = _per_mode_margins(plant, reference, "reference")
     timings["margins"] = time.perf_counter() - t0
+    robust = ref_robust = None
+    if uncertainty is not None:
+        if not isinstance(uncertainty, UncertaintySet):
+            raise TypeError(
+                f"uncertainty must be an UncertaintySet, got {type(uncertainty).__name__}"
+            )
+        t0 = time.perf_counter()
+        if not multimode:
+            robust = _per_mode_robust(plant, bank, uncertainty)
+        ref_robust = _per_mode_robust(plant, reference, uncertainty)
+        timings["robust"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     if multimode:
@@ -434,4 +458,16 @@ def design_from_telemetry(
         bound_failures=bound_failures,
         unit=unit,
         telemetry_check=check,
+        uncertainty=uncertainty,
+        robust_margins=robust,
+        reference_robust_margins=ref_robust,
     )
+
+
+def _per_mode_robust(plant: Any, bank: Any, uncertainty: UncertaintySet) -> tuple | None:
+    """Every mode's :func:`robust_margin` over ``uncertainty``, or ``None`` for a measured
+    plant (the certificate needs polynomials)."""
+    if not isinstance(plant, control.TransferFunction):
+        logger.info("no robust margin for a measured plant (it needs a transfer function)")
+        return None
+    return tuple(robust_margin(plant, bank, uncertainty, mode=i) for i in range(bank.n_modes))
