@@ -197,27 +197,13 @@ def _reversed(p: np.ndarray, n: int) -> np.ndarray:
 
 def _gain_family_minimum(A: np.ndarray, B: np.ndarray, k_lo: float, k_hi: float):
     """``(value, gain, theta)``: ``min |A + k B| / |A|`` over ``k in [k_lo, k_hi]`` and the
-    circle, exact (module docstring)."""
-    best = (np.inf, 1.0, 0.0)
-    for k in sorted({k_lo, k_hi}):
-        theta, vals = rational_modulus_minima(npoly.polyadd(A, k * B), A)
-        i = int(np.argmin(vals))
-        if vals[i] < best[0]:
-            best = (float(vals[i]), k, float(theta[i]))
-    if k_hi > k_lo:
-        n = max(A.size, B.size) - 1
-        D = npoly.polysub(npoly.polymul(B, _reversed(A, n)), npoly.polymul(_reversed(B, n), A))
-        theta, vals = rational_modulus_minima(D, 2.0 * npoly.polymul(A, B))
-        w = np.exp(-1j * theta)
-        a, b = npoly.polyval(w, A), npoly.polyval(w, B)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            k_star = -(b * np.conj(a)).real / np.abs(b) ** 2
-        inside = np.isfinite(vals) & (k_star > k_lo) & (k_star < k_hi)
-        if inside.any():
-            i = int(np.flatnonzero(inside)[np.argmin(vals[inside])])
-            if vals[i] < best[0]:
-                best = (float(vals[i]), float(k_star[i]), float(theta[i]))
-    return best
+    circle, exact (module docstring): the segment family ``C = A + k_lo B``,
+    ``D = (k_hi - k_lo) B`` of :func:`_segment_minimum`."""
+    value, t, theta = _segment_minimum(
+        npoly.polyadd(A, k_lo * B), (k_hi - k_lo) * B, A, end=npoly.polyadd(A, k_hi * B)
+    )
+    gain = k_hi if t == 1.0 else k_lo + t * (k_hi - k_lo)
+    return value, float(gain), theta
 
 
 def robust_margin(
@@ -279,13 +265,16 @@ def robust_margin(
     return robust_from_coefficients(bg, ag, bk, ak, fs_, uncertainty)
 
 
-def _segment_minimum(C: np.ndarray, D: np.ndarray, A: np.ndarray):
+def _segment_minimum(
+    C: np.ndarray, D: np.ndarray, A: np.ndarray, end: np.ndarray | None = None
+) -> tuple[float, float, float]:
     """``(value, t, theta)``: ``min |C + t D| / |A|`` over ``t in [0, 1]`` and the circle,
-    exact: at an end (:func:`rational_modulus_minima` of ``C`` and ``C + D`` over ``A``) or
-    where the foot of the perpendicular ``t* = -Re(D conj C) / |D|^2`` lies inside, the
-    distance ``|Im(D conj C)| / (|D| |A|) = |D C~ - D~ C| / (2 |D| |A|)`` (``~``: reversed)."""
+    exact: at an end (:func:`rational_modulus_minima` of ``C`` and ``C + D`` over ``A``;
+    ``end``, if given, is ``C + D`` as the caller computed it) or where the foot of the
+    perpendicular ``t* = -Re(D conj C) / |D|^2`` lies inside, the distance
+    ``|Im(D conj C)| / (|D| |A|) = |D C~ - D~ C| / (2 |D| |A|)`` (``~``: reversed)."""
     best = (np.inf, 0.0, 0.0)
-    for t, P in ((0.0, C), (1.0, npoly.polyadd(C, D))):
+    for t, P in ((0.0, C), (1.0, npoly.polyadd(C, D) if end is None else end)):
         theta, vals = rational_modulus_minima(P, A)
         i = int(np.argmin(vals))
         if vals[i] < best[0]:
