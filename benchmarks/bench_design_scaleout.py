@@ -12,15 +12,17 @@ Measured in one run, on the same machine and the same inputs:
    each) through ``datadriven(..., client=...)``. Printed: both wall times, the cluster's
    start-up, the ratio one process / cluster with and without the start-up (issue 34's goal:
    1.8x on 2 workers), each worker's peak resident memory against the estimate the design
-   refuses beyond (:func:`aocontrol.synthesis._dd_dask.task_memory`), and whether the two
-   banks are identical bit for bit (they must be).
+   refuses beyond (:func:`aocontrol.synthesis._dd_dask.task_memory`), the workers' CPU time
+   (its total against the one process's: the machinery's cost; over the wall time: the cores
+   the workers got on a shared machine), and whether the two banks are identical bit for bit
+   (they must be).
 3. With ``N < 5000``: the extrapolation to the 5,000 modes: the first chunk timed alone, the
    other chunks' time scaled by the modes (the sampled chunks span the bank's mix of modes;
    the design grid, chosen from every designed mode's PSD peaks, may differ slightly from the
    full bank's), the cluster at the measured ratio.
 
-``--quick``: two chunks (64 modes) away from the vibrating modes, a smoke test of the same
-path (its ratio means little with two tasks).
+``--quick``: two chunks away from the vibrating modes (40 modes: the bank's last chunk has 8),
+a smoke test of the same path (its ratio means little with two tasks and cold workers).
 
 With ``N < 5000`` the extrapolation times the first chunk (the vibrating modes, whose bound
 starts make it the dearest) alone and scales the others' time.
@@ -186,9 +188,11 @@ def main(argv: list[str] | None = None) -> int:
         startup = time.perf_counter() - t0
         limit = min(w["memory_limit"] for w in client.scheduler_info()["workers"].values())
         print(f"cluster: {args.workers} workers up in {startup:.1f} s ({_load()})", flush=True)
+        cpu0 = client.run(time.process_time)
         t1 = time.perf_counter()
         dask = datadriven(plant, f, psd, client=client, **kw)
         t_dask = time.perf_counter() - t1
+        cpu = {w: c - cpu0.get(w, 0.0) for w, c in client.run(time.process_time).items()}
         peaks = client.run(_peak_rss_mb)
     same = all(
         np.array_equal(x, y)
@@ -205,6 +209,15 @@ def main(argv: list[str] | None = None) -> int:
         f"process / cluster {ratio:.2f}x ({ratio_up:.2f}x with the start-up); goal {GOAL}x: "
         f"{'met' if ratio >= GOAL else 'not met'} ({_load()})"
     )
+    total = sum(cpu.values())
+    print(
+        f"cluster CPU: {total:.1f} s in all, {100 * (total / c_serial - 1):+.1f} % on one "
+        "process's; per worker "
+        + ", ".join(f"{c:.1f}" for c in sorted(cpu.values()))
+        + f" s; the workers had {total / t_dask:.2f} cores of {os.cpu_count()}; with a free "
+        f"core per worker and the chunks perfectly shared, one process / cluster would be at "
+        f"most {c_serial * len(cpu) / total:.2f}x"
+    )
     print(
         "memory per worker: peak "
         + ", ".join(f"{v:.0f}" for v in sorted(peaks.values()))
@@ -216,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         # The first chunk (six modes with lines: the bound starts) costs far more than the
         # others: timed alone (its own call, its own design grid) and counted once.
         t0 = time.perf_counter()
-        datadriven(plant, f, psd[:CHUNK], n_jobs=1, order=args.order, noise_psd=noise[:CHUNK])
+        datadriven(plant, f, psd[:CHUNK], n_jobs=1, **{**kw, "noise_psd": noise[:CHUNK]})
         t_first = time.perf_counter() - t0
         k = (BANK_MODES - CHUNK) / (modes.size - CHUNK)
         est_serial = t_first + k * max(t_serial - t_first, 0.0)

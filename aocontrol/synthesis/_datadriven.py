@@ -262,12 +262,14 @@ def datadriven(
         mid-task has its task run again elsewhere by Dask (``allowed-failures``); a chunk
         whose task still fails has its modes failed (:class:`DataDrivenError`, the reason per
         mode), the others designed. Memory per worker, estimated before anything is designed
-        (:func:`aocontrol.synthesis._dd_dask.task_memory`): about ``400 MB + 64 B x
+        (``aocontrol.synthesis._dd_dask.task_memory``): about ``400 MB + 64 B x
         n_modes_per_chunk x n_freqs + 768 B x n_freqs + 128 B x n_dense x (2 order + 1)``
-        (``n_dense`` about 6,200 for ``n_grid = 64``; about 0.5 GB in all for 32 modes at 4,097
-        frequencies), plus 4.2 GB for a chunk with a mode that tries the bound start (the
-        bound's compilation by cvxpy, measured); a call whose estimate exceeds the smallest
-        worker memory limit is refused (``MemoryError``).
+        (``n_dense`` about 6,200 for ``n_grid = 64``; about 0.42 GB in all for 32 modes at 4,097
+        frequencies), plus ``4.2 GB + 24.6 kB x n_freqs`` for a chunk with a mode that tries
+        the bound start (the bound's compilation by cvxpy at 256 taps: a peak of 4.1 GB
+        measured on a tip mode); a call whose estimate exceeds the smallest worker memory
+        limit is refused (``MemoryError``). A worker process designs one chunk at a time
+        (its compiled problems are per process): give workers one thread each.
 
     Returns
     -------
