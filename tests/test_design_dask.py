@@ -232,3 +232,20 @@ def test_cli_unreachable_scheduler_designs_nothing(tmp_path, capsys):
     assert not out.exists()
     assert main([*argv, "--controller", "lqg", "--workers", "2"]) == 2
     assert "'lqg' does not run on a Dask cluster" in capsys.readouterr().err
+
+
+def test_cli_design_on_a_scheduler_writes_the_serial_bank(tmp_path, capsys, threads_client):
+    import aocontrol
+
+    rng = np.random.default_rng(1)
+    m = np.cumsum(rng.standard_normal((2048, 2)), axis=0) * 0.05 + rng.standard_normal((2048, 2))
+    tel = tmp_path / "tel.npz"
+    np.savez(tel, measurements=m, commands=np.zeros_like(m))
+    argv = ["design", str(tel), "--fs", "1000", "--latency", "1", "--order", "3"]
+    argv += ["--bounds", "none", "--no-progress"]
+    assert main([*argv, "--jobs", "1", "--out", str(tmp_path / "serial.h5")]) == 0
+    address = threads_client.scheduler.address
+    assert main([*argv, "--scheduler", address, "--out", str(tmp_path / "dask.h5")]) == 0
+    serial, dask = (aocontrol.load_controller(tmp_path / n) for n in ("serial.h5", "dask.h5"))
+    np.testing.assert_array_equal(dask.b, serial.b)
+    np.testing.assert_array_equal(dask.a, serial.a)
