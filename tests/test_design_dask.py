@@ -13,6 +13,7 @@ import socket
 import sys
 import threading
 
+import cloudpickle
 import numpy as np
 import pytest
 from distributed import Client, LocalCluster
@@ -120,19 +121,20 @@ def test_failing_mode_is_kept_apart_on_dask(small_chunks, threads_client):
 
 class _KillOnce(WorkerPlugin):
     """Kill the worker process running the task ``key_prefix...`` shortly after it starts,
-    the first time only (a marker file says it happened)."""
+    the first time only (a marker file says it happened), or every time (``marker=None``)."""
 
     name = "kill-once"
 
-    def __init__(self, key_prefix: str, marker: str) -> None:
+    def __init__(self, key_prefix: str, marker: str | None) -> None:
         self.key_prefix, self.marker = key_prefix, marker
 
     def transition(self, key, start, finish, **kwargs) -> None:
         name = key if isinstance(key, str) else str(key)
         if finish == "executing" and name.startswith(self.key_prefix):
-            if not os.path.exists(self.marker):
-                with open(self.marker, "w") as fh:
-                    fh.write(str(os.getpid()))
+            if self.marker is None or not os.path.exists(self.marker):
+                if self.marker is not None:
+                    with open(self.marker, "w") as fh:
+                        fh.write(str(os.getpid()))
                 threading.Timer(0.05, os._exit, args=(1,)).start()  # mid-design
 
 
@@ -150,8 +152,6 @@ def process_cluster():
 
 
 def test_killed_worker_modes_designed_once(small_chunks, process_cluster, tmp_path):
-    import cloudpickle
-
     # The plugin's class travels by value: the workers cannot import this test module.
     cloudpickle.register_pickle_by_value(sys.modules[__name__])
     f = np.linspace(0.0, FS / 2, 151)
@@ -171,6 +171,34 @@ def test_killed_worker_modes_designed_once(small_chunks, process_cluster, tmp_pa
     assert [r.mode for r in res.reports] == list(range(psd.shape[0]))
     assert all(r.ok for r in res.reports)
     _same_bank(res, serial)
+
+
+def test_a_chunk_that_kills_every_worker_fails_alone(small_chunks, process_cluster):
+    # The scheduler gives up on a task whose worker died more than allowed_failures times
+    # (Dask's default 3; 0 here to keep the test short): its modes fail with the reason, the
+    # other chunks' modes are designed as in one process.
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    f = np.linspace(0.0, FS / 2, 151)
+    psd = _psd(f)
+    plant = loop_plant(FS, 1.0)
+    serial = datadriven(plant, f, psd, n_jobs=1, **KW)
+    scheduler = process_cluster.scheduler
+    allowed, scheduler.allowed_failures = scheduler.allowed_failures, 0
+    try:
+        with Client(process_cluster) as client:
+            client.register_plugin(_KillOnce("datadriven-chunk-1-", None))
+            try:
+                with pytest.raises(DataDrivenError) as info:
+                    datadriven(plant, f, psd, client=client, **KW)
+            finally:
+                client.unregister_worker_plugin(_KillOnce.name)
+    finally:
+        scheduler.allowed_failures = allowed
+    failed = info.value.failed
+    assert sorted(failed) == [2, 3] and all("KilledWorker" in failed[m] for m in failed)
+    kept = [0, 1, 4]
+    np.testing.assert_array_equal(info.value.result.controller.b[kept], serial.controller.b[kept])
+    np.testing.assert_array_equal(info.value.result.controller.a[kept], serial.controller.a[kept])
 
 
 def test_memory_refused_before_anything_is_designed():

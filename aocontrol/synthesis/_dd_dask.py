@@ -25,7 +25,7 @@ one thread each and as many processes as cores (``dask worker --nthreads 1 --nwo
 ``LocalCluster(threads_per_worker=1)``).
 
 Memory. :func:`task_memory` estimates a worker's peak while it designs a chunk, and
-:func:`check_cluster` refuses a call whose estimate exceeds the smallest worker memory limit
+:func:`check_memory` refuses a call whose estimate exceeds the smallest worker memory limit
 before anything is designed (``MemoryError`` giving both figures).
 """
 
