@@ -48,6 +48,7 @@ BENCHMARKS: dict[str, Entry] = {
     "pyramid": Entry("bench_pyramid.py", ("--repeats", "3")),
     "pyramid-flops": Entry("bench_pyramid.py", ("--flops",), ("--flops", "--quick")),
     "sweep": Entry("bench_sweep.py", ("--seconds", "2")),
+    "design-scaleout": Entry("bench_design_scaleout.py", ("--modes", "1024")),
     "synthesis": Entry("bench_synthesis.py", (), covers=("--resonant-only",)),
     "holdout": Entry("bench_certified_holdout.py", ()),
     "loop": Entry("bench_loop.py", ()),

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 from typing import Any
 
@@ -192,17 +193,46 @@ def _design_telemetry(args: argparse.Namespace) -> Any:
 
 
 def _design(args: argparse.Namespace) -> int:
-    from aocontrol._units import unit_label
-    from aocontrol.analysis import sensitivity
-    from aocontrol.controllers import save_controller
     from aocontrol.io import EXPORT_FORMATS
-    from aocontrol.synthesis import controller_names, design_from_telemetry, get_controller
+    from aocontrol.synthesis import controller_names, get_controller
 
     controller = _valid_name("controller", args.controller, sorted(controller_names()))
     # File names are checked before the design (minutes) is made.
     out_format = _out_format("--out", args.out, OUT_FORMATS)
     if args.export:
         _out_format("--export", args.export, EXPORT_FORMATS)
+    with contextlib.ExitStack() as stack:
+        client = _design_client(args, get_controller(controller), stack)
+        return _design_with(args, controller, out_format, client)
+
+
+def _design_client(args: argparse.Namespace, spec: Any, stack: contextlib.ExitStack) -> Any:
+    """The Dask client of ``design --scheduler/--workers`` (None without them), connected
+    before anything is read or designed; closed with ``stack``."""
+    if args.scheduler is None and args.workers is None:
+        return None
+    from aocontrol.study._sweep_cluster import _connect
+    from aocontrol.study.sweep import CONNECT_TIMEOUT_S
+
+    if not spec.distributed:
+        raise UserError(
+            f"--scheduler/--workers: controller {spec.name!r} does not run on a Dask cluster "
+            "(the data-driven designs do)"
+        )
+    if args.scheduler is not None and args.workers is not None:
+        raise UserError("--workers starts a local cluster; it cannot go with --scheduler")
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    return _connect(args.scheduler, args.workers or 2, CONNECT_TIMEOUT_S, stack)
+
+
+def _design_with(args: argparse.Namespace, controller: str, out_format: str, client: Any) -> int:
+    """``design`` once the names are checked and the cluster (if any) is connected."""
+    from aocontrol._units import unit_label
+    from aocontrol.analysis import sensitivity
+    from aocontrol.controllers import save_controller
+    from aocontrol.synthesis import design_from_telemetry, get_controller
+
     telemetry = _design_telemetry(args)
     given = {
         "order": args.order,
@@ -217,20 +247,24 @@ def _design(args: argparse.Namespace) -> int:
     # The registry says which options a design reads; the CLI offers them all.
     options = {k: v for k, v in given.items() if k in get_controller(controller).options}
     bounds = () if args.bounds == "none" else tuple(args.bounds.split(","))
-    rep = design_from_telemetry(
-        telemetry,
-        controller,
-        fs=args.fs,
-        latency_frames=args.latency,
-        estimator=args.estimator,
-        modulus_margin=args.modulus_margin,
-        reference_gain=args.gain,
-        options=options,
-        bounds=bounds,
-        check_telemetry=not args.no_telemetry_check,
-        override_metadata=args.override_metadata,
-        uncertainty=uncertainty,
-    )
+    try:
+        rep = design_from_telemetry(
+            telemetry,
+            controller,
+            fs=args.fs,
+            latency_frames=args.latency,
+            estimator=args.estimator,
+            modulus_margin=args.modulus_margin,
+            reference_gain=args.gain,
+            options=options,
+            bounds=bounds,
+            check_telemetry=not args.no_telemetry_check,
+            override_metadata=args.override_metadata,
+            uncertainty=uncertainty,
+            client=client,
+        )
+    except MemoryError as exc:  # the cluster's workers refused before designing
+        raise UserError(str(exc)) from None
     n_modes = rep.n_modes
     unit = unit_label(rep.unit)
     print(
@@ -571,6 +605,20 @@ def design_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         help="worker processes of the data-driven design (default: every core; 1: none)",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the data-driven design's modes on the Dask scheduler at ADDRESS (e.g. "
+        "tcp://host:8786; refused within 5 s if none answers, before anything is designed)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run the data-driven design's modes on a local Dask cluster of N processes",
     )
     p.add_argument(
         "--bounds",

@@ -8,6 +8,7 @@ Commands (``aocontrol COMMAND --help`` for each)::
     aocontrol design TELEMETRY [--loop NAME] [--fs F --latency L] [--controller datadriven]
                      [--order 5] [--out FILE.h5|.fits|.csv] [--export FILE.fits|.csv]
                      [--aot-out FILE] [--unit U] [--command-sign -1] [--override-metadata]
+                     [--scheduler ADDRESS | --workers N]
     aocontrol sweep SPEC.toml [--scheduler ADDRESS] [--out DIR]
     aocontrol adapt CASE [--scenario S] [--period 2] [--window T] [--seconds 60] [--quick]
     aocontrol demo [--output DIR]

@@ -19,6 +19,7 @@ This module holds the public call; the preparation (inputs checked, starts, grid
 from __future__ import annotations
 
 import inspect
+from typing import Any
 
 import control
 import numpy as np  # noqa: F401 - the namespace of datadriven's doctest
@@ -28,7 +29,8 @@ from aocontrol._validation import check_int
 from aocontrol.analysis import UncertaintySet
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis._dd_assemble import _assemble
-from aocontrol.synthesis._dd_mode import _run
+from aocontrol.synthesis._dd_dask import check_client, check_memory
+from aocontrol.synthesis._dd_mode import _run, chunks
 from aocontrol.synthesis._dd_prepare import DEFAULT_POLE_RADIUS, _Setup, prepare
 from aocontrol.synthesis._dd_results import (
     GRID_DISAGREEMENT,
@@ -72,6 +74,7 @@ def datadriven(
     fs: float | None = None,
     uncertainty: UncertaintySet | None = None,
     integral_action: bool = False,
+    client: Any = None,
 ) -> DataDrivenResult:
     r"""Data-driven IIR controllers, one per mode, from disturbance and noise PSDs.
 
@@ -228,7 +231,8 @@ def datadriven(
     n_jobs : int, optional
         Worker processes (joblib); ``None`` uses every core this process may use
         (``joblib.cpu_count()``: CPU affinity, cgroup limits and ``LOKY_MAX_CPU_COUNT``, which
-        a sweep's workers set to their share), 1 runs in this process.
+        a sweep's workers set to their share), 1 runs in this process. Ignored with
+        ``client``.
     progress : bool, default True
         Show a tqdm progress bar over modes.
     fs : float, optional
@@ -250,6 +254,22 @@ def datadriven(
         A fixed pole at ``z = 1`` (``fixed_denominator = [1, -1]``): a static disturbance (a
         reference-slope change, a non-common-path aberration) is rejected entirely in steady
         state; the other poles stay inside ``max_pole_radius``.
+    client : distributed.Client, optional
+        Design on this Dask cluster instead of local processes: each chunk of 32 neighbouring
+        modes is one task (the chunks of the serial and joblib paths: the bank is bit for bit
+        the same). The client must be connected and the cluster have (or gain within 10 s) a
+        worker that can import aocontrol. A task that raises is retried twice; a worker lost
+        mid-task has its task run again elsewhere by Dask (``allowed-failures``); a chunk
+        whose task still fails has its modes failed (:class:`DataDrivenError`, the reason per
+        mode), the others designed. Memory per worker, estimated before anything is designed
+        (``aocontrol.synthesis._dd_dask.task_memory``): about ``400 MB + 64 B x
+        n_modes_per_chunk x n_freqs + 768 B x n_freqs + 128 B x n_dense x (2 order + 1)``
+        (``n_dense`` about 6,200 for ``n_grid = 64``; about 0.42 GB in all for 32 modes at 4,097
+        frequencies), plus ``4.2 GB + 24.6 kB x n_freqs`` for a chunk with a mode that tries
+        the bound start (the bound's compilation by cvxpy at 256 taps: a peak of 4.1 GB
+        measured on a tip mode); a call whose estimate exceeds the smallest worker memory
+        limit is refused (``MemoryError``). A worker process designs one chunk at a time
+        (its compiled problems are per process): give workers one thread each.
 
     Returns
     -------
@@ -265,6 +285,11 @@ def datadriven(
     InitialPoleRadiusError
         (A ValueError.) ``initial`` has free poles on or outside ``max_pole_radius`` (e.g. an
         integrator with ``fixed_denominator=[1]``); ``.radii`` maps the modes to their radii.
+    ConnectionError
+        ``client`` is not connected, or its cluster has no worker (nothing is designed).
+    MemoryError
+        With ``client``: the estimated memory per worker exceeds the smallest worker memory
+        limit (the message gives both; nothing is designed).
     DataDrivenError
         Some modes failed (infeasible convexified problem, no verified controller, or any
         numerical failure of that mode's design: solver, linear algebra, floating point); the
@@ -297,6 +322,7 @@ def datadriven(
         n_jobs = check_int("n_jobs", n_jobs)
         if n_jobs == 0:
             raise ValueError("n_jobs must be a nonzero integer (negative: joblib convention)")
+    workers = None if client is None else check_client(client)  # before any work
     setup = prepare(
         plant,
         freqs,
@@ -316,7 +342,9 @@ def datadriven(
         uncertainty=uncertainty,
         integral_action=integral_action,
     )
-    outcomes = _run(setup.ctx, setup.items, n_jobs, progress)
+    if workers is not None:
+        check_memory(workers, setup.ctx, chunks(setup.items))
+    outcomes = _run(setup.ctx, setup.items, n_jobs, progress, client)
     return _assemble(setup, outcomes)
 
 
@@ -324,15 +352,15 @@ def datadriven(
 _PREPARE_DEFAULTS = {
     name: p.default
     for name, p in inspect.signature(datadriven).parameters.items()
-    if p.kind is inspect.Parameter.KEYWORD_ONLY and name not in ("n_jobs", "progress")
+    if p.kind is inspect.Parameter.KEYWORD_ONLY and name not in ("n_jobs", "progress", "client")
 }
 
 
 def _prepare(plant, freqs, psd, **options) -> _Setup:
     """:func:`prepare` with :func:`datadriven`'s defaults for the options not given.
 
-    ``options`` are :func:`datadriven`'s keywords (``n_jobs`` and ``progress`` are not
-    options of the preparation).
+    ``options`` are :func:`datadriven`'s keywords (``n_jobs``, ``progress`` and ``client``
+    are not options of the preparation).
     """
     unknown = set(options) - set(_PREPARE_DEFAULTS)
     if unknown:

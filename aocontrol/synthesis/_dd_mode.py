@@ -3,15 +3,16 @@
 :func:`aocontrol.synthesis.datadriven` (``_datadriven``) validates the input and prepares the
 shared context (:class:`~aocontrol.synthesis._dd_certify.DesignContext`); this module designs the
 modes: each from its best certified start (``_design_mode``), at one order or each order of
-``order="auto"`` (``_design_orders``), in chunks of neighbouring modes (``_design_chunk``) run
-serially or on a process pool (``_run``). A failure in one mode is returned for it, the others
-kept.
+``order="auto"`` (``_design_orders``), in chunks of neighbouring modes (``chunks``,
+``_design_chunk``) run serially, on a process pool or on a Dask cluster (``_run``; the Dask
+side in :mod:`._dd_dask`). A failure in one mode is returned for it, the others kept.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from typing import Any
 
 import numpy as np
 
@@ -311,8 +312,18 @@ class _Bar:
         pass
 
 
-def _run(ctx: DesignContext, items: list, n_jobs: int | None, progress: bool) -> list:
-    """Design every mode, in parallel over processes when it pays."""
+def chunks(items: list) -> list:
+    """The fixed chunks of :data:`_CHUNK` neighbouring modes every path designs (serial, joblib,
+    Dask): within a chunk a mode may start from the previous mode's design, so the chunks,
+    not the workers, decide each mode's start and the bank does not depend on the path."""
+    return [items[i : i + _CHUNK] for i in range(0, len(items), _CHUNK)]
+
+
+def _run(
+    ctx: DesignContext, items: list, n_jobs: int | None, progress: bool, client: Any = None
+) -> list:
+    """Design every mode: on ``client`` (Dask, :mod:`._dd_dask`) if given, else in this
+    process or on a joblib process pool when it pays."""
     from joblib import cpu_count
 
     cores = cpu_count()  # affinity, cgroups and LOKY_MAX_CPU_COUNT (a sweep worker's share)
@@ -328,18 +339,20 @@ def _run(ctx: DesignContext, items: list, n_jobs: int | None, progress: bool) ->
         bar = tqdm(total=len(items), desc="data-driven synthesis", unit="mode")
     results = []
     try:
-        # Fixed chunks of neighbouring modes (each mode may start from the previous one's
-        # design): the result does not depend on the number of workers.
-        chunks = [items[i : i + _CHUNK] for i in range(0, len(items), _CHUNK)]
-        if n_workers <= 1:
-            for chunk in chunks:
+        parts = chunks(items)
+        if client is not None:
+            from aocontrol.synthesis._dd_dask import run_on_client
+
+            results = run_on_client(client, _design_chunk, ctx, parts, bar)
+        elif n_workers <= 1:
+            for chunk in parts:
                 results.extend(_design_chunk(ctx, chunk))
                 bar.update(len(chunk))
         else:
             from joblib import Parallel, delayed
 
             gen = Parallel(n_jobs=n_workers, return_as="generator_unordered")(
-                delayed(_design_chunk)(ctx, chunk) for chunk in chunks
+                delayed(_design_chunk)(ctx, chunk) for chunk in parts
             )
             for part in gen:
                 results.extend(part)

@@ -80,6 +80,7 @@ def datadriven_neighbours(
     warm_tol: float = 1e-2,
     n_jobs: int | None = None,
     progress: bool = False,
+    client: object = None,
     **options: object,
 ) -> DataDrivenResult:
     """Data-driven bank from cold designs of every ``stride``-th mode and warm neighbours.
@@ -113,8 +114,8 @@ def datadriven_neighbours(
         ``n_grid`` of the warm-started modes (8 to 4096).
     warm_tol : float, default 1e-2
         ``tol`` of the warm-started modes.
-    n_jobs, progress
-        As :func:`~aocontrol.synthesis.datadriven`.
+    n_jobs, progress, client
+        As :func:`~aocontrol.synthesis.datadriven` (every call of the bank on ``client``).
     **options
         Other keywords of :func:`~aocontrol.synthesis.datadriven` (``order``,
         ``modulus_margin``, ``hinf_weight``...), used by every call; ``initial``,
@@ -139,7 +140,7 @@ def datadriven_neighbours(
     warm_max_iter = check_int("warm_max_iter", warm_max_iter, minimum=1)
     warm_n_grid = check_int("warm_n_grid", warm_n_grid, minimum=8)
     warm_tol = check_nonnegative("warm_tol", warm_tol)
-    common = dict(n_jobs=n_jobs, progress=progress)
+    common = dict(n_jobs=n_jobs, progress=progress, client=client)
     psd2 = np.atleast_2d(np.asarray(psd, dtype=float))
     n = psd2.shape[0]
     if stride == 1 or n <= 1:  # the cold bank, inputs passed as given

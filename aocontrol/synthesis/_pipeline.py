@@ -37,6 +37,7 @@ from aocontrol.analysis import (
 )
 from aocontrol.controllers import MultiModeBank
 from aocontrol.plant import loop_plant, plant_fs, split_latency
+from aocontrol.synthesis._dd_dask import check_client
 from aocontrol.synthesis._design_report import TelemetryDesign
 from aocontrol.synthesis._loop_check import (
     MIN_CHECK_FRAMES,
@@ -44,7 +45,11 @@ from aocontrol.synthesis._loop_check import (
     check_loop_telemetry,
 )
 from aocontrol.synthesis._modal_gain import optimal_modal_gain
-from aocontrol.synthesis._registry import MODULUS_MARGIN, DesignInputs, get_controller
+from aocontrol.synthesis._registry import (
+    MODULUS_MARGIN,
+    DesignInputs,
+    get_controller,
+)
 from aocontrol.synthesis._telemetry import LoopTelemetry, TelemetryPSD, disturbance_from_telemetry
 
 __all__ = ["BOUNDS", "design_from_telemetry"]
@@ -191,6 +196,7 @@ def design_from_telemetry(
     check_telemetry: bool = True,
     override_metadata: bool = False,
     uncertainty: UncertaintySet | None = None,
+    client: Any = None,
 ) -> TelemetryDesign:
     """Design a controller bank from closed-loop telemetry and certify it.
 
@@ -271,6 +277,13 @@ def design_from_telemetry(
         Report the certified modulus margin over this set (step 3); it does not change the
         design (``"datadriven-robust"`` designs for a set: its options ``gain_interval``,
         ``latency_interval``).
+    client : distributed.Client, optional
+        Run step 2's per-mode designs on this Dask cluster (the data-driven designs:
+        :attr:`ControllerSpec.distributed`; ``client`` of
+        :func:`aocontrol.synthesis.datadriven`: chunks of modes as tasks, the bank bit for
+        bit the serial one, a lost worker's modes designed again, memory per worker estimated
+        and refused beyond the workers' limit before anything is designed). The client is
+        checked (connected, a worker) before step 0. The other steps run in this process.
 
     Returns
     -------
@@ -282,6 +295,10 @@ def design_from_telemetry(
         Unknown ``controller`` (the message lists the registered ones), unknown options or
         bounds, missing rate or latency, a rate or latency that contradicts the telemetry's,
         bad telemetry (see ``disturbance_from_telemetry``).
+    ConnectionError
+        ``client`` is not connected or its cluster has no worker (before any step).
+    MemoryError
+        ``client``'s workers have less memory than the design's estimate (before step 2).
     TelemetryCheckError
         (A ValueError.) Step 0 found the sign or the scale implausible; ``.check`` holds the
         statistics.
@@ -305,6 +322,9 @@ def design_from_telemetry(
     if unknown:
         raise ValueError(f"bounds must be among {list(BOUNDS)}, got {unknown}")
     n_taps = check_int("n_taps", n_taps, minimum=1)
+    spec.check_client(client)
+    if client is not None:
+        check_client(client)  # a clear error before anything is estimated or designed
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
@@ -369,6 +389,7 @@ def design_from_telemetry(
         command_limit=command_limit,
         modulus_margin=modulus_margin,
         options=opts,
+        client=client,
     )
     bank, details = spec.build(inputs)
     timings["design"] = time.perf_counter() - t0

@@ -112,6 +112,9 @@ class DesignInputs:
     options : mapping, default empty
         Design options overriding the spec's defaults (names in
         :attr:`ControllerSpec.options`), e.g. ``{"order": 7}``.
+    client : distributed.Client or None, default None
+        A Dask cluster for the designs that run on one (:attr:`ControllerSpec.distributed`);
+        ``None``: local processes.
     """
 
     plant: Any
@@ -125,6 +128,7 @@ class DesignInputs:
     command_limit: float | np.ndarray | None = None
     modulus_margin: float = MODULUS_MARGIN
     options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    client: Any = None
 
     #: Deprecated name of :attr:`command_limit`.
     stroke = DeprecatedAttribute("command_limit", "the per-mode bound on the modal command")
@@ -162,6 +166,9 @@ class ControllerSpec:
         ``(inputs) -> (ControllerBank, details)`` when the synthesis has a result worth
         keeping (e.g. :class:`~aocontrol.synthesis.DataDrivenResult`); default ``design``
         with ``None``.
+    distributed : bool, default False
+        Whether the design runs its per-mode work on a Dask cluster
+        (:attr:`DesignInputs.client`); the others refuse a client.
     """
 
     name: str
@@ -170,12 +177,27 @@ class ControllerSpec:
     parameters: dict = field(default_factory=dict)
     options: tuple[str, ...] = ()
     design_with_details: Callable[[DesignInputs], tuple[ControllerBank, Any]] | None = None
+    distributed: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
             raise ValueError(f"name must be a non-empty str, got {self.name!r}")
         if not callable(self.design):
             raise TypeError(f"design must be callable, got {type(self.design).__name__}")
+
+    def check_client(self, client: Any) -> None:
+        """Refuse a Dask ``client`` (not None) for a design that does not run on one.
+
+        Raises
+        ------
+        ValueError
+            ``client`` is given and the design is not :attr:`distributed`.
+        """
+        if client is not None and not self.distributed:
+            runs = [name for name, spec in CONTROLLERS.items() if spec.distributed]
+            raise ValueError(
+                f"controller {self.name!r} does not run on a Dask client; client is for {runs}"
+            )
 
     def build(self, inputs: DesignInputs) -> tuple[ControllerBank, Any]:
         """Run the design: ``(bank, details)`` (``details`` may be ``None``)."""
@@ -185,6 +207,7 @@ class ControllerSpec:
                 f"options {unknown} are not options of controller {self.name!r}; expected "
                 f"some of {list(self.options)}"
             )
+        self.check_client(inputs.client)
         fn = self.design_with_details or _no_details(self.design)
         return fn(inputs)
 
@@ -215,6 +238,7 @@ def _datadriven_details(
         modulus_margin=inp.modulus_margin,
         progress=inp.option("progress", False),
         n_jobs=inp.option("n_jobs", None),
+        client=inp.client,
         **structure,
     )
     return res.controller, res
@@ -370,6 +394,7 @@ register_controller(
         parameters={"order": 5, "noise_term": True, "modulus_margin": MODULUS_MARGIN},
         options=("order", "n_jobs", "progress", "stride"),
         design_with_details=_datadriven_details,
+        distributed=True,
     )
 )
 register_controller(
@@ -384,6 +409,7 @@ register_controller(
         },
         options=("order", "n_jobs", "progress", "stride", "gain_interval", "latency_interval"),
         design_with_details=_datadriven_robust_details,
+        distributed=True,
     )
 )
 register_controller(
@@ -393,6 +419,7 @@ register_controller(
         parameters={"order": 5, "modulus_margin": MODULUS_MARGIN, "integral_action": True},
         options=("order", "n_jobs", "progress", "stride"),
         design_with_details=_datadriven_integral_details,
+        distributed=True,
     )
 )
 register_controller(
