@@ -172,6 +172,11 @@ BENCHMARKS: dict[str, Entry] = {
     ),
     "atmosphere": Entry("bench_atmosphere.py", ()),
     "eof": Entry("bench_eof.py", ()),
+    "cascade-eof": Entry(
+        "bench_cascade.py",
+        ("--repeat", "2", "--stage2-controllers", "iir5,eof"),
+        ("--quick", "--repeat", "1", "--stage2-controllers", "iir5,eof"),
+    ),
     "robustness": Entry(
         "bench_robustness.py",
         ("--cases", "bright1-best,red1-fast", "--seconds", "2"),
