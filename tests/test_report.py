@@ -337,3 +337,27 @@ def test_design_report_data_from_a_telemetry_design(loop):
     assert data.info["estimator"] == "prewhitened" and data.info["telemetry"] == "x.fits"
     assert data.predicted_rms["omgi"] == pytest.approx(np.sqrt(var), rel=1e-12)
     assert data.margins["omgi"] is design.margins
+
+
+def test_design_report_shows_the_margin_over_an_uncertainty_set(loop, tmp_path):
+    # A design asked for robust margins (design_from_telemetry(uncertainty=)): the set in the
+    # header and a column per controller with the certified values, unchanged; without them
+    # no such column.
+    from aocontrol.analysis import UncertaintySet, robust_margin
+    from aocontrol.synthesis import LoopTelemetry, design_from_telemetry
+
+    rng = np.random.default_rng(3)
+    m = rng.standard_normal((4096, 2))
+    tel = LoopTelemetry(m, np.zeros_like(m), fs=1000.0, latency_frames=0.5)
+    uset = UncertaintySet(gain=(0.8, 1.2), latency=(-0.2, 0.2))
+    rep = design_from_telemetry(tel, "omgi", bounds=(), uncertainty=uset)
+    data = design_report_data(rep)
+    assert data.info["robust margins over"] == uset.describe()
+    expected = [robust_margin(rep.plant, rep.controller, uset, mode=i).value for i in range(2)]
+    np.testing.assert_allclose(data.robust_margins["omgi"], expected, rtol=1e-12)
+    page = _read(design_report(data, tmp_path / "d.html"))
+    header = page.tables["modes"][0]
+    col = header.index("omgi: MM over the set [1]")
+    assert [float(r[col]) for r in _rows(page, "modes")] == pytest.approx(expected, abs=5e-4)
+    plain = design_report_data(design_from_telemetry(tel, "omgi", bounds=()))
+    assert plain.robust_margins is None and "robust margins over" not in plain.info

@@ -68,6 +68,10 @@ class DesignReportData:
         Header lines (telemetry file, frames, fs, latency, estimator, ...).
     unit : str, default "nm"
         Unit of the telemetry and of every figure (``"a.u."`` when unknown).
+    robust_margins : mapping label -> ndarray (n_modes,), optional
+        Per mode, the modulus margin certified over an uncertainty set
+        (:func:`aocontrol.analysis.robust_margin`) of the controllers that have one; the set
+        is described in ``info``.
 
     Raises
     ------
@@ -87,6 +91,7 @@ class DesignReportData:
     title: str = "aocontrol design"
     info: Mapping[str, Any] = field(default_factory=dict)
     unit: str = "nm"
+    robust_margins: Mapping[str, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         f = np.asarray(self.freqs, dtype=float)
@@ -105,11 +110,15 @@ class DesignReportData:
                 raise ValueError(
                     f"controllers[{label!r}] has {bank.n_modes} modes, expected {n} (psd rows)"
                 )
-        for argname, mapping in (("predicted_rms", self.predicted_rms), ("bounds", self.bounds)):
+        for argname, mapping in (
+            ("predicted_rms", self.predicted_rms),
+            ("bounds", self.bounds),
+            ("robust_margins", self.robust_margins),
+        ):
             for label, v in (mapping or {}).items():
                 if np.shape(v) != (n,):
                     raise ValueError(
-                        f"{argname}[{label!r}] must have shape ({n},) [RMS per mode], got "
+                        f"{argname}[{label!r}] must have shape ({n},) [one per mode], got "
                         f"{np.shape(v)}"
                     )
         for label, mar in (self.margins or {}).items():
@@ -161,11 +170,18 @@ def design_report_data(
         var = np.asarray(getattr(design, attr), dtype=float)
         if np.isfinite(var).any():
             bounds[label] = np.sqrt(var)
+    robust = {}
+    for label, attr in ((name, "robust_margins"), (ref, "reference_robust_margins")):
+        values = getattr(design, attr, None)  # duck typed: absent on older design objects
+        if values is not None:
+            robust[label] = np.array([r.value for r in values])
+    uncertainty = getattr(design, "uncertainty", None)
     header = {
         "fs": f"{design.fs:g} Hz",
         "latency": f"{design.latency_frames:g} frame (beyond the WFS frame)",
         "estimator": getattr(est, "method", ""),
         "required modulus margin": f"{design.modulus_margin:g}",
+        **({"robust margins over": uncertainty.describe()} if robust else {}),
         **(info or {}),
     }
     return DesignReportData(
@@ -184,6 +200,7 @@ def design_report_data(
         title=title or f"aocontrol design: {name}",
         info=header,
         unit=unit_label(getattr(design, "unit", "nm")),
+        robust_margins=robust or None,
     )
 
 
@@ -249,6 +266,7 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
     sections.append(("Summary", body))
 
     first = labels[0]
+    robust_labels = [label for label in labels if label in (data.robust_margins or {})]
     prows = []
     for i in range(n):
         m = mar[first][i] if mar[first] is not None else None
@@ -263,6 +281,8 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
                 dm_removed=m.delay_margin_removed,
                 dm=m.delay_margin,
             )
+        for j, label in enumerate(robust_labels):
+            row[f"robust{j}"] = float(data.robust_margins[label][i])
         for j, label in enumerate(labels):
             row[f"rms{j}"] = float(rms[label][i])
         for j, b in enumerate(bounds.values()):
@@ -277,6 +297,10 @@ def design_report(data: DesignReportData, path: str | os.PathLike) -> str:
         ("mm", "MM [1]", ".3f"),
         ("dm_removed", "latency - [frames]", ".2f"),
         ("dm", "latency + [frames]", ".2f"),
+        *[
+            (f"robust{j}", f"{label}: MM over the set [1]", ".3f")
+            for j, label in enumerate(robust_labels)
+        ],
         *[(f"rms{j}", f"{label} [{data.unit}]", ".3f") for j, label in enumerate(labels)],
         *[(f"b{j}", f"{b} [{data.unit}]", ".3f") for j, b in enumerate(bounds)],
     ]
