@@ -119,13 +119,19 @@ class UncertaintySet:
         """Whether the set is the nominal loop alone."""
         return self.gain == (1.0, 1.0) and self.latency == (0.0, 0.0)
 
-    def latencies(self, nominal: float) -> np.ndarray:
-        """The latencies [frames] of the certificate's grid around ``nominal``: the interval's
-        ends, the nominal, the whole frames inside, and steps of at most ``latency_step``."""
+    def knots(self, nominal: float) -> np.ndarray:
+        """The latencies [frames] that split the interval around ``nominal`` into pieces on
+        which the loop is affine in the latency: its ends (the true latency >= 0), the
+        nominal and the whole frames inside."""
         lo = max(nominal + self.latency[0], 0.0)
         hi = nominal + self.latency[1]
         knots = [lo, nominal, hi, *range(math.ceil(lo), math.floor(hi) + 1)]
-        knots = np.unique(np.clip(knots, lo, hi))
+        return np.unique(np.clip(knots, lo, hi))
+
+    def latencies(self, nominal: float) -> np.ndarray:
+        """A grid of latencies [frames] around ``nominal``: the :meth:`knots` and steps of at
+        most ``latency_step`` between them."""
+        knots = self.knots(nominal)
         out = [knots[:1]]
         for a, b in zip(knots[:-1], knots[1:], strict=True):
             n = max(1, math.ceil((b - a) / self.latency_step - 1e-9))
@@ -349,10 +355,7 @@ def robust_from_coefficients(
 
     # Knots: the interval's ends, the nominal and the whole frames inside; between two knots
     # B is affine in the latency, so each piece is a box whose edges are segment families.
-    lo = max(nominal + uset.latency[0], 0.0)
-    hi = nominal + uset.latency[1]
-    knots = np.unique([lo, nominal, hi, *range(math.ceil(lo), math.floor(hi) + 1)])
-    knots = knots[(knots >= lo) & (knots <= hi)]
+    knots = uset.knots(nominal)
     B = {float(t): numerator(float(t)) for t in knots}
     best = (np.inf, 1.0, nominal, 0.0)  # value, gain, latency, theta
     for t in knots:  # the edges of constant latency: the gain interval at each knot
