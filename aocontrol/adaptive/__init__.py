@@ -61,6 +61,17 @@ telemetry up to the previous frame; the switch happens at the start of frame
 synchronously inside :meth:`step` (the simulated loop waits; its frames are unchanged), and
 the latency is simulated by the scheduled switch.
 
+**The multi-mode predictor.** :class:`AdaptivePredictor` runs the same schedule (and the
+same timing, below) for the multi-mode predictor of
+:func:`aocontrol.synthesis.eof_from_pseudo_open_loop`: step 1 is the window's pseudo-open
+loop itself (the predictor is trained on the time series, not on PSDs), step 3 the regularised
+least squares on it, step 4 the whole loop's certificate
+(:func:`aocontrol.analysis.multimode_certificate`: stability and the multivariable modulus
+margin; the weight raised until it is met, never an uncertified predictor), step 5 all modes
+at once (one certified predictor or none), bumplessly from the window's last frames
+(:meth:`aocontrol.controllers.MultiModeBank.set_history`). The schedule both share is
+``aocontrol.adaptive._schedule.SelfDesigningBank``.
+
 Run by :func:`aocontrol.sim.run_loop` like any bank. The runner resets the controller at the
 start and the end of a run; the record of the last run (:class:`Redesign` events and
 counters) survives that reset as :attr:`AdaptiveController.last_run`.
@@ -82,6 +93,7 @@ from aocontrol.adaptive._designers import (
     lqg_designer,
     modal_gain_designer,
 )
+from aocontrol.adaptive._predictor import AdaptivePredictor, PredictorRun
 from aocontrol.adaptive._realisation import (
     BUMPLESS_LAST_WEIGHT,
     BUMPLESS_MEMORY,
@@ -115,8 +127,10 @@ __all__ = [
     "RANKINGS",
     "TRANSIENT_FRAMES",
     "AdaptiveController",
+    "AdaptivePredictor",
     "AdaptiveRun",
     "Designer",
+    "PredictorRun",
     "Proposal",
     "RealisedBank",
     "Redesign",

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -11,17 +10,17 @@ from dataclasses import dataclass, field
 import control
 import numpy as np
 
-from aocontrol._validation import check_in_range, check_int, check_nonnegative, check_positive
+from aocontrol._validation import check_in_range, check_int, check_positive
 from aocontrol.adaptive._realisation import RealisedBank, StateSpaceRows
 from aocontrol.adaptive._redesign import RANKINGS, Designer, redesign
-from aocontrol.controllers import ControllerBank, IIRBank
-from aocontrol.plant import check_system, plant_fs, z_inverse_coefficients
-from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry, pseudo_open_loop
+from aocontrol.adaptive._schedule import MIN_WINDOW_FRAMES, SelfDesigningBank
+from aocontrol.controllers import IIRBank
+from aocontrol.plant import check_system, plant_fs
+from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry
 
 logger = logging.getLogger(__name__)
 
-#: Fewest frames in a window (a Welch estimate needs at least 8; a useful one, hundreds).
-MIN_WINDOW_FRAMES = 64
+__all__ = ["BUMPLESS_FRAMES", "MIN_WINDOW_FRAMES", "AdaptiveController", "AdaptiveRun", "Redesign"]
 #: Frames over which a new filter's past outputs are fitted to the applied commands at a switch.
 BUMPLESS_FRAMES = 100
 
@@ -54,6 +53,11 @@ class Redesign:
     kept : ndarray of bool, shape (n_modes,) or None
         Modes whose new design was worse than their controller, which stayed (``None``:
         none; :attr:`Proposal.kept`).
+    regularisation : float or None
+        The certified Tikhonov weight of an :class:`AdaptivePredictor`'s training (``None``
+        for the modal designs, or when nothing was certified). Its ``disturbance_variance``
+        is the window's pseudo-open-loop variance (noise included) and ``noise_variance``
+        is not estimated (``nan``).
     """
 
     frame: int
@@ -66,6 +70,7 @@ class Redesign:
     noise_variance: np.ndarray
     selected: np.ndarray | None = None
     kept: np.ndarray | None = None
+    regularisation: float | None = None
 
     @property
     def switched(self) -> bool:
@@ -140,7 +145,7 @@ class AdaptiveRun:
         return [r.switch_frame for r in self.redesigns if r.switch_frame is not None]
 
 
-class AdaptiveController(ControllerBank):
+class AdaptiveController(SelfDesigningBank):
     """An IIR bank that redesigns, certifies and bumplessly switches its own controllers.
 
     Parameters
@@ -236,30 +241,18 @@ class AdaptiveController(ControllerBank):
         if not callable(designer):
             raise TypeError(f"designer must be callable, got {designer!r}")
         self._initial = initial
-        self._plant = plant
+        self._n_modes = initial.n_modes
         self._designer = designer
-        self._fs = fs
-        self._period = check_positive("period", period)
-        self._window = check_positive("window", window)
-        self._period_frames = max(1, round(self._period * fs))
-        self._window_frames = round(self._window * fs)
-        if self._window_frames < MIN_WINDOW_FRAMES:
-            raise ValueError(
-                f"window must hold at least {MIN_WINDOW_FRAMES} frames for a PSD "
-                f"({MIN_WINDOW_FRAMES / fs:.3g} s at {fs:g} Hz), got {window!r} s"
-            )
+        window_frames = round(check_positive("window", window) * fs)
         if nperseg is not None:
             nperseg = check_int("nperseg", nperseg, minimum=8)
-            if nperseg > self._window_frames:
+            if nperseg > window_frames:
                 raise ValueError(
                     f"window must hold at least nperseg={nperseg} frames "
                     f"({nperseg / fs:.3g} s), got {window!r} s"
                 )
         self._nperseg = nperseg
         self._noise_band = noise_band
-        self._max_designs = (
-            None if max_designs is None else check_int("max_designs", max_designs, minimum=1)
-        )
         if oracle is not None and not callable(oracle):
             raise TypeError(f"oracle must be callable, got {oracle!r}")
         self._oracle = oracle
@@ -277,98 +270,37 @@ class AdaptiveController(ControllerBank):
         if estimator is not None and not callable(estimator):
             raise TypeError(f"estimator must be callable, got {estimator!r}")
         self._estimator = estimator
-        if latency is None:
-            self._latency_frames = None
-        else:
-            latency = check_nonnegative("latency", latency)
-            if latency >= self._period:
-                raise ValueError(
-                    f"latency must be shorter than period={self._period:g} s, got {latency!r} s"
-                )
-            self._latency_frames = math.ceil(latency * fs - 1e-9)
         self._mu = check_in_range("modulus_margin", modulus_margin, 0.0, 1.0, high_inclusive=False)
         self._rmax = check_positive("max_pole_radius", max_pole_radius)
-        b, a = z_inverse_coefficients(plant, "plant")
-        # Frames of the pseudo open loop's start-up transient (the plant's memory), dropped.
-        self._lead = max(b.size, a.size)
-        self.last_run: AdaptiveRun | None = None
-        self.run = AdaptiveRun()
-        self.reset()
+        super().__init__(
+            plant, period=period, window=window, latency=latency, max_designs=max_designs
+        )
 
     # -- interface ------------------------------------------------------------------------
     @property
-    def n_modes(self) -> int:
-        return self._initial.n_modes
-
-    @property
-    def fs(self) -> float:
-        return self._fs
-
-    @property
-    def period(self) -> float:
-        """Time between designs [s]."""
-        return self._period
-
-    @property
-    def window(self) -> float:
-        """Telemetry window of a design [s]."""
-        return self._window
-
-    def reset(self) -> None:
-        if self.run.frames:
-            self.run.final = self.current
-            self.last_run = self.run
-        self.run = AdaptiveRun()
-        self.current = self._initial.rows(np.arange(self.n_modes))  # a fresh copy
-        self.realisation = StateSpaceRows.none(self.n_modes)
-        self._runtime = RealisedBank(self.current, self.realisation)
-        self._last_ratio = np.full(self.n_modes, np.nan)
-        cap = self._window_frames + self._lead
-        self._cap = cap
-        self._m = np.zeros((cap, self.n_modes))
-        self._u = np.zeros((cap, self.n_modes))
-        self._k = 0
-        self._pending: tuple[int, IIRBank, StateSpaceRows] | None = None
+    def current(self) -> IIRBank:
+        """The bank in use (every mode's transfer function; it changes at each switch)."""
+        return self._current
 
     def transfer_function(self, mode: int = 0) -> control.TransferFunction:
         """The current bank's controller of ``mode`` (it changes at each switch)."""
         return self.current.transfer_function(mode)
 
-    def _step(self, m: np.ndarray) -> np.ndarray:
-        k = self._k
-        if self._pending is not None and self._pending[0] == k:
-            self._switch(*self._pending[1:])
-            self._pending = None
-        # The first design once a window is available, then every period: every period
-        # starts from the same first design (that of the fixed strategy).
-        w = self._window_frames
-        due = k >= w and (k - w) % self._period_frames == 0
-        if due and self._max_designs is not None:
-            due = len(self.run.redesigns) < self._max_designs
-        if due:
-            if self._pending is None:
-                self._redesign(k)
-                if self._pending is not None and self._pending[0] == k:  # zero latency
-                    self._switch(*self._pending[1:])
-                    self._pending = None
-            else:
-                self.run.n_skipped += 1
-        u = self._runtime.step(m)
-        slot = k % self._cap
-        self._m[slot] = m
-        self._u[slot] = u
-        self._k = k + 1
-        self.run.frames = self._k
-        return u
-
     # -- internals ------------------------------------------------------------------------
-    def _history(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """The last ``n`` frames of (m, u), oldest first (fewer if fewer were stepped)."""
-        n = min(n, self._k, self._cap)
-        idx = np.arange(self._k - n, self._k) % self._cap
-        return self._m[idx], self._u[idx]
+    def _new_record(self) -> AdaptiveRun:
+        return AdaptiveRun()
 
-    def _switch(self, bank: IIRBank, rows: StateSpaceRows) -> None:
+    def _start(self) -> None:
+        self._current = self._initial.rows(np.arange(self.n_modes))  # a fresh copy
+        self.realisation = StateSpaceRows.none(self.n_modes)
+        self._runtime = RealisedBank(self._current, self.realisation)
+        self._last_ratio = np.full(self.n_modes, np.nan)
+
+    def _runtime_step(self, m: np.ndarray) -> np.ndarray:
+        return self._runtime.step(m)
+
+    def _switch(self, proposal: tuple[IIRBank, StateSpaceRows]) -> None:
+        bank, rows = proposal
         depth = max(bank.b.shape[1], bank.a.shape[1], rows.ns + 1)
         fit = max(BUMPLESS_FRAMES, 4 * depth)
         # Direct-Form I rows: fitted over the last `fit` frames (after `depth` frames of
@@ -377,15 +309,13 @@ class AdaptiveController(ControllerBank):
         bank.reset()
         runtime = RealisedBank(bank, rows)
         runtime.set_history(m, u, fit_frames=min(fit, m.shape[0] - depth))
-        self.current, self.realisation, self._runtime = bank, rows, runtime
+        self._current, self.realisation, self._runtime = bank, rows, runtime
 
     def _estimate(self, k: int) -> TelemetryPSD:
         """The disturbance and noise estimate of a design requested at frame ``k``."""
         if self._oracle is not None:
             return self._oracle(k)
-        m, u = self._history(self._window_frames + self._lead)
-        lead = m.shape[0] - self._window_frames
-        pol = pseudo_open_loop(m, u, self._plant)[lead:]
+        pol = self._window_pol()
         if self._estimator is not None:
             return self._estimator(pol, self._plant)
         return disturbance_from_telemetry(
@@ -414,18 +344,14 @@ class AdaptiveController(ControllerBank):
         if up.ratio is not None:
             self._last_ratio = up.ratio
         seconds = time.perf_counter() - t0
-        latency = (
-            math.ceil(seconds * self._fs) if self._latency_frames is None else self._latency_frames
-        )
         switch = None
         if up.certified.any():
-            switch = k + latency
             rows = self.realisation
             if up.realisation is not None:
                 rows = rows.merge(up.realisation, up.certified)
             else:  # the replaced modes run in Direct-Form I
                 rows = rows.merge(StateSpaceRows.none(self.n_modes), up.certified)
-            self._pending = (switch, up.bank, rows)
+            switch = self._schedule(k, seconds, (up.bank, rows))
         elif up.selected is None or up.selected.any():
             logger.warning(
                 "redesign at frame %d: no mode certified, the current bank stays (%s)",

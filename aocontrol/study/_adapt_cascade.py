@@ -26,6 +26,7 @@ from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.loop import Stage, run_cascade
 from aocontrol.study._adapt_parts import (
     _INDEPENDENT_SEED,
+    PREDICTORS,
     SCENARIOS,
     _controller,
     _settings,
@@ -213,7 +214,7 @@ def run_adapt_cascade(
     duration : float
         Simulated time [s] (the ramps span 20 % to 50 % of it).
     strategies : sequence of str
-        Among :data:`CASCADE_STRATEGIES`.
+        Among :data:`CASCADE_STRATEGIES` and :data:`~aocontrol.study.adapt.PREDICTORS`.
     scheme : {"standalone", "dcao"}
         Cascade scheme.
     latency : float
@@ -238,9 +239,11 @@ def run_adapt_cascade(
         not shorter than a period or the window: before any run.
     """
 
-    bad = [s for s in strategies if s not in CASCADE_STRATEGIES]
+    bad = [s for s in strategies if s not in CASCADE_STRATEGIES + PREDICTORS]
     if bad:
-        raise ValueError(f"strategies must be among {list(CASCADE_STRATEGIES)}, got {bad}")
+        raise ValueError(
+            f"strategies must be among {list(CASCADE_STRATEGIES + PREDICTORS)}, got {bad}"
+        )
     if scenario not in SCENARIOS:
         raise ValueError(f"scenario must be one of {list(SCENARIOS)}, got {scenario!r}")
     if scheme not in ("standalone", "dcao"):
@@ -281,7 +284,7 @@ def run_adapt_cascade(
         independent = np.asarray(truth_run.stages[1].telemetry["disturbance"])
     rows = []
     for strategy in strategies:
-        for period in (window,) if strategy == "fixed" else periods:
+        for period in (window,) if strategy in ("fixed", "eof-fixed") else periods:
             ctrl = _controller(
                 strategy,
                 scene,

@@ -10,6 +10,7 @@ import numpy as np
 
 from aocontrol.adaptive import (
     AdaptiveController,
+    AdaptivePredictor,
     datadriven_designer,
     lqg_designer,
     modal_gain_designer,
@@ -17,7 +18,14 @@ from aocontrol.adaptive import (
 from aocontrol.controllers import Integrator
 from aocontrol.sim.drift import Drift
 from aocontrol.study.scene import Scene
-from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry
+from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry, eof_default_history
+
+#: The multi-mode predictor's strategies: trained once on the first window ("eof-fixed", the
+#: fixed strategy's counterpart) or retrained every period ("eof", the adaptive one), by
+#: :class:`aocontrol.adaptive.AdaptivePredictor` with the registry's history for the mode
+#: count and the study's margin. Not in the default strategies (a 540-mode training is
+#: seconds; the study's modal designs are the subject).
+PREDICTORS = ("eof-fixed", "eof")
 
 # Offset of the seed of the oracle's independent realisation of the drift.
 _INDEPENDENT_SEED = 7919
@@ -68,11 +76,23 @@ def _controller(
     seed: int,
     design_options: dict,
     adaptive_options: dict,
-) -> AdaptiveController:
+) -> AdaptiveController | AdaptivePredictor:
     """The controller of one strategy (``truth``: the run's disturbance and an independent
-    realisation of the same drift)."""
+    realisation of the same drift). ``adaptive_options`` go to
+    :class:`~aocontrol.adaptive.AdaptiveController` only (not to the predictors)."""
     st = scene.stage2
     initial = Integrator(st.spec.gain, fs=st.fs, n_modes=st.n_modes)
+    if strategy in PREDICTORS:
+        return AdaptivePredictor(
+            initial,
+            st.plant,
+            period=window if strategy == "eof-fixed" else period,
+            window=window,
+            latency=latency,
+            history=eof_default_history(st.n_modes),
+            modulus_margin=modulus_margin,
+            max_designs=1 if strategy == "eof-fixed" else None,
+        )
     window_frames = round(window * st.fs)
     period_frames = round(period * st.fs)
     dd = datadriven_designer(

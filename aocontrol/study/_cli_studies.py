@@ -119,6 +119,7 @@ def _adapt_pairs(periods: tuple[float, ...], rules: list[str]) -> list[tuple[flo
 def _adapt(args: argparse.Namespace) -> int:
     from aocontrol.study.adapt import (
         DIAGNOSTICS,
+        PREDICTORS,
         STRATEGIES,
         AdaptStudy,
         check_adapt_settings,
@@ -135,7 +136,7 @@ def _adapt(args: argparse.Namespace) -> int:
     calls = _adapt_pairs(periods, args.window.split(","))
     strategies = tuple(args.strategies.split(",")) if args.strategies else STRATEGIES
     for name in strategies:
-        _valid_name("strategy", name, STRATEGIES + DIAGNOSTICS)
+        _valid_name("strategy", name, STRATEGIES + DIAGNOSTICS + PREDICTORS)
     latency = None if args.latency < 0 else args.latency
     if latency is not None and latency >= min(periods):
         raise UserError(f"--latency {latency:g} s must be shorter than every --period")

@@ -21,6 +21,12 @@ Strategies (each a bank of per-mode controllers starting from the case's integra
 * ``modal-gain``: the optimised integrator gain, adapted like ``adaptive``;
 * ``lqg``: LQG re-identified from the same windows, adapted like ``adaptive``.
 
+The multi-mode predictor (:data:`PREDICTORS`, not run by default): ``eof-fixed`` (trained
+once on the first window, like ``fixed``) and ``eof`` (retrained every ``period``, like
+``adaptive``): :class:`aocontrol.adaptive.AdaptivePredictor`, the registry's history for the
+mode count, the study's margin as the multivariable one, the whole predictor certified or
+not switched.
+
 Diagnostics of the adaptive / oracle gap (:data:`DIAGNOSTICS`): ``adaptive-nolatency`` (no
 design latency), ``adaptive-truth`` (the adaptive's own window, but of the true disturbance
 of an independent realisation plus true noise: no pseudo-open-loop reconstruction from
@@ -49,7 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aocontrol._atomic import atomic_path
-from aocontrol.adaptive import AdaptiveRun, switch_transients
+from aocontrol.adaptive import AdaptiveRun, PredictorRun, switch_transients
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.loop import ModalTimeSeries, Stage, TurbulenceSource, run_loop
@@ -61,6 +67,7 @@ from aocontrol.study._adapt_cascade import (
 )
 from aocontrol.study._adapt_parts import (
     _INDEPENDENT_SEED,
+    PREDICTORS,
     SCENARIOS,
     _controller,
     _settings,
@@ -77,6 +84,7 @@ __all__ = [
     "AdaptStudy",
     "CascadeRow",
     "DIAGNOSTICS",
+    "PREDICTORS",
     "drifting_disturbance",
     "run_adapt",
     "run_adapt_cascade",
@@ -291,9 +299,11 @@ def check_adapt_settings(
     internal (not in ``__all__``): the arguments are :func:`run_adapt`'s."""
     if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
         raise ValueError(f"duration must be a finite number of seconds > 0, got {duration!r}")
-    bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS]
+    bad = [s for s in strategies if s not in STRATEGIES + DIAGNOSTICS + PREDICTORS]
     if bad:
-        raise ValueError(f"strategies must be among {list(STRATEGIES + DIAGNOSTICS)}, got {bad}")
+        raise ValueError(
+            f"strategies must be among {list(STRATEGIES + DIAGNOSTICS + PREDICTORS)}, got {bad}"
+        )
     if not isinstance(scenario, Drift) and scenario not in SCENARIOS:
         raise ValueError(f"scenario must be one of {list(SCENARIOS)} or a Drift, got {scenario!r}")
     for p in periods:
@@ -308,8 +318,8 @@ def check_adapt_settings(
         )
     # Checked before any run: ``fixed`` designs once, a window in (its period is the window).
     delayed = set(strategies) - {"adaptive-nolatency", "oracle-prophet"}
-    served = [("period", p) for p in periods if delayed - {"fixed"}]
-    served += [("window", w) for w in windows if "fixed" in delayed]
+    served = [("period", p) for p in periods if delayed - {"fixed", "eof-fixed"}]
+    served += [("window", w) for w in windows if {"fixed", "eof-fixed"} & delayed]
     for name, t in served:
         if latency is not None and latency >= t:
             raise ValueError(
@@ -366,7 +376,7 @@ def run_adapt(
     duration : float
         Simulated time [s]; each window must be shorter than the run.
     strategies : sequence of str
-        Among :data:`STRATEGIES`.
+        Among :data:`STRATEGIES`, :data:`DIAGNOSTICS` and :data:`PREDICTORS`.
     latency : float or None, default 0.5
         Design latency [s] (``None``: the measured compute time); must be below every period.
     order : int, default 5
@@ -444,7 +454,7 @@ def run_adapt(
         pairs = [
             (p, w)
             for w in windows
-            for p in (periods if strategy != "fixed" else (w,))
+            for p in (periods if strategy not in ("fixed", "eof-fixed") else (w,))
             if strategy != "oracle" or w == windows[0]
         ]
         for period, window in pairs:
@@ -471,7 +481,7 @@ def run_adapt(
                 rng=np.random.default_rng([seed, 11]),
                 record=("residuals",),
             )
-            run: AdaptiveRun = ctrl.last_run
+            run: AdaptiveRun | PredictorRun = ctrl.last_run
             e = res.telemetry["residuals"]
             first = round((window if measure_from is None else measure_from) * st.fs)
             secs = [r.design_seconds for r in run.redesigns]

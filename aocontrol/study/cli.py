@@ -201,7 +201,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--strategies",
         default=None,
-        help="comma-separated among fixed, adaptive, oracle, modal-gain, lqg (default all)",
+        help="comma-separated among fixed, adaptive, oracle, modal-gain, lqg (default all "
+        "five), the multi-mode predictor trained once or retrained, eof-fixed and eof, and "
+        "the diagnostics adaptive-nolatency, adaptive-truth, oracle-prophet",
     )
     p.add_argument(
         "--latency",

@@ -25,6 +25,7 @@ from aocontrol.synthesis._eof import (
     EOFNotCertifiedError,
     EOFResult,
     eof_from_pseudo_open_loop,
+    eof_min_frames,
     eof_predictor,
 )
 from aocontrol.synthesis._loop_check import (
@@ -110,6 +111,7 @@ __all__ = [
     "EOFResult",
     "REGULARISATION_GRID",
     "eof_from_pseudo_open_loop",
+    "eof_min_frames",
     "eof_predictor",
     "InitialPoleRadiusError",
     "ModalGainError",

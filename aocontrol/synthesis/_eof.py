@@ -138,6 +138,7 @@ __all__ = [
     "EOFResult",
     "REGULARISATION_GRID",
     "eof_from_pseudo_open_loop",
+    "eof_min_frames",
     "eof_predictor",
 ]
 
@@ -449,6 +450,56 @@ class _Certifier:
         return bank, cert, high
 
 
+def _frames_needed(n: int, h: int, validation: float | None) -> int:
+    """Training equations needed: ``n h`` (as many as unknowns per mode), more when a
+    fraction is held back."""
+    return n * h if validation is None else math.ceil(n * h / (1.0 - validation)) + 1
+
+
+def eof_min_frames(
+    n_modes: int,
+    history: int,
+    latency_frames: float,
+    *,
+    validation_fraction: float | None = 0.2,
+) -> int:
+    """Fewest pseudo-open-loop frames :func:`eof_from_pseudo_open_loop` trains on.
+
+    ``n_modes * history`` training equations (more with a held-back fraction) plus the
+    start-up (the first regressors' past and the last target: ``history + k + 1`` frames).
+    Enough to train, not to train well: the weight's choice and the predictor improve with
+    many times that (``docs/benchmarks.md``).
+
+    Parameters
+    ----------
+    n_modes : int
+        Modes (>= 1).
+    history : int
+        POL frames per command (>= 1).
+    latency_frames : float
+        Latency beyond the WFS frame [frames] (>= 0).
+    validation_fraction : float or None, default 0.2
+        Fraction held back to choose the weight (``None``: the weight is given).
+
+    Returns
+    -------
+    int
+
+    Examples
+    --------
+    >>> eof_min_frames(540, 5, 0.83)
+    3382
+    """
+    n = check_int("n_modes", n_modes, minimum=1)
+    h = check_int("history", history, minimum=1)
+    k0, _ = split_latency(check_nonnegative("latency_frames", latency_frames))
+    validation = None
+    if validation_fraction is not None:
+        validation = check_in_range("validation_fraction", validation_fraction, 0.0, 0.5,
+                                    low_inclusive=False, high_inclusive=True)  # fmt: skip
+    return _frames_needed(n, h, validation) + h + k0 + 1
+
+
 def _check_length(
     name: str,
     n_frames: int,
@@ -461,8 +512,7 @@ def _check_length(
     """Refuse a record too short to train: ``n h`` training equations (as many as unknowns
     per mode), more when a fraction is held back, plus ``start`` frames (the first
     regressors' past, the last target, and frames dropped before)."""
-    rows = n * h if validation is None else math.ceil(n * h / (1.0 - validation)) + 1
-    needed = rows + start
+    needed = _frames_needed(n, h, validation) + start
     if n_frames < needed:
         held = "" if validation is None else f", validation_fraction {validation:g} held back"
         raise ValueError(
