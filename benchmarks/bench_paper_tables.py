@@ -146,6 +146,12 @@ def _report_case(name: str, comp) -> list[str]:
                 f"{PAPER_VIBRATION[1]} nm, {100 * PAPER_VIBRATION[2]:.1f} %): "
                 f"{_flag(gain >= 0.30)}"
             )
+        others = {k: x for k, x in v["tilt_rms_nm"].items() if k not in ("reference", "datadriven")}
+        if others:
+            print(
+                "  vibration, the other controllers' tilt residual: "
+                + ", ".join(f"{k} {x:.2f} nm" for k, x in others.items())
+            )
     return misses
 
 
@@ -172,9 +178,11 @@ def main() -> None:
         scene = build_scene(name, quick=args.quick)
         t_scene = time.perf_counter() - t0
         print(f"\n=== {name}: scene {t_scene:.1f} s {scene.settings()['stage2']}", flush=True)
-        protocol = VIBRATION_PROTOCOL if scene.case.vibration is not None else {}
-        if extra and not protocol:
-            protocol = {"controllers": ("reference", "omgi", "datadriven", *extra)}
+        protocol = dict(VIBRATION_PROTOCOL) if scene.case.vibration is not None else {}
+        if extra:
+            # The vibration case keeps its protocol (one scheme) with the extras beside it.
+            base = protocol.get("controllers", ("reference", "omgi", "datadriven"))
+            protocol["controllers"] = (*base, *extra)
         comp = compare_case(
             name,
             quick=args.quick,

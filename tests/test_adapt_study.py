@@ -99,6 +99,26 @@ def test_adapt_command_writes_table_hdf5_and_plot(tmp_path, capsys):
     assert (tmp_path / "adapt_bright1-best.png").stat().st_size > 1000
 
 
+def test_the_predictor_strategies_train_once_or_every_period():
+    # The multi-mode predictor on the quick scene (24 modes, history 20): trained on the
+    # first 0.3-s window and kept, or retrained every 0.3 s; each training certified (the
+    # study's margin) and switched in after the latency.
+    study = run_adapt(
+        "bright1-best",
+        scenario="wind-doubles",
+        periods=(0.3,),
+        windows=(0.3,),
+        duration=1.2,
+        strategies=("eof-fixed", "eof"),
+        latency=0.05,
+        quick=True,
+    )
+    once, every = study.row("eof-fixed"), study.row("eof")
+    assert once.n_switches == 1 and every.n_switches == 3
+    assert once.n_rejected_banks == every.n_rejected_banks == 0
+    assert 0 < every.residual < 1e6 and "eof" in study.table()
+
+
 @pytest.mark.slow
 def test_cascade_study_reports_residual_and_contrast():
     # Stage 2 of the bright1-best cascade (quick scene) with the adaptive modal gain, stage 1's
