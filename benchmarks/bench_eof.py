@@ -16,9 +16,10 @@ predictor without that constraint (``integral_action=False``).
     6,000 frames of integrator telemetry and scored on another stretch of sky. Rows: noise
     per frame 0, 0.3, 1 and 3 nm; columns: the multi-mode predictor (history 20, certified
     margin 0.4), the free one, the same training per mode (each mode from its own past),
-    the LQG from the telemetry; without noise also the predictor at certified margins 0.05
-    and 0.2 (history 5). ``--datadriven`` adds the data-driven modal bank (margin 0.5;
-    minutes).
+    the LQG from the telemetry. Without noise, also at equal certified margins (the LQG's
+    own, exact; 0.2; 0.1): the predictor and the per-mode training (history 20), and with
+    ``--datadriven`` the data-driven bank designed at that margin. ``--datadriven`` also adds
+    the data-driven modal bank at margin 0.5 to every row (minutes).
 (c) Training cost: ``n_modes`` modes, history 5, 15,000 frames of a synthetic POL (mixed
     AR(1) modes plus white noise, 3 kHz, latency 0.83): fit (Gram matrices, validation scan,
     refit) on one and on two BLAS threads, then the certificate (one thread); goal fit
@@ -53,7 +54,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from aocontrol import loop_plant
-from aocontrol.analysis import wiener_bound
+from aocontrol.analysis import modulus_certificate, wiener_bound
 from aocontrol.controllers import IIRBank, Integrator, LQGBank, MultiModeBank
 from aocontrol.plant import split_latency
 from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, TurbulenceSource, run_loop
@@ -218,6 +219,31 @@ def per_mode(tel: LoopTelemetry, history: int, margin: float) -> MultiModeBank:
     return MultiModeBank(taps, FS, 1.0)
 
 
+def equal_margins(ff: FrozenFlow, tel: LoopTelemetry, lqg, r_lqg: float, with_dd: bool) -> str:
+    """Without noise, at equal certified margins: the LQG's own (exact, per mode), then 0.2
+    and 0.1: the predictor (history 20), the same training per mode, and with ``with_dd``
+    the data-driven bank designed at that margin; ratios modal / predictor."""
+    plant = loop_plant(FS, 1.0)
+    m_lqg = min(modulus_certificate(plant, lqg, mode=i).value for i in range(lqg.n_modes))
+    tp = None
+    if with_dd:
+        tp = disturbance_from_telemetry(tel.measurements, tel.commands, plant)
+    out = [f"LQG's certified margin {m_lqg:.3f}"]
+    for margin in (round(m_lqg, 3), 0.2, 0.1):
+        e = eof_predictor(tel, history=20, modulus_margin=margin)
+        r = ff.run(e.controller, 2, 0.0).residual_variance.sum()
+        r_pm = ff.run(per_mode(tel, 20, margin), 2, 0.0).residual_variance.sum()
+        text = f"margin {margin}: EOF {r:.3g}, per-mode {r_pm:.3g}, LQG/EOF {r_lqg / r:.2f}"
+        if tp is not None:
+            dd = datadriven_neighbours(
+                plant, tp.freqs, tp.psd, noise_psd=tp.noise_psd, modulus_margin=margin, n_jobs=1
+            )
+            r_dd = ff.run(dd.controller, 2, 0.0).residual_variance.sum()
+            text += f", data-driven {r_dd:.3g} (/EOF {r_dd / r:.2f})"
+        out.append(text)
+    return "\n        ".join(out)
+
+
 def part_b(quick: bool, with_dd: bool) -> None:
     ff = FrozenFlow(quick)
     print(
@@ -247,14 +273,7 @@ def part_b(quick: bool, with_dd: bool) -> None:
         r_lqg = ff.run(lqg, 2, noise).residual_variance.sum()
         extra = []
         if noise == 0.0:
-            for margin in (0.05, 0.2):
-                low = eof_predictor(tel, history=5, modulus_margin=margin)
-                r = ff.run(low.controller, 2, noise).residual_variance.sum()
-                r_pm5 = ff.run(per_mode(tel, 5, margin), 2, noise).residual_variance.sum()
-                extra.append(
-                    f"h5 margin {margin}: EOF {r:.3g} (LQG/EOF {r_lqg / r:.2f}), "
-                    f"per-mode {r_pm5:.3g}"
-                )
+            extra.append(equal_margins(ff, tel, lqg, r_lqg, with_dd))
         if with_dd:
             tp = disturbance_from_telemetry(tel.measurements, tel.commands, loop_plant(FS, 1.0))
             dd = datadriven_neighbours(

@@ -93,7 +93,7 @@ from aocontrol.adaptive._designers import (
     lqg_designer,
     modal_gain_designer,
 )
-from aocontrol.adaptive._predictor import AdaptivePredictor, PredictorRun
+from aocontrol.adaptive._predictor import AdaptivePredictor
 from aocontrol.adaptive._realisation import (
     BUMPLESS_LAST_WEIGHT,
     BUMPLESS_MEMORY,
@@ -130,7 +130,6 @@ __all__ = [
     "AdaptivePredictor",
     "AdaptiveRun",
     "Designer",
-    "PredictorRun",
     "Proposal",
     "RealisedBank",
     "Redesign",

@@ -14,7 +14,7 @@ from aocontrol._validation import check_in_range, check_int, check_positive
 from aocontrol.adaptive._realisation import RealisedBank, StateSpaceRows
 from aocontrol.adaptive._redesign import RANKINGS, Designer, redesign
 from aocontrol.adaptive._schedule import MIN_WINDOW_FRAMES, SelfDesigningBank
-from aocontrol.controllers import IIRBank
+from aocontrol.controllers import ControllerBank, IIRBank
 from aocontrol.plant import check_system, plant_fs
 from aocontrol.synthesis import TelemetryPSD, disturbance_from_telemetry
 
@@ -90,14 +90,16 @@ class AdaptiveRun:
         Every design, in order.
     n_skipped : int
         Designs skipped because the previous one was still pending.
-    final : IIRBank or None
-        The bank in use at the end of the run (set when the run is archived by a reset).
+    final : ControllerBank or None
+        The controller in use at the end of the run (set when the run is archived by a
+        reset): an :class:`IIRBank` for :class:`AdaptiveController`, the last certified
+        predictor (or the initial controller) for :class:`AdaptivePredictor`.
     """
 
     frames: int = 0
     redesigns: list[Redesign] = field(default_factory=list)
     n_skipped: int = 0
-    final: IIRBank | None = None
+    final: ControllerBank | None = None
 
     @property
     def n_switches(self) -> int:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import control
 import numpy as np
@@ -18,7 +17,7 @@ from aocontrol._validation import (
     check_int,
     check_nonnegative,
 )
-from aocontrol.adaptive._controller import Redesign
+from aocontrol.adaptive._controller import AdaptiveRun, Redesign
 from aocontrol.adaptive._schedule import MIN_WINDOW_FRAMES, SelfDesigningBank
 from aocontrol.controllers import ControllerBank, MultiModeBank
 from aocontrol.plant import check_system, plant_fs
@@ -30,62 +29,6 @@ from aocontrol.synthesis import (
 )
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class PredictorRun:
-    """Record of one run of an :class:`AdaptivePredictor` (between two resets).
-
-    Attributes
-    ----------
-    frames : int
-        Frames stepped.
-    redesigns : list of Redesign
-        Every training, in order (:class:`Redesign`; ``certified`` and ``modulus_margin``
-        are the whole loop's, the same for every mode; ``regularisation`` the certified
-        weight).
-    n_skipped : int
-        Trainings skipped because the previous one was still pending.
-    final : ControllerBank or None
-        The controller in use at the end of the run (set when the run is archived by a
-        reset).
-    """
-
-    frames: int = 0
-    redesigns: list[Redesign] = field(default_factory=list)
-    n_skipped: int = 0
-    final: ControllerBank | None = None
-
-    @property
-    def n_switches(self) -> int:
-        """Predictors switched in."""
-        return sum(r.switched for r in self.redesigns)
-
-    @property
-    def n_rejected_banks(self) -> int:
-        """Trainings whose predictor was not certified (not switched in)."""
-        return sum(not r.switched for r in self.redesigns)
-
-    @property
-    def n_rejected_modes(self) -> int:
-        """Modes of the trainings that were not certified (every mode of such a training)."""
-        return int(sum((~r.certified).sum() for r in self.redesigns))
-
-    @property
-    def n_designed_modes(self) -> int:
-        """Modes trained, summed over trainings."""
-        return int(sum(r.certified.size for r in self.redesigns))
-
-    @property
-    def n_kept_modes(self) -> int:
-        """Always 0: a predictor is switched whole or not at all (the modal banks' count of
-        modes whose design was worse than their running controller)."""
-        return 0
-
-    @property
-    def switch_frames(self) -> list[int]:
-        """Frames at which a new predictor started."""
-        return [r.switch_frame for r in self.redesigns if r.switch_frame is not None]
 
 
 class AdaptivePredictor(SelfDesigningBank):
@@ -151,8 +94,10 @@ class AdaptivePredictor(SelfDesigningBank):
     ----------
     current : ControllerBank
         The controller in use (``initial``, then the last certified predictor).
-    run : PredictorRun
-        Record of the run in progress; :attr:`last_run` that of the previous one.
+    run : AdaptiveRun
+        Record of the run in progress (its :class:`Redesign` events: ``certified`` and
+        ``modulus_margin`` are the whole loop's, the same for every mode;
+        ``regularisation`` the certified weight); :attr:`last_run` that of the previous one.
 
     Raises
     ------
@@ -246,8 +191,8 @@ class AdaptivePredictor(SelfDesigningBank):
         return self._current.transfer_function(mode)
 
     # -- internals ------------------------------------------------------------------------
-    def _new_record(self) -> PredictorRun:
-        return PredictorRun()
+    def _new_record(self) -> AdaptiveRun:
+        return AdaptiveRun()
 
     def _start(self) -> None:
         self._current = self._initial

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aocontrol._atomic import atomic_path
-from aocontrol.adaptive import AdaptiveRun, PredictorRun, switch_transients
+from aocontrol.adaptive import AdaptiveRun, switch_transients
 from aocontrol.sim.atmosphere import Atmosphere
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.loop import ModalTimeSeries, Stage, TurbulenceSource, run_loop
@@ -481,7 +481,7 @@ def run_adapt(
                 rng=np.random.default_rng([seed, 11]),
                 record=("residuals",),
             )
-            run: AdaptiveRun | PredictorRun = ctrl.last_run
+            run: AdaptiveRun = ctrl.last_run
             e = res.telemetry["residuals"]
             first = round((window if measure_from is None else measure_from) * st.fs)
             secs = [r.design_seconds for r in run.redesigns]
