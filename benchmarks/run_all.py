@@ -172,6 +172,11 @@ BENCHMARKS: dict[str, Entry] = {
     ),
     "atmosphere": Entry("bench_atmosphere.py", ()),
     "eof": Entry("bench_eof.py", ()),
+    "paper-tables-predictors": Entry(
+        "bench_paper_tables.py",
+        ("--extra-controllers", "eof,lqg"),
+        ("--quick", "--cases", "bright1-best", "--extra-controllers", "eof,lqg"),
+    ),
     "cascade-eof": Entry(
         "bench_cascade.py",
         ("--repeat", "2", "--stage2-controllers", "iir5,eof"),
