@@ -49,6 +49,8 @@ BENCHMARKS: dict[str, Entry] = {
     "pyramid-flops": Entry("bench_pyramid.py", ("--flops",), ("--flops", "--quick")),
     "sweep": Entry("bench_sweep.py", ("--seconds", "2")),
     "design-scaleout": Entry("bench_design_scaleout.py", ("--modes", "1024")),
+    # Issue 34: against the code before it (fd45857), in the same run.
+    "design-speed": Entry("bench_design_speed.py", ("--reference", "fd45857")),
     "synthesis": Entry("bench_synthesis.py", (), covers=("--resonant-only",)),
     "holdout": Entry("bench_certified_holdout.py", ()),
     "loop": Entry("bench_loop.py", ()),

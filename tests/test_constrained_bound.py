@@ -255,3 +255,20 @@ def test_a_bound_that_fails_is_reported_in_the_design(monkeypatch):
     monkeypatch.undo()
     rep = design_from_telemetry(est, "omgi", plant=plant, modulus_margin=0.525)
     assert rep.bound_failures == {} and np.isfinite(rep.constrained_variance).all()
+
+
+@pytest.mark.parametrize("rows", [300, 40])
+def test_least_squares_factor_without_forming_u_equals_the_thin_qr(rows):
+    # Oracle: R and U^T y of numpy's thin QR (M = U R); the factor of [M, y] must hold the
+    # same R and U^T y (signs included: the same Householder reflections), tall and wide M.
+    rng = np.random.default_rng(3)
+    M = rng.standard_normal((rows, 64)) * np.geomspace(1.0, 1e-4, rows)[:, None]
+    y = rng.standard_normal(rows)
+    U, R_ref = np.linalg.qr(M, mode="reduced")
+    R, r = _constrained._qr_least_squares(M, y)
+    assert R.shape == R_ref.shape and r.shape == (min(M.shape),)
+    tol = 1e-12  # rounding of two orderings of the same reflections on O(1) entries
+    assert np.max(np.abs(R - R_ref)) < tol
+    assert np.max(np.abs(r - U.T @ y)) < tol
+    # Twin: a wrong right-hand side is seen.
+    assert np.max(np.abs(_constrained._qr_least_squares(M, -y)[1] - U.T @ y)) > 1e-3

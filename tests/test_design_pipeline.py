@@ -194,3 +194,27 @@ def test_robust_margins_are_reported_for_any_controller(telemetry):
     assert plain.robust_margins is None and np.isnan(plain.rows()[0]["robust_margin"])
     with pytest.raises(TypeError, match="uncertainty must be an UncertaintySet"):
         design_from_telemetry(telemetry, "omgi", bounds=(), uncertainty=(0.8, 1.2))
+
+
+def test_margins_and_bounds_on_workers_equal_one_process(telemetry, monkeypatch):
+    # Invariant (issue 34): steps 3 and 4 run per mode in chunks on worker processes; each
+    # mode's figures are the same arithmetic on the same row whatever the chunking, so the
+    # report is bit for bit the one computed in this process in one chunk.
+    from aocontrol.synthesis import _pipeline
+
+    est = disturbance_from_telemetry(
+        telemetry.measurements, telemetry.commands, loop_plant(FS, LATENCY)
+    )
+    kw = {"plant": loop_plant(FS, LATENCY), "bounds": ("wiener", "constrained"), "n_taps": 32}
+    one = design_from_telemetry(est, "omgi", n_jobs=1, **kw)
+    monkeypatch.setattr(_pipeline, "_CERTIFY_CHUNK", 1)  # three chunks, two workers
+    split = design_from_telemetry(est, "omgi", n_jobs=2, **kw)
+    for name in ("wiener_variance", "constrained_variance", "residual_variance"):
+        assert np.array_equal(getattr(one, name), getattr(split, name)), name
+    pairs = zip(
+        one.margins + one.reference_margins, split.margins + split.reference_margins, strict=True
+    )
+    for a, b in pairs:
+        assert dataclasses.astuple(a) == dataclasses.astuple(b) or repr(a) == repr(b)
+    # Twin: a changed bound is seen by the same comparison.
+    assert not np.array_equal(one.constrained_variance, one.constrained_variance * (1 + 1e-15))

@@ -262,6 +262,7 @@ def _design_with(args: argparse.Namespace, controller: str, out_format: str, cli
             override_metadata=args.override_metadata,
             uncertainty=uncertainty,
             client=client,
+            n_jobs=args.jobs,
         )
     except MemoryError as exc:  # the cluster's workers refused before designing
         raise UserError(str(exc)) from None
@@ -604,7 +605,8 @@ def design_arguments(p: argparse.ArgumentParser) -> None:
         "--jobs",
         type=int,
         default=None,
-        help="worker processes of the data-driven design (default: every core; 1: none)",
+        help="worker processes of the data-driven design and of the margins and bounds (default: "
+        "every core; 1: none)",
     )
     p.add_argument(
         "--scheduler",

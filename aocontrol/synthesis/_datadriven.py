@@ -207,8 +207,9 @@ def datadriven(
         result is never worse than the best certified start; ``ModeReport.start`` says
         "bound reduction"). The convex-concave iterations from an integrator stop in a local
         optimum on resonant spectra, which this start avoids (``benchmarks/bench_synthesis.py``
-        part (f), ``docs/benchmarks.md``). It costs one bound per mode: seconds of CPU, more
-        for a narrow line (the bound's cutting-plane solves at 256 taps).
+        part (f), ``docs/benchmarks.md``). It costs one bound per mode: tens of milliseconds
+        of CPU, seconds for narrow lines whose bound needs the margin's cutting planes
+        (256 taps; 3.5 s on a mode with three lines 300 times the turbulence).
         ``None``: with a stable transfer-function plant, on the modes with a line
         (``_dd_starts.has_lines``: the PSD half a decade above its
         running median over +-0.15 decades of frequency) in the disturbance PSD of a model
@@ -265,11 +266,11 @@ def datadriven(
         (``aocontrol.synthesis._dd_dask.task_memory``): about ``400 MB + 64 B x
         n_modes_per_chunk x n_freqs + 768 B x n_freqs + 128 B x n_dense x (2 order + 1)``
         (``n_dense`` about 6,200 for ``n_grid = 64``; about 0.42 GB in all for 32 modes at 4,097
-        frequencies), plus ``4.2 GB + 24.6 kB x n_freqs`` for a chunk with a mode that tries
-        the bound start (the bound's compilation by cvxpy at 256 taps: a peak of 4.1 GB
-        measured on a tip mode); a call whose estimate exceeds the smallest worker memory
-        limit is refused (``MemoryError``). A worker process designs one chunk at a time
-        (its compiled problems are per process): give workers one thread each.
+        frequencies), plus ``0.2 GB + 24.6 kB x n_freqs`` for a chunk with a mode that tries
+        the bound start (the bound's solves at 256 taps: 0.33 GB for a whole process
+        designing a three-line mode, measured); a call whose estimate exceeds the smallest
+        worker memory limit is refused (``MemoryError``). A worker process designs one chunk
+        at a time (its compiled problems are per process): give workers one thread each.
 
     Returns
     -------

@@ -67,12 +67,12 @@ _PER_FREQ = 8.0 * 96
 #   matrices, up to four structures cached) and the certifier's copies;
 _PER_DENSE_PARAM = 16.0 * 2 * 4 * 2
 # - a chunk with a mode that tries the margin-constrained bound as its start
-#   (``bound_start``): cvxpy compiles the bound's problem (FIR Youla parameter of
-#   ``_dd_starts.BOUND_TAPS`` = 256 taps) once per chunk, a peak measured at 4.1 GB above
-#   the worker's base (the tip mode of the synthetic bank, whose bound adds cutting planes;
-#   0.1 GB on a mode that needs none) plus the bound's response matrices, per input
-#   frequency [bytes].
-_BOUND_COMPILE = 4.2e9
+#   (``bound_start``): the bound's factorisations and cutting-plane solves (FIR Youla
+#   parameter of ``_dd_starts.BOUND_TAPS`` = 256 taps; Clarabel called directly, nothing
+#   compiled: 0.33 GB for the whole process of a three-line mode's design, measured, where
+#   cvxpy's compilation took 4.1 GB above the worker's base before issue 34) plus the
+#   bound's response matrices, per input frequency [bytes].
+_BOUND_START = 0.2e9
 _BOUND_PER_FREQ = 16.0 * 256 * 6
 
 
@@ -83,8 +83,8 @@ def task_memory(ctx: DesignContext, n_modes: int, bound_start: bool) -> int:
     with ``n_freqs`` the input frequencies, ``n_dense`` the dense grid's points (about 15x
     the design grid's; 6,200 for ``n_grid = 64``) and ``2 q + 1`` the controller's
     parameters (order ``q``, the largest of ``order="auto"``); plus, for a chunk with a mode
-    that tries the margin-constrained bound as its start, 4.2 GB and ``24.6 kB x n_freqs``
-    (the bound's cvxpy compilation at 256 taps, measured). An estimate from measured peaks
+    that tries the margin-constrained bound as its start, 0.2 GB and ``24.6 kB x n_freqs``
+    (the bound's solves at 256 taps, measured). An estimate from measured peaks
     (``benchmarks/bench_design_scaleout.py`` prints the workers' own), not a guarantee.
 
     Parameters
@@ -106,7 +106,7 @@ def task_memory(ctx: DesignContext, n_modes: int, bound_start: bool) -> int:
     total = _WORKER_BASE + _PER_MODE_FREQ * n_modes * n_freqs + _PER_FREQ * n_freqs
     total += _PER_DENSE_PARAM * ctx.dense_freqs.size * n_params
     if bound_start:
-        total += _BOUND_COMPILE + _BOUND_PER_FREQ * n_freqs
+        total += _BOUND_START + _BOUND_PER_FREQ * n_freqs
     return int(total)
 
 
@@ -169,7 +169,7 @@ def check_memory(workers: dict, ctx: DesignContext, chunks: list) -> int:
         modes = f"{chunks[worst][0].mode}-{chunks[worst][-1].mode}"
         bound = (
             " (a mode tries the margin-constrained bound as its start: bound_start=False "
-            "avoids the bound's 4.2 GB compilation)"
+            "avoids the bound's 0.2 GB)"
             if any(item.bound_start for item in chunks[worst])
             else ""
         )

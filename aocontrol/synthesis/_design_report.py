@@ -81,7 +81,9 @@ class TelemetryDesign:
     options : dict
         Design options passed to the registry's design (``order``, ...).
     timings : dict
-        Wall-clock seconds of the steps (``estimate``, ``design``, ``margins``, ``bounds``).
+        Wall-clock seconds of the steps (``estimate``, ``design``, ``reference``,
+        ``margins``: the margins and the bounds, computed in one pass over the modes,
+        ``bounds``: the predicted residuals and the bounds' assembly).
     bound_failures : dict of int to str
         Modes whose constrained bound could not be computed, with the reason (their
         :attr:`constrained_variance` is ``nan``); empty when every asked bound was computed.

@@ -151,21 +151,26 @@ def multimode_residual_variance(
     return np.maximum(np.mean(e**2, axis=0) - np.asarray(noise_variance, dtype=float), 0.0)
 
 
-def _per_mode_margins(plant: Any, bank: Any, label: str) -> tuple:
-    """:func:`aocontrol.analysis.margins` per mode; a mode it cannot certify gets ``nan``.
+def _per_mode_margins(plant: Any, bank: Any, modes: Sequence[int]) -> tuple[list, list]:
+    """:func:`aocontrol.analysis.margins` of ``modes``; a mode it cannot certify gets ``nan``.
 
     Such a mode keeps the stability verdict of :func:`aocontrol.analysis.is_stable` and
-    ``nan`` margins (so :attr:`TelemetryDesign.meets_margin` is False for it), with a
-    warning naming it: no margin is reported that was not computed.
+    ``nan`` margins (so :attr:`TelemetryDesign.meets_margin` is False for it): no margin is
+    reported that was not computed. Returns the margins and the ``(mode, reason)`` failures
+    (:func:`_warn_margin_failures` names them).
     """
     out, failed = [], []
-    for i in range(bank.n_modes):
+    for i in modes:
         try:
             out.append(margins(plant, bank, mode=i))
         except ValueError as exc:
             failed.append((i, str(exc)))
             stable = is_stable(plant, bank.transfer_function(i))
             out.append(Margins.unknown(stable))
+    return out, failed
+
+
+def _warn_margin_failures(failed: list, label: str) -> None:
     if failed:
         logger.warning(
             "margins of the %s not computed for modes %s (%s): reported as nan",
@@ -173,7 +178,99 @@ def _per_mode_margins(plant: Any, bank: Any, label: str) -> tuple:
             [i for i, _ in failed][:10],
             failed[0][1],
         )
-    return tuple(out)
+
+
+#: Modes per task of the certificate and bound steps on worker processes (a task's bounds
+#: share one objective grid and basis; 540 modes make 9 tasks for 2 workers).
+_CERTIFY_CHUNK = 64
+
+
+def _certify_modes(
+    plant: Any,
+    bank: Any,
+    reference: Any,
+    modes: list[int],
+    est: TelemetryPSD,
+    modulus_margin: float,
+    bounds: tuple[str, ...],
+    n_taps: int,
+) -> dict:
+    """Steps 3 and 4 of :func:`design_from_telemetry` for ``modes`` (a bank of one mode per
+    row; ``bank`` None: a multi-mode bank, certified elsewhere), on one BLAS thread.
+
+    Every figure is per mode, so a chunk gives each of its modes the figures the whole bank
+    would (the same arithmetic on the same rows): the chunks may run on worker processes.
+    """
+    from threadpoolctl import threadpool_limits
+
+    out: dict = {}
+    idx = np.asarray(modes)
+    with threadpool_limits(limits=1, user_api="blas"):
+        if bank is not None:
+            out["margins"] = _per_mode_margins(plant, bank, modes)
+        out["reference_margins"] = _per_mode_margins(plant, reference, modes)
+        psd, noise = est.psd[idx], np.asarray(est.noise_psd)[idx]
+        if "wiener" in bounds:
+            out["wiener"] = np.atleast_1d(wiener_bound(plant, est.freqs, psd, noise))
+        if "constrained" in bounds:
+            out["constrained"] = constrained_bound(
+                plant,
+                est.freqs,
+                psd,
+                noise,
+                modulus_margin,
+                n_taps=n_taps,
+                raise_on_failure=False,
+            )
+    return out
+
+
+def _certify(
+    plant: Any,
+    bank: Any,
+    reference: Any,
+    est: TelemetryPSD,
+    modulus_margin: float,
+    bounds: tuple[str, ...],
+    n_taps: int,
+    n_jobs: int | None,
+) -> dict:
+    """:func:`_certify_modes` of every mode, in chunks of :data:`_CERTIFY_CHUNK` modes on
+    ``n_jobs`` worker processes (joblib; ``None`` every core, 1 this process), assembled in
+    mode order."""
+    from joblib import Parallel, cpu_count, delayed
+
+    n = est.n_modes
+    parts = [list(range(i, min(i + _CERTIFY_CHUNK, n))) for i in range(0, n, _CERTIFY_CHUNK)]
+    workers = cpu_count() if n_jobs is None else n_jobs
+    if workers < 0:
+        workers = max(1, cpu_count() + 1 + workers)
+    workers = min(workers, len(parts))
+    args = (plant, bank, reference)
+    rest = (est, modulus_margin, bounds, n_taps)
+    if workers <= 1:
+        results = [_certify_modes(*args, part, *rest) for part in parts]
+    else:
+        results = Parallel(n_jobs=workers)(
+            delayed(_certify_modes)(*args, part, *rest) for part in parts
+        )
+    out: dict = {}
+    for key in ("margins", "reference_margins"):
+        if key in results[0]:
+            out[key] = (
+                [m for r in results for m in r[key][0]],
+                [f for r in results for f in r[key][1]],
+            )
+    if "wiener" in bounds:
+        out["wiener"] = np.concatenate([r["wiener"] for r in results])
+    if "constrained" in bounds:
+        cbs = [r["constrained"] for r in results]
+        out["constrained"] = (
+            np.concatenate([cb.variance for cb in cbs]),
+            np.concatenate([cb.ok for cb in cbs]),
+            tuple(m for cb in cbs for m in cb.messages),
+        )
+    return out
 
 
 @renamed_keyword("stroke", "command_limit", "the MPC's hard limit on its modal command")
@@ -197,6 +294,7 @@ def design_from_telemetry(
     override_metadata: bool = False,
     uncertainty: UncertaintySet | None = None,
     client: Any = None,
+    n_jobs: int | None = None,
 ) -> TelemetryDesign:
     """Design a controller bank from closed-loop telemetry and certify it.
 
@@ -283,7 +381,13 @@ def design_from_telemetry(
         :func:`aocontrol.synthesis.datadriven`: chunks of modes as tasks, the bank bit for
         bit the serial one, a lost worker's modes designed again, memory per worker estimated
         and refused beyond the workers' limit before anything is designed). The client is
-        checked (connected, a worker) before step 0. The other steps run in this process.
+        checked (connected, a worker) before step 0. The other steps run in this process
+        and its ``n_jobs`` workers.
+    n_jobs : int, optional
+        Worker processes (joblib) of steps 3 and 4 (margins and bounds, per mode in chunks
+        of 64 modes, each on one BLAS thread; the figures do not depend on it): ``None``
+        every core this process may use, 1 this process only. The design's own workers are
+        its option ``n_jobs``.
 
     Returns
     -------
@@ -401,14 +505,21 @@ def design_from_telemetry(
 
     t0 = time.perf_counter()
     multimode = isinstance(bank, MultiModeBank)
+    # Steps 3 and 4 per mode, on the worker processes (the bounds' timing is in "margins"
+    # then: one pass over the modes does both).
+    certified = _certify(
+        plant, None if multimode else bank, reference, est, modulus_margin, bounds, n_taps, n_jobs
+    )
     if multimode:
         # One multivariable certificate for the whole loop (no per-mode margins): each mode
         # reports its stability verdict, its margins nan.
         cert = multimode_certificate(bank)
         mar = tuple(Margins.unknown(cert.stable) for _ in range(est.n_modes))
     else:
-        mar = _per_mode_margins(plant, bank, controller)
-    ref_mar = _per_mode_margins(plant, reference, "reference")
+        mar = tuple(certified["margins"][0])
+        _warn_margin_failures(certified["margins"][1], controller)
+    ref_mar = tuple(certified["reference_margins"][0])
+    _warn_margin_failures(certified["reference_margins"][1], "reference")
     timings["margins"] = time.perf_counter() - t0
     robust = ref_robust = None
     if uncertainty is not None:
@@ -435,19 +546,11 @@ def design_from_telemetry(
     constrained = nan.copy()
     bound_failures: dict[int, str] = {}
     if "wiener" in bounds:
-        wiener = np.atleast_1d(wiener_bound(plant, est.freqs, est.psd, est.noise_psd))
+        wiener = certified["wiener"]
     if "constrained" in bounds:
-        cb = constrained_bound(
-            plant,
-            est.freqs,
-            est.psd,
-            est.noise_psd,
-            modulus_margin,
-            n_taps=n_taps,
-            raise_on_failure=False,
-        )
-        constrained = np.where(cb.ok, cb.variance, np.nan)
-        bound_failures = {int(i): cb.messages[i] for i in np.flatnonzero(~cb.ok)}
+        cb_variance, cb_ok, cb_messages = certified["constrained"]
+        constrained = np.where(cb_ok, cb_variance, np.nan)
+        bound_failures = {int(i): cb_messages[i] for i in np.flatnonzero(~cb_ok)}
         if bound_failures:
             first = next(iter(bound_failures.items()))
             warnings.warn(
