@@ -150,7 +150,7 @@ class AdaptivePredictor(SelfDesigningBank):
             MIN_WINDOW_FRAMES,
             eof_min_frames(
                 self._n_modes, self._h, self._latency_model, validation_fraction=validation
-            ),  # fmt: skip
+            ),
         )
         self._options = dict(
             history=self._h,
