@@ -1,15 +1,16 @@
-"""The pyramid frame's compiled element-wise passes (issue 19): oracle, the numpy passes.
+"""The pyramid frame's compiled element-wise passes (issues 19, 34): oracle, the numpy passes.
 
-:mod:`aocontrol.sim.wfs._pyramid_fused` replaces the y tilts, the constant row, the direct
-images and the intensity sums of :meth:`PyramidWFS._frames` by two compiled loops; the numpy
-path (``$AOCONTROL_NO_NUMBA``) stays and is the oracle here. The y tilts and the constant row
-are the same operations in the same order: bit for bit; so are the products, written without
-the direct images (``beta = 0``) plus the direct images (as the intensity loop adds them). The
-intensity loop sums in float64 (the numpy path: float32, ``einsum``): the frames agree to
-float32 rounding (``SINGLE_TOL`` of the largest pixel, as ``tests/test_pyramid_pairs.py``;
-measured ~1e-7) and
-to ``DOUBLE_TOL`` in double precision (measured ~2e-16). The recorded frames of
-``tests/test_pyramid_pairs.py`` check the compiled path against the former propagation.
+:mod:`aocontrol.sim.wfs._pyramid_fused` replaces the pupil field, the x tilts and step x's
+direct images, the y tilts, the constant row, step y's direct images, the intensity sums and
+the binning of :meth:`PyramidWFS._frames`, and the bilinear sums of the frame derivatives, by
+compiled loops; the numpy path (``$AOCONTROL_NO_NUMBA``) stays and is the oracle here. The y
+tilts and the constant row are the same operations in the same order: bit for bit; so are the
+products, written without the direct images (``beta = 0``) plus the direct images (as the
+intensity loop adds them). The intensity loop sums in float64 (the numpy path: float32,
+``einsum``): the frames agree to float32 rounding (``SINGLE_TOL`` of the largest pixel, as
+``tests/test_pyramid_pairs.py``; measured ~1e-7) and to ``DOUBLE_TOL`` in double precision
+(measured ~2e-16). The recorded frames of ``tests/test_pyramid_pairs.py`` check the compiled
+path against the former propagation.
 """
 
 from __future__ import annotations
@@ -65,6 +66,23 @@ def test_compiled_frames_equal_the_numpy_frames(monkeypatch, geometry, precision
     bad = fused.copy()
     bad[0, 3, 4] += 1e-3 * ref.max()
     assert np.abs(bad - ref).max() / ref.max() > tol
+
+
+@pytest.mark.parametrize("geometry", [GEOMETRIES[0], GEOMETRIES[1], GEOMETRIES[3]])
+@pytest.mark.parametrize(("precision", "tol"), [("single", SINGLE_TOL), ("double", DOUBLE_TOL)])
+def test_compiled_derivatives_equal_the_numpy_derivatives(monkeypatch, geometry, precision, tol):
+    # The frame derivatives (the interaction matrix, the optical gains) through the compiled
+    # bilinear sums; oracle: the numpy path's einsum sums.
+    n_pix = geometry[0]
+    opd = _opds(n_pix, 1)[0]
+    directions = _opds(n_pix)
+    fused = _wfs(geometry, precision).frame_derivative(opd, directions)
+    monkeypatch.setenv(ENV_NO_NUMBA, "1")
+    ref = _wfs(geometry, precision).frame_derivative(opd, directions)
+    scale = np.abs(ref).max()
+    assert np.abs(fused - ref).max() < tol * scale
+    # a twin that must fail: the derivative along a doubled direction is not the same
+    assert np.abs(2 * fused - ref).max() > tol * scale
 
 
 def test_several_chunks_of_pairs(monkeypatch):

@@ -28,10 +28,11 @@ of a pair; step y is one real product ``[u 1; v 0] @ [Y_c, Y_s of every pair; co
 per parity class for all points: half the FLOPs of complex per-point products
 (``benchmarks/bench_pyramid.py --flops``). Single precision by default (``complex64`` /
 ``float32``; the difference from double precision is < 1e-5 of the largest pixel, tested
-against reference frames). The element-wise passes between and after the products (y tilts,
-constant row, direct images, intensity sums) are two compiled loops (:mod:`._pyramid_fused`,
-numba; the numpy passes without numba or with ``$AOCONTROL_NO_NUMBA``): the same frames to
-float32 rounding (the sums in float64), in less CPU (``docs/benchmarks.md``).
+against reference frames). The element-wise passes before, between and after the products (pupil
+field and x tilts, direct images, y tilts, constant row, intensity sums, binning; the bilinear
+sums of the derivatives) are compiled loops (:mod:`._pyramid_fused`, numba; the numpy passes
+without numba or with ``$AOCONTROL_NO_NUMBA``): the same frames to float32 rounding (the sums in
+float64), in less CPU (``docs/benchmarks.md``).
 
 The functions take the plan (:func:`build_plan`), the work buffers (:func:`work_buffers`) and
 the chunks of modulation pairs explicitly; the sensor (:class:`.pyramid.PyramidWFS`) owns them
@@ -64,6 +65,9 @@ __all__ = [
     "intensities",
     "new_accumulators",
     "pair_fields",
+    "pupil_field",
+    "step_x",
+    "step_x_from_phase",
     "work_buffers",
 ]
 
@@ -163,6 +167,9 @@ def build_plan(
         # tilts split by the parity of the pupil sample: tx (n_x, n_p)
         "tx": [np.ascontiguousarray(tx[:, p::2], dtype=c) for p in (0, 1)],
         "dense_t": [np.ascontiguousarray(k_.dense.T, dtype=c) for k_ in classes],
+        # step x's direct images for the compiled front pass: per class, the pupil column of
+        # each line's direct image and its x tilt times the image's value (0: no image)
+        "direct_x": [_direct_x(k_, q, tx, c) for q, k_ in enumerate(classes)],
         "w": np.ascontiguousarray(w[..., None], dtype=r),
         "w1": np.ascontiguousarray(w1[..., None], dtype=r),
         # c0 of the class whose dense part reads the samples of parity p
@@ -176,11 +183,29 @@ def build_plan(
         "bin_cols": scipy.sparse.csr_matrix(binning[:, lines[order]]),
         # an integer binning factor: each line in one bin, summed by a reshape
         "bin_perm": [bin_permutation(binning[:, lines[i]]) for i in (rows, order)],
+        # and the bin of each line (the compiled binning), or None
+        "bin_index": [
+            None if bin_permutation(b_) is None else np.argmax(b_, axis=0)
+            for b_ in (binning[:, lines[rows]], binning[:, lines[order]])
+        ],
     }
     for v in plan.values():
         if isinstance(v, np.ndarray):
             v.setflags(write=False)
     return plan
+
+
+def _direct_x(cls, q: int, tx: np.ndarray, dtype: type) -> tuple[np.ndarray, np.ndarray]:
+    """``(col, dx)`` of the line class ``q`` (:func:`._pyramid_fused.front`): the pupil column
+    ``col[l]`` of line ``l``'s direct image (a sample of parity ``q``) and ``dx[t, l] = tx[t,
+    col[l]] value`` (the x tilts ``tx`` ``(n_x, n_pix)``; 0 for a line without one)."""
+    n_q = cls.lines.size
+    col = np.zeros(n_q, dtype=np.int64)
+    val = np.zeros(n_q, dtype=complex)
+    for r0, r1, s0, value in cls.runs:
+        col[r0:r1] = q + 2 * np.arange(s0, s0 + r1 - r0)
+        val[r0:r1] = value
+    return col, np.ascontiguousarray(tx[:, col] * val[None, :], dtype=dtype)
 
 
 def work_buffers(plan: dict, chunks: list[Chunk]) -> dict[str, list[np.ndarray]]:
@@ -230,6 +255,61 @@ def work_buffers(plan: dict, chunks: list[Chunk]) -> dict[str, list[np.ndarray]]
     }
 
 
+def pupil_field(plan: dict, phase: np.ndarray) -> np.ndarray:
+    """Pupil field ``(n_pix, n_pix)`` of a phase map [rad]: ``plan["amp"] e^{i phase}`` (pupil
+    amplitude, half-sample centring and normalisation), in the plan's precision."""
+    real = plan["kern"][0].dtype
+    return plan["amp"] * np.exp(1j * np.asarray(phase).astype(real))
+
+
+def step_x(plan: dict, work: dict, field: np.ndarray) -> None:
+    """Step x into the work buffers: ``gq[q][(p, y', t), l] = sum_x field[p + 2 y', x] tx[t,
+    x] L[l, x]`` for the lines ``l`` of class ``q`` (the x-tilted field ``a`` on the way).
+
+    Parameters
+    ----------
+    plan, work
+        :func:`build_plan` and :func:`work_buffers`.
+    field : ndarray, shape (n_pix, n_pix)
+        Pupil field (:func:`pupil_field`, or any field: a derivative's ``i dphi E``).
+    """
+    classes = plan["classes"]
+    a, gq = work["a"], work["gq"]
+    for px in (0, 1):
+        for py in (0, 1):
+            f = field[py::2, px::2]
+            np.multiply(f[:, None], plan["tx"][px][None], out=a[px][py, : f.shape[0]])
+    for q in (0, 1):
+        apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq[q].T)
+    _dense_x(plan, work)
+
+
+def _dense_x(plan: dict, work: dict) -> None:
+    """Step x's dense products, added to the direct images in ``gq``."""
+    a, gq = work["a"], work["gq"]
+    for q in (0, 1):
+        gemm_acc(a[1 - q].reshape(-1, a[1 - q].shape[-1]), plan["dense_t"][q], gq[q])
+
+
+def step_x_from_phase(plan: dict, work: dict, phase: np.ndarray, fused: tuple) -> None:
+    """:func:`step_x` of the field of ``phase`` [rad] (:func:`pupil_field`) with the
+    compiled front pass (:func:`._pyramid_fused.front`): field, x tilts and direct images in
+    one pass, then the dense products."""
+    fused[2](
+        np.ascontiguousarray(phase, dtype=np.float64),
+        plan["amp"],
+        plan["tx"][0],
+        plan["tx"][1],
+        *plan["direct_x"][0],
+        *plan["direct_x"][1],
+        work["a"][0],
+        work["a"][1],
+        work["gq"][0],
+        work["gq"][1],
+    )
+    _dense_x(plan, work)
+
+
 def pair_fields(
     plan: dict, work: dict, chunks: list[Chunk], field: np.ndarray, fused: tuple | None = None
 ) -> Iterator[tuple]:
@@ -250,28 +330,22 @@ def pair_fields(
     ----------
     plan, work, chunks
         :func:`build_plan`, :func:`work_buffers` and the chunks of modulation pairs.
-    field : ndarray, shape (n_pix, n_pix)
-        Pupil field, amplitude and half-sample centring included (``plan["amp"] e^{i phi}``).
+    field : ndarray, shape (n_pix, n_pix), or None
+        Pupil field, amplitude and half-sample centring included (:func:`pupil_field`);
+        ``None``: step x's output is already in the work buffers (:func:`step_x_from_phase`).
     fused : tuple, optional
         The compiled kernels of :mod:`._pyramid_fused`; the y tilts are then one compiled
         pass, the products are written without the direct images, and the tuples hold a fourth
         item, the chunk's step-y inputs ``[x0, x1]`` (the direct images are ``x_q[src + l] *
         delta_q``: :func:`intensities` adds them while it sums the intensities).
     """
-    classes, dense_t = plan["classes"], plan["dense_t"]
-    a, gq, xs, o = work["a"], work["gq"], work["xs"], work["o"]
+    if field is not None:
+        step_x(plan, work, field)
+    classes = plan["classes"]
+    gq, xs, o = work["gq"], work["xs"], work["o"]
     n_m, r = plan["n_m"], plan["kern"][0].dtype
     n0 = classes[0].lines.size
     nl = n0 + classes[1].lines.size
-    # step x: gq[q][(p, y', t), l] = sum_x field[p + 2 y', x] tx[t, x] L[l, x] (lines of
-    # class q)
-    for px in (0, 1):
-        for py in (0, 1):
-            f = field[py::2, px::2]
-            np.multiply(f[:, None], plan["tx"][px][None], out=a[px][py, : f.shape[0]])
-    for q in (0, 1):
-        apply_runs(classes[q].runs, a[q].reshape(-1, a[q].shape[-1]).T, gq[q].T)
-        gemm_acc(a[1 - q].reshape(-1, a[1 - q].shape[-1]), dense_t[q], gq[q])
     # (parity, y', pair, line, real/imaginary) views of step x's output
     gqv = [gq[q].view(r).reshape(2, n_m, -1, gq[q].shape[-1], 2) for q in (0, 1)]
     cols = (slice(0, n0), slice(n0, nl))
@@ -374,20 +448,21 @@ def new_accumulators(work: dict) -> dict:
 
 
 def intensities(
-    plan: dict, work: dict, chunks: list[Chunk], field: np.ndarray
+    plan: dict, work: dict, chunks: list[Chunk], phase: np.ndarray
 ) -> dict[str, list[np.ndarray]]:
-    """The intensity accumulators of one pupil field, summed over all modulation points.
+    """The intensity accumulators of one pupil phase map, summed over all modulation points.
 
     With the compiled kernels of :mod:`._pyramid_fused` (when numba is available and not
-    disabled) the direct images and the intensity sums are one compiled pass over each
-    product; else :func:`accumulate` with ``f = h``.
+    disabled) the field, the x tilts and step x's direct images are one compiled pass, and so
+    are the direct images of step y and the intensity sums over each product; else
+    :func:`pupil_field`, :func:`pair_fields` and :func:`accumulate` with ``f = h``.
 
     Parameters
     ----------
     plan, work, chunks
         As for :func:`pair_fields`.
-    field : ndarray, shape (n_pix, n_pix)
-        Pupil field (:func:`pair_fields`).
+    phase : ndarray, shape (n_pix, n_pix)
+        Pupil phase [rad].
 
     Returns
     -------
@@ -400,10 +475,12 @@ def intensities(
     delta = plan["delta"]
     for a in acc["s"] + acc["x"]:
         a.fill(0.0)
-    for f in pair_fields(plan, work, chunks, field, fused):
-        if fused is None:
+    if fused is None:
+        for f in pair_fields(plan, work, chunks, pupil_field(plan, phase)):
             accumulate(acc, f, f)
-            continue
+        return acc
+    step_x_from_phase(plan, work, phase, fused)
+    for f in pair_fields(plan, work, chunks, None, fused):
         for q in (0, 1):
             src = plan["pairs"][q].src
             d = delta[q][:, 0, 0]
@@ -414,6 +491,13 @@ def intensities(
 def bin_frame(plan: dict, acc: dict) -> np.ndarray:
     """Accumulators (:func:`accumulate`) -> detector frame ``(2 n_sub, 2 n_sub)`` [float64]:
     the two pupil images of each line class, cropped and rebinned."""
+    fused = _pyramid_fused.kernels()
+    rb, cb = plan["bin_index"]
+    if fused is not None and rb is not None and cb is not None:
+        n_b = plan["bin_rows"].shape[0]
+        out = np.empty((n_b, n_b))
+        fused[3](acc["s"][0], acc["x"][0], acc["s"][1], acc["x"][1], rb, cb, out)
+        return out
     parts = []
     for q in (0, 1):
         nl = acc["x"][q].shape[-1]
@@ -454,6 +538,27 @@ def frame_derivatives(
     real = plan["kern"][0].dtype
     n_b = plan["bin_rows"].shape[0]
     out = np.empty((dphase.shape[0], n_b, n_b))
+    fused = _pyramid_fused.kernels()
+    if fused is not None:
+        # copies of the base products and step-y inputs: the generator reuses its buffers
+        base = [
+            (f0.copy(), f1.copy(), n, [x_.copy() for x_ in xq])
+            for f0, f1, n, xq in pair_fields(plan, work, chunks, field, fused)
+        ]
+        acc = {k: work[k] for k in ("s", "x")}
+        for i in range(dphase.shape[0]):
+            for a in acc["s"] + acc["x"]:
+                a.fill(0.0)
+            dfield = 1j * dphase[i].astype(real) * field
+            for f, h in zip(base, pair_fields(plan, work, chunks, dfield, fused), strict=True):
+                for q in (0, 1):
+                    d = plan["delta"][q][:, 0, 0]
+                    src = plan["pairs"][q].src
+                    fused[4](
+                        f[q], f[3][q], h[q], h[3][q], src, d[0], d[1], 2.0, acc["s"][q], acc["x"][q]
+                    )
+            out[i] = bin_frame(plan, acc)
+        return out
     # copies of the base fields: the generator reuses its buffers
     base = [(f0.copy(), f1.copy(), n) for f0, f1, n in pair_fields(plan, work, chunks, field)]
     for i in range(dphase.shape[0]):

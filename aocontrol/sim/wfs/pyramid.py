@@ -56,6 +56,7 @@ from aocontrol.sim.wfs._pyramid_propagation import (
     frame_derivatives,
     intensities,
     pair_fields,
+    pupil_field,
     work_buffers,
 )
 from aocontrol.sim.wfs._sensor import WavefrontSensor
@@ -275,7 +276,7 @@ class PyramidWFS(WavefrontSensor):
 
     def _field(self, phase: np.ndarray) -> np.ndarray:
         """Pupil field ``(n_pix, n_pix)`` of a phase map [rad] (amplitude and centring)."""
-        return self._plan["amp"] * np.exp(1j * phase.astype(self._real))
+        return pupil_field(self._plan, phase)
 
     def _fields(self, field: np.ndarray, fused: tuple | None = None):
         """Pair products of a pupil field (:func:`._pyramid_propagation.pair_fields`)."""
@@ -291,7 +292,7 @@ class PyramidWFS(WavefrontSensor):
         plan, work, chunks = self._plan, self._work, self._chunks
         with self._blas_threads():
             for i in range(phase.shape[0]):
-                out[i] = bin_frame(plan, intensities(plan, work, chunks, self._field(phase[i])))
+                out[i] = bin_frame(plan, intensities(plan, work, chunks, phase[i]))
         return out
 
     def _detector_frames(self, opd: np.ndarray) -> np.ndarray:
