@@ -44,3 +44,24 @@ def test_one_synthesizer_per_basis(basis):
     assert shape_synthesizer(dataclasses.replace(basis, mirror=None)) is not shape_synthesizer(
         basis
     )
+
+
+def test_no_subnormal_factors_at_saxo_plus_sampling():
+    # The SAXO+ mirror (28x28) on 80 px: the Gaussian influences' far tails are subnormal in
+    # float32 (a product with them runs ~10x slower); the synthesiser's factors hold none,
+    # and its shapes stay the float64 synthesis to float32 rounding.
+    from aocontrol.sim.dm import SAXO_PLUS_N_ACTUATORS
+
+    b = kl_basis(DeformableMirror(vlt_pupil(80), n_actuators=SAXO_PLUS_N_ACTUATORS), 30, r0=0.15)
+    tiny = np.finfo(np.float32).tiny
+
+    def subnormal(a):
+        a = np.asarray(a, dtype=np.float32)
+        return np.count_nonzero((a != 0) & (np.abs(a) < tiny))
+
+    assert subnormal(b.mirror.gx) > 0  # the twin: the raw factors have them
+    synth = ShapeSynthesizer(b)
+    assert subnormal(synth._gx) == 0 and subnormal(synth._gyt) == 0
+    y = np.random.default_rng(2).standard_normal(b.n_modes) * 20.0
+    want = b.synthesize(y)
+    np.testing.assert_allclose(synth(y), want, rtol=0, atol=REL * np.abs(want).max())
