@@ -30,9 +30,16 @@ frame, of which the pyramid propagation 9.9 ms (81 %), detector noise 0.9, recon
 the rest of the engine 0.6 (residual maps included: float32 DM shapes through the mirrors,
 ``aocontrol.sim._phase_maps``, 0.1 ms instead of 1.7 ms with the float64 ``synthesize``).
 
+``--reference REV`` (issue 34) runs the same command on the code of the git revision ``REV``
+(a temporary detached worktree, its own script and package) and on this checkout, each in a
+fresh process, alternating ``--rounds`` times (the reference first), and prints the machine,
+each run's figures with the load before and after, and the CPU ratios this / reference of the
+run and of the stage-2 sensor's calibration.
+
 Usage: python benchmarks/bench_cascade.py [--frames 15300] [--n-pix 96] [--layers 10]
        [--repeat 3] [--quick] [--compare-threads]
        [--sensor diffractive [--optical-gain none|calibrated|tracked] [--magnitude 5.2]]
+       [--reference REV [--rounds 1]]
 """
 
 from __future__ import annotations
@@ -41,8 +48,13 @@ import argparse
 import contextlib
 import math
 import os
+import platform
+import re
 import resource
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
@@ -173,7 +185,80 @@ def _stage2_controller(name: str, n: int):
     raise SystemExit(f"--stage2-controllers: unknown {name!r}, expected integrator, iir5, eof")
 
 
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def _compare_with_reference(rev: str, rounds: int, argv: list[str]) -> None:
+    """The same command on revision ``rev`` and on this checkout, fresh processes,
+    alternating (reference first); prints each run and the CPU ratios (module docstring)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    folder = tempfile.mkdtemp(prefix="aocontrol-bench-cascade-")
+    ref = os.path.join(folder, "reference")
+    subprocess.run(
+        ["git", "-C", root, "worktree", "add", "--detach", ref, rev],
+        check=True,
+        capture_output=True,
+    )
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
+        f"this checkout {root} vs reference {rev}; {rounds} round(s), alternating"
+    )
+    pattern = {
+        "run": r"CPU time of the process ([0-9.]+) s",
+        "calibration": r"calibration \(pyramid, reconstructor[^)]*\) ([0-9.]+) s",
+        "frame": r"whole frame ([0-9.]+) ms",
+    }
+    got: dict[str, list[dict]] = {"reference": [], "this": []}
+    try:
+        for _ in range(rounds):
+            for label, checkout in (("reference", ref), ("this", root)):
+                load0 = _load()
+                out = subprocess.run(
+                    [sys.executable, os.path.join(checkout, "benchmarks", "bench_cascade.py")]
+                    + argv,
+                    env=dict(os.environ, PYTHONPATH=checkout),
+                    check=True,
+                    capture_output=True,
+                    text=True,
+                ).stdout
+                print(f"--- {label} (load before {load0}, after {_load()})")
+                print(out.rstrip())
+                got[label].append(
+                    {
+                        k: float(m.group(1)) if (m := re.search(v, out)) else math.nan
+                        for k, v in pattern.items()
+                    }
+                )
+    finally:
+        subprocess.run(
+            ["git", "-C", root, "worktree", "remove", "--force", ref],
+            check=False,
+            capture_output=True,
+        )
+    for key, what in (
+        ("run", "run CPU [s]"),
+        ("calibration", "stage-2 sensor calibration, wall [s]"),
+        ("frame", "CPU per fast frame [ms]"),
+    ):
+        new = statistics.median(r[key] for r in got["this"])
+        old = statistics.median(r[key] for r in got["reference"])
+        print(f"  {what}: this {new:.2f}, reference {old:.2f}, this / reference {new / old:.3f}")
+    new = statistics.median(r["run"] + r["calibration"] for r in got["this"])
+    print(
+        f"  run CPU + sensor calibration: this {new:.1f} s (issue 34's goal for the diffractive "
+        f"exposure: 40 s)"
+    )
+
+
 def main() -> None:
+    if "--reference" in sys.argv:
+        q = argparse.ArgumentParser()
+        q.add_argument("--reference", required=True)
+        q.add_argument("--rounds", type=int, default=1)
+        known, rest = q.parse_known_args()
+        _compare_with_reference(known.reference, known.rounds, rest)
+        return
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--frames", type=int, default=15300, help="fast frames (5.1 s at 3 kHz)")
     p.add_argument("--n-pix", type=int, default=96)

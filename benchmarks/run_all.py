@@ -60,6 +60,14 @@ BENCHMARKS: dict[str, Entry] = {
         ("--sensor", "diffractive", "--n-pix", "80", "--modes2", "400", "--repeat", "1"),
         ("--quick", "--sensor", "diffractive", "--repeat", "1"),
     ),
+    # Issue 34 part 3 (the pyramid with fewer operations): against the code before it
+    # (1802ad0), in the same run, fresh processes, alternating.
+    "cascade-diffractive-speed": Entry(
+        "bench_cascade.py",
+        ("--reference", "1802ad0", "--rounds", "2", "--sensor", "diffractive")
+        + ("--n-pix", "80", "--modes2", "400", "--repeat", "1"),
+        ("--reference", "1802ad0", "--quick", "--sensor", "diffractive", "--repeat", "1"),
+    ),
     "lqg": Entry("bench_lqg.py", ()),
     "mpc": Entry("bench_mpc.py", ()),
     "bounds": Entry("bench_bounds.py", ()),
