@@ -10,6 +10,7 @@ import warnings
 
 import control
 import numpy as np
+import scipy.fft
 
 from aocontrol._validation import check_frequency_grid, check_int, mode_psds
 from aocontrol.plant import (
@@ -42,30 +43,33 @@ _RESOLUTION_TOL = 0.02
 _MAX_REFINED_N_FFT = 2**20
 
 
-def _minimum_phase_log(log_mag2: np.ndarray) -> np.ndarray:
-    """Log of the minimum-phase factor ``M`` with ``|M|^2 = exp(log_mag2)`` on the circle.
+def _minimum_phase_log(log_mag2: np.ndarray, n: int) -> np.ndarray:
+    """Log of the minimum-phase factor ``M`` with ``|M|^2 = exp(log_mag2)``, on the half circle.
 
-    ``log_mag2`` is sampled at ``theta_k = 2 pi k / N`` (last axis, ``N`` even). Cepstral
-    method: with ``c = ifft(log |M|^2)`` (coefficients of ``e^{-j n theta}``), ``log M`` keeps
-    ``c_0 / 2``, ``c_n`` for ``0 < n < N/2`` and ``c_{N/2} / 2``.
+    ``log_mag2`` is real and even, sampled at ``theta_k = 2 pi k / n`` for ``k = 0 .. n/2``
+    (last axis, ``n`` even); so is the result's modulus, and ``log M`` is Hermitian, so the
+    half circle holds all of it. Cepstral method: with ``c = ifft(log |M|^2)`` over the full
+    circle (coefficients of ``e^{-j m theta}``, real and even: a DCT-I of the half), ``log M``
+    keeps ``c_0 / 2``, ``c_m`` for ``0 < m < n/2`` and ``c_{n/2} / 2``; its values on the half
+    circle are the first ``n/2 + 1`` of that sequence's real FFT.
     """
-    n = log_mag2.shape[-1]
-    c = np.fft.ifft(log_mag2, axis=-1).real
-    fold = np.zeros_like(c)
-    fold[..., 0] = c[..., 0] / 2
-    fold[..., 1 : n // 2] = c[..., 1 : n // 2]
-    fold[..., n // 2] = c[..., n // 2] / 2
-    return np.fft.fft(fold, axis=-1)
+    h = n // 2
+    c = scipy.fft.dct(log_mag2, type=1, axis=-1) / n
+    c[..., 0] /= 2
+    c[..., h] /= 2
+    return scipy.fft.rfft(c, n=n, axis=-1)
 
 
-def _inner_factor(plant: object, theta: np.ndarray, fs: float) -> np.ndarray:
-    """Inner (all-pass) factor ``G_i`` of a stable plant on ``theta`` (full circle, rad).
+def _inner_factor(plant: object, n: int, fs: float) -> np.ndarray:
+    """Inner (all-pass) factor ``G_i`` of a stable plant on ``theta_k = 2 pi k / n``,
+    ``k = 0 .. n/2`` (the half circle: ``G_i`` is Hermitian, its coefficients real).
 
     Transfer function: exact. ``G = z^-D B(z) / A(z)``; every zero ``zeta`` of ``B`` outside
     the unit circle contributes the Blaschke factor
     ``(1 - zeta z^-1) / (|zeta| (1 - z^-1 / conj(zeta)))``: ``G_i = z^-D prod(...)``.
     FRD: ``G / G_o`` with ``G_o`` the cepstral minimum-phase factor of ``|G|``.
     """
+    theta = 2 * np.pi * np.arange(n // 2 + 1) / n
     zi = np.exp(-1j * theta)
     if isinstance(plant, control.TransferFunction):
         b, a = z_inverse_coefficients(plant, "plant")
@@ -85,18 +89,16 @@ def _inner_factor(plant: object, theta: np.ndarray, fs: float) -> np.ndarray:
             if abs(zeta) > 1.0 + _ZERO_TOL:
                 out = out * (1 - zeta * zi) / (abs(zeta) * (1 - zi / np.conj(zeta)))
         return out
-    n = theta.size
-    half = theta[: n // 2 + 1] * fs / (2 * np.pi)
+    half = theta * fs / (2 * np.pi)
     try:
-        g_half = frequency_response(plant, np.clip(half, 0.0, fs / 2), fs)
+        g = frequency_response(plant, np.clip(half, 0.0, fs / 2), fs)
     except ValueError as exc:
         raise ValueError(
             f"a measured (FRD) plant must cover [0, fs/2] for the Wiener bound: {exc}"
         ) from exc
-    g = np.concatenate([g_half, np.conj(g_half[-2:0:-1])])
     mag = np.abs(g)
     log_m2 = 2 * np.log(np.maximum(mag, _PSD_FLOOR * mag.max()))
-    return g / np.exp(_minimum_phase_log(log_m2))
+    return g / np.exp(_minimum_phase_log(log_m2, n))
 
 
 def wiener_bound(
@@ -135,7 +137,7 @@ def wiener_bound(
     * ``d`` and ``n`` are independent, zero-mean, stationary; PSDs are one-sided
       [units^2/Hz] on ``freqs``, interpolated onto ``n_fft/2 + 1`` uniform points of
       ``[0, fs/2]`` (geometrically where the PSD is positive, else linearly; held constant
-      beyond the given range) and mirrored to the full circle.
+      beyond the given range) (the circle's even half: see ``_bound``).
     * Resolution check: the bound is computed with ``n_fft`` and ``2 n_fft`` points and the
       finer value returned. The modes where they differ by more than 2 % are computed again
       with the FFT size doubled (those modes only) until two successive sizes agree, up to
@@ -237,10 +239,20 @@ def _unresolved(coarse: np.ndarray, fine: np.ndarray) -> np.ndarray:
 def _bound(
     plant: object, fs_: float, freqs: np.ndarray, psd2: np.ndarray, noise2: np.ndarray, n_fft: int
 ) -> np.ndarray:
-    """The bound per mode on an ``n_fft``-point circle (see :func:`wiener_bound`)."""
-    theta = 2 * np.pi * np.arange(n_fft) / n_fft
-    gi_conj = np.conj(_inner_factor(plant, theta, fs_))
-    f_half = theta[: n_fft // 2 + 1] * fs_ / (2 * np.pi)
+    """The bound per mode on an ``n_fft``-point circle (see :func:`wiener_bound`).
+
+    Every spectrum of the formula is even (the PSDs) or Hermitian (``G_i``, ``M``, the
+    product ``F``), so it is computed on the ``n_fft/2 + 1`` points of the half circle with
+    real transforms: a DCT-I and a real FFT for the factorisation, an inverse real FFT for
+    ``F``'s coefficients (real); a mean over the full circle is the half's with the inner
+    points counted twice.
+    """
+    gi_conj = np.conj(_inner_factor(plant, n_fft, fs_))
+    h = n_fft // 2
+    f_half = np.arange(h + 1) * fs_ / n_fft
+    # Full-circle mean from the half circle: end points once, inner points twice.
+    twice = np.full(h + 1, 2.0 / n_fft)
+    twice[[0, h]] = 1.0 / n_fft
     n_modes = psd2.shape[0]
     out = np.empty(n_modes)
     block = max(1, _CHUNK // n_fft)
@@ -248,24 +260,25 @@ def _bound(
         sl = slice(start, min(start + block, n_modes))
         # Two-sided per-sample spectra: S(theta) = one-sided PSD * fs / 2, so that
         # mean over the circle = variance.
-        sd = _to_circle(psd2[sl], freqs, f_half) * (fs_ / 2)
-        sn = _to_circle(noise2[sl], freqs, f_half) * (fs_ / 2)
+        sd = _to_half(psd2[sl], freqs, f_half) * (fs_ / 2)
+        sn = _to_half(noise2[sl], freqs, f_half) * (fs_ / 2)
         total = sd + sn
         peak = total.max(axis=1, keepdims=True)
         zero = peak[:, 0] == 0
         total = np.maximum(total, _PSD_FLOOR * np.where(zero[:, None], 1.0, peak))
-        log_m = _minimum_phase_log(np.log(total))
-        F = gi_conj * sd / np.conj(np.exp(log_m))
-        coef = np.fft.ifft(F, axis=1)
-        h = n_fft // 2
-        anticausal = np.sum(np.abs(coef[:, h + 1 :]) ** 2, axis=1) + 0.5 * np.abs(coef[:, h]) ** 2
-        unpredictable = np.mean(sd * sn / total, axis=1)
+        log_m = _minimum_phase_log(np.log(total), n_fft)
+        # F = conj(G_i) Sd / conj(M), M = exp(log_m)
+        F = gi_conj * sd * np.exp(-np.conj(log_m))
+        coef = scipy.fft.irfft(F, n=n_fft, axis=1)
+        anticausal = np.sum(coef[:, h + 1 :] ** 2, axis=1) + 0.5 * coef[:, h] ** 2
+        # a row sum, not a BLAS product: the same bits for a mode whatever the chunk's rows
+        unpredictable = np.sum(sd * sn / total * twice, axis=1)
         out[sl] = np.where(zero, 0.0, unpredictable + anticausal)
     return out
 
 
-def _to_circle(psd: np.ndarray, freqs: np.ndarray, f_half: np.ndarray) -> np.ndarray:
-    """Interpolate one-sided PSD rows onto ``f_half`` and mirror to the full circle.
+def _to_half(psd: np.ndarray, freqs: np.ndarray, f_half: np.ndarray) -> np.ndarray:
+    """Interpolate one-sided PSD rows onto ``f_half`` (the half circle).
 
     Rows that are positive everywhere are interpolated geometrically (log-PSD linear in
     frequency): turbulence spectra fall by decades between the points of a coarse linear grid,
@@ -278,4 +291,4 @@ def _to_circle(psd: np.ndarray, freqs: np.ndarray, f_half: np.ndarray) -> np.nda
             half[i] = np.exp(np.interp(f_half, freqs, np.log(row)))
         else:
             half[i] = np.interp(f_half, freqs, row)
-    return np.concatenate([half, half[:, -2:0:-1]], axis=1)
+    return half
