@@ -273,3 +273,46 @@ def test_default_segment_gives_eight_segments():
         assert 2 * n // seg - 1 >= 8 or seg == 64
         assert seg == 1024 or 2 * n // (2 * seg) - 1 < 8
     assert default_nperseg(500, "welch") == 500
+
+
+@pytest.mark.parametrize("method", ["prewhitened", "welch"])
+def test_blocks_and_threads_give_each_mode_its_own_estimate(method, monkeypatch):
+    # Invariant (issue 34): every step is per mode, so the estimate of a mode is the one it
+    # gets alone (to rounding: numpy sums a column and a block's columns in other orders),
+    # in blocks of any size, and the same bits on one thread or several.
+    from aocontrol.synthesis import _telemetry
+
+    rng = np.random.default_rng(7)
+    n_frames, n_modes = 3000, 7
+    m = np.cumsum(rng.normal(size=(n_frames, n_modes)), axis=0) * 0.01
+    m += rng.normal(size=m.shape) * np.linspace(0.5, 2.0, n_modes)
+    u = rng.normal(size=m.shape) * 0.1
+    plant = loop_plant(FS, 0.7)
+    og = np.linspace(0.6, 1.0, n_modes)
+    alone = [
+        disturbance_from_telemetry(m[:, [i]], u[:, [i]], plant, method=method, optical_gain=og[i])
+        for i in range(n_modes)
+    ]
+    monkeypatch.setattr(_telemetry, "_BLOCK_MODES", 3)  # blocks of 3, 3 and 1 modes
+    one_thread, two = (
+        disturbance_from_telemetry(m, u, plant, method=method, optical_gain=og, n_jobs=n_jobs)
+        for n_jobs in (1, 2)
+    )
+    for name in ("freqs", "psd", "pol_psd", "noise_psd", "pseudo_open_loop"):
+        assert np.array_equal(getattr(one_thread, name), getattr(two, name)), name
+    for i, one in enumerate(alone):
+        assert np.array_equal(two.freqs, one.freqs)
+        np.testing.assert_allclose(two.psd[i], one.psd[0], rtol=1e-9, err_msg=str(i))
+        np.testing.assert_allclose(two.pol_psd[i], one.pol_psd[0], rtol=1e-9)
+        np.testing.assert_allclose(two.noise_psd[i], one.noise_psd[0], rtol=1e-9)
+        np.testing.assert_array_equal(two.pseudo_open_loop[:, i], one.pseudo_open_loop[:, 0])
+    # Twin: a mode's own optical gain changes its estimate (the blocks get their own slice).
+    moved = disturbance_from_telemetry(m, u, plant, method=method, optical_gain=og[::-1])
+    assert not np.array_equal(moved.psd[0], alone[0].psd[0])
+
+
+def test_n_jobs_zero_is_refused():
+    with pytest.raises(ValueError, match="n_jobs must be a nonzero integer"):
+        disturbance_from_telemetry(
+            np.zeros((64, 2)), np.zeros((64, 2)), loop_plant(FS, 0.5), n_jobs=0
+        )

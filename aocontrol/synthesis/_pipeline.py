@@ -386,8 +386,9 @@ def design_from_telemetry(
     n_jobs : int, optional
         Worker processes (joblib) of steps 3 and 4 (margins and bounds, per mode in chunks
         of 64 modes, each on one BLAS thread; the figures do not depend on it): ``None``
-        every core this process may use, 1 this process only. The design's own workers are
-        its option ``n_jobs``.
+        every core this process may use, 1 this process only. Also the threads of the
+        estimate (step 1, :func:`disturbance_from_telemetry`'s ``n_jobs``; per mode too).
+        The design's own workers are its option ``n_jobs``.
 
     Returns
     -------
@@ -472,6 +473,7 @@ def design_from_telemetry(
             nperseg=nperseg,
             noise_band=noise_band,
             method=estimator,
+            n_jobs=n_jobs,
         )
     fs_ = plant_fs(plant, fs_)
     latency = latency_frames

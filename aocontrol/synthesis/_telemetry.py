@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 from dataclasses import dataclass
 
 import control
@@ -323,6 +324,7 @@ def disturbance_from_telemetry(
     noise_band: tuple[float, float] = (0.8, 1.0),
     method: str = "prewhitened",
     optical_gain: object = None,
+    n_jobs: int | None = None,
 ) -> TelemetryPSD:
     """Disturbance PSD and white noise level per mode from closed-loop telemetry.
 
@@ -422,6 +424,13 @@ def disturbance_from_telemetry(
         the default 1 assumes the true gains equal ``og_c``; pass ``og_true / og_c`` when
         known. The gains are assumed constant over the record (not ``"tracked"``) and the
         sensor linear around the loop's residual.
+    n_jobs : int or None, default None
+        Threads over blocks of modes (``None``: every core; 1: this thread; negative:
+        joblib's convention). Every step is per mode: a mode's estimate is the same bits
+        whatever the threads, and the same to rounding whatever the blocks (numpy sums one
+        column and a block of columns in different orders). Blocks of
+        :data:`_BLOCK_MODES` modes also keep a 15,000-frame record's work in the cache:
+        ~2x faster on one thread than the whole record at once.
 
     Returns
     -------
@@ -441,8 +450,17 @@ def disturbance_from_telemetry(
     """
     method = _check_method(method)
     fs_ = plant_fs(plant, fs)
-    pol = pseudo_open_loop(measurements, commands, plant, fs=fs_, optical_gain=optical_gain)
-    n_frames, n_modes = pol.shape
+    if not isinstance(plant, control.TransferFunction):
+        pseudo_open_loop(measurements, commands, plant, fs=fs_)  # its TypeError
+    m = _check_telemetry("measurements", measurements)
+    u = _check_telemetry("commands", commands)
+    if m.shape != u.shape:
+        raise ValueError(
+            f"measurements and commands must have the same shape (n_frames, "
+            f"n_modes), got {m.shape} and {u.shape}"
+        )
+    n_frames, n_modes = m.shape
+    og = _check_optical_gain(optical_gain, n_modes)
     # The telemetry is checked before the segment length it implies: a short or transposed
     # record is the telemetry's fault, not that of an nperseg the user never passed.
     if nperseg is not None:
@@ -460,14 +478,63 @@ def disturbance_from_telemetry(
         )
     if nperseg is None:
         nperseg = default_nperseg(n_frames, method)
+    threads = _threads(n_jobs)
+    blocks = [slice(i, min(i + _BLOCK_MODES, n_modes)) for i in range(0, n_modes, _BLOCK_MODES)]
+
+    def block(sl: slice) -> TelemetryPSD:
+        return _estimate(m[:, sl], u[:, sl], plant, fs_, nperseg, noise_band, method, og[sl])
+
+    if len(blocks) == 1:
+        return block(blocks[0])
+    if threads == 1:
+        parts = [block(sl) for sl in blocks]
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(min(threads, len(blocks))) as pool:
+            parts = list(pool.map(block, blocks))
+    first = parts[0]
+    return dataclasses.replace(
+        first,
+        psd=np.concatenate([p.psd for p in parts]),
+        noise_psd=np.concatenate([p.noise_psd for p in parts]),
+        pseudo_open_loop=np.concatenate([p.pseudo_open_loop for p in parts], axis=1),
+        pol_psd=np.concatenate([p.pol_psd for p in parts]),
+    )
+
+
+def _threads(n_jobs: object) -> int:
+    """Threads of ``n_jobs`` (None: every core; negative: joblib's convention, -1 every core)."""
+    cores = os.cpu_count() or 1
+    if n_jobs is None:
+        return cores
+    n = check_int("n_jobs", n_jobs)
+    if n == 0:
+        raise ValueError("n_jobs must be a nonzero integer (negative: joblib convention)")
+    return n if n > 0 else max(1, cores + 1 + n)
+
+
+#: Modes per block of :func:`disturbance_from_telemetry` (a thread's task; 15,000 frames x 64
+#: modes of float64 are 7.7 MB).
+_BLOCK_MODES = 64
+
+
+def _estimate(
+    m: np.ndarray,
+    u: np.ndarray,
+    plant: control.TransferFunction,
+    fs_: float,
+    nperseg: int,
+    noise_band: tuple[float, float],
+    method: str,
+    og: np.ndarray,
+) -> TelemetryPSD:
+    """Steps 1-7 of :func:`disturbance_from_telemetry` on checked telemetry (a block of modes)."""
+    pol = pseudo_open_loop(m, u, plant, fs=fs_, optical_gain=og)
     tel = _plain_estimate(pol, fs_, nperseg, noise_band)
     if method == "welch":
         return tel
-    m = _check_telemetry("measurements", measurements)
-    u = _check_telemetry("commands", commands)
-    diff = pseudo_open_loop(
-        np.diff(m, axis=0), np.diff(u, axis=0), plant, fs=fs_, optical_gain=optical_gain
-    )
+    diff = pseudo_open_loop(np.diff(m, axis=0), np.diff(u, axis=0), plant, fs=fs_, optical_gain=og)
     f, pxx_diff = _welch_differenced(diff, fs_, nperseg)
     # Divided by the expected Welch estimate of differenced white noise (_whitening).
     nseg = min(nperseg, diff.shape[0])
@@ -486,7 +553,7 @@ def disturbance_from_telemetry(
     psd = np.maximum(psd, floor[:, None])
     pol_psd = np.concatenate([tel.pol_psd[:, :1], pol_low, tel.pol_psd[:, keep:]], axis=1)
     target = pol.var(axis=0) - tel.noise_psd * fs_ / 2
-    f_sub, psd_sub = _below_finest_bin(freqs, psd, target, fs_ / (2 * n_frames))
+    f_sub, psd_sub = _below_finest_bin(freqs, psd, target, fs_ / (2 * m.shape[0]))
     freqs = np.concatenate([f_sub, freqs[1:]])
     psd = np.concatenate([psd_sub, psd[:, 1:]], axis=1)
     pol_psd = np.concatenate([psd_sub + tel.noise_psd[:, None], pol_psd[:, 1:]], axis=1)
