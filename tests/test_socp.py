@@ -111,3 +111,12 @@ def test_fine_residual_is_each_modes_trapezoid_on_its_own_refined_grid(monkeypat
             assert fine[k][i] == pytest.approx(np.trapezoid(r[0], own), rel=QUAD_RTOL)
     # The ladders matter here: mode 0 differs from mode 1 (same controller and PSD).
     assert abs(fine[0][0] / fine[0][1] - 1) > 1e-3
+    # Blocks of one mode on two threads: the same bits as on one (each mode's arithmetic
+    # unchanged), and the same to rounding as one block of three.
+    monkeypatch.setattr(_dd_grids, "_FINE_BLOCK", 1)
+    one, two = (
+        _dd_grids.fine_residual(G, banks, f, psd, noise, FS, peaks, threads=n) for n in (1, 2)
+    )
+    for k in range(2):
+        np.testing.assert_array_equal(two[k], one[k])
+        np.testing.assert_allclose(two[k], fine[k], rtol=1e-12)

@@ -30,7 +30,7 @@ from aocontrol.analysis import UncertaintySet
 from aocontrol.controllers import IIRBank
 from aocontrol.synthesis._dd_assemble import _assemble
 from aocontrol.synthesis._dd_dask import check_client, check_memory
-from aocontrol.synthesis._dd_mode import _run, chunks
+from aocontrol.synthesis._dd_mode import _run, chunks, local_workers
 from aocontrol.synthesis._dd_prepare import DEFAULT_POLE_RADIUS, _Setup, prepare
 from aocontrol.synthesis._dd_results import (
     GRID_DISAGREEMENT,
@@ -346,7 +346,7 @@ def datadriven(
     if workers is not None:
         check_memory(workers, setup.ctx, chunks(setup.items))
     outcomes = _run(setup.ctx, setup.items, n_jobs, progress, client)
-    return _assemble(setup, outcomes)
+    return _assemble(setup, outcomes, threads=local_workers(n_jobs))
 
 
 # The preparation's options and their defaults: datadriven's keywords (one source).

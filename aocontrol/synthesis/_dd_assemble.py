@@ -29,11 +29,12 @@ logger = logging.getLogger(__name__)
 REJECTED_WORSE = "initial (design rejected: worse)"
 
 
-def _assemble(setup, outcomes: list) -> DataDrivenResult:
+def _assemble(setup, outcomes: list, threads: int = 1) -> DataDrivenResult:
     """Bank, reports and predicted residuals; raises DataDrivenError if a mode failed.
 
     A designed mode whose residual is higher than its starting controller's, on the input
-    grid or on the fine check, is replaced by the starting controller (reported).
+    grid or on the fine check, is replaced by the starting controller (reported). The fine
+    check runs on ``threads`` threads.
     """
     plant, freqs, fs, ctx = setup.plant, setup.freqs, setup.fs, setup.ctx
     psd2, noise2, init_bank = setup.psd, setup.noise, setup.init_bank
@@ -51,7 +52,9 @@ def _assemble(setup, outcomes: list) -> DataDrivenResult:
     for r in outcomes:
         if not r["error"]:
             peaks[r["mode"]] = r.get("peaks_hz", np.empty(0))
-    fine, fine0 = fine_residual(plant, (bank, init_bank), freqs, psd2, noise2, fs, peaks)
+    fine, fine0 = fine_residual(
+        plant, (bank, init_bank), freqs, psd2, noise2, fs, peaks, threads=threads
+    )
     worse = designed & ((var > var0 * (1 + _WORSE_TOL)) | (fine > fine0 * (1 + _WORSE_TOL)))
     if worse.any():
         # Keeping a user's start (a warm redesign: the adaptive loop's running controller) is

@@ -319,18 +319,21 @@ def chunks(items: list) -> list:
     return [items[i : i + _CHUNK] for i in range(0, len(items), _CHUNK)]
 
 
+def local_workers(n_jobs: int | None) -> int:
+    """Workers of ``n_jobs`` on this machine (None: every core; negative: joblib's convention)."""
+    from joblib import cpu_count
+
+    cores = cpu_count()  # affinity, cgroups and LOKY_MAX_CPU_COUNT (a sweep worker's share)
+    n_workers = cores if n_jobs is None else n_jobs
+    return max(1, cores + 1 + n_workers) if n_workers < 0 else n_workers
+
+
 def _run(
     ctx: DesignContext, items: list, n_jobs: int | None, progress: bool, client: Any = None
 ) -> list:
     """Design every mode: on ``client`` (Dask, :mod:`._dd_dask`) if given, else in this
     process or on a joblib process pool when it pays."""
-    from joblib import cpu_count
-
-    cores = cpu_count()  # affinity, cgroups and LOKY_MAX_CPU_COUNT (a sweep worker's share)
-    n_workers = cores if n_jobs is None else n_jobs
-    if n_workers < 0:
-        n_workers = max(1, cores + 1 + n_workers)
-    n_workers = min(n_workers, len(items))
+    n_workers = min(local_workers(n_jobs), len(items))
     bar = _Bar()
     if progress:  # tqdm.auto imported only for a bar asked for (in Jupyter without ipywidgets
         # its import warns, a warning a call without a bar should not print)
