@@ -180,8 +180,8 @@ def _warn_margin_failures(failed: list, label: str) -> None:
         )
 
 
-#: Modes per task of the certificate and bound steps on worker processes (a task's bounds
-#: share one objective grid and basis; 540 modes make 9 tasks for 2 workers).
+#: Most modes per task of the certificate and bound steps on worker processes (a task's
+#: bounds share one objective grid and basis; 540 modes make 10 tasks of 54 for 2 workers).
 _CERTIFY_CHUNK = 64
 
 
@@ -241,10 +241,17 @@ def _certify(
     from joblib import Parallel, cpu_count, delayed
 
     n = est.n_modes
-    parts = [list(range(i, min(i + _CERTIFY_CHUNK, n))) for i in range(0, n, _CERTIFY_CHUNK)]
     workers = cpu_count() if n_jobs is None else n_jobs
     if workers < 0:
         workers = max(1, cpu_count() + 1 + workers)
+    # At most _CERTIFY_CHUNK modes per task (one task, in this process, for fewer), and a
+    # multiple of the workers' number of tasks of equal size (540 modes on 2 workers: 10
+    # tasks of 54, not 9 of 64 with one worker idle for the last).
+    n_tasks = 1
+    if n > _CERTIFY_CHUNK:
+        n_tasks = max(1, workers) * -(-n // (max(1, workers) * _CERTIFY_CHUNK))
+    size = -(-n // n_tasks)
+    parts = [list(range(i, min(i + size, n))) for i in range(0, n, size)]
     workers = min(workers, len(parts))
     args = (plant, bank, reference)
     rest = (est, modulus_margin, bounds, n_taps)
