@@ -331,12 +331,20 @@ def _solve(prob: _Problem) -> np.ndarray:
 class _SGrid:
     """``S = 1 - G Q`` on a uniform grid of ``[0, fs/2]`` (FFT) plus extra points (matrix)."""
 
-    def __init__(self, plant: object, fs: float, n_intervals: int, extra: np.ndarray, n_taps: int):
+    def __init__(
+        self,
+        plant: object,
+        fs: float,
+        n_intervals: int,
+        extra: np.ndarray,
+        n_taps: int,
+        a_extra: np.ndarray | None = None,
+    ):
         self.n = n_intervals
         self.freqs_uniform = np.linspace(0.0, fs / 2, n_intervals + 1)
         self.g = frequency_response(plant, self.freqs_uniform, fs)
         self.extra = extra
-        self.a_extra = _basis(plant, extra, fs, n_taps)
+        self.a_extra = _basis(plant, extra, fs, n_taps) if a_extra is None else a_extra
         self.plant, self.fs, self.n_taps = plant, fs, n_taps
 
     def abs_s(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -444,11 +452,19 @@ def _gram_least_squares(t: np.ndarray, mty: np.ndarray) -> tuple[np.ndarray, np.
     return R, sla.solve_triangular(R, mty, trans="T", check_finite=False)
 
 
+def _powers(f: np.ndarray, fs: float, n_taps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``cos(k theta_j)`` and ``sin(k theta_j)``, ``theta = 2 pi f / fs``, ``k < n_taps``:
+    shape ``(n_taps, f.size)`` each (``z^-k = cos - i sin`` on the circle; each entry from its
+    own phase: 5x faster than complex powers of ``z^-1``, and no error growing with ``k``)."""
+    phase = np.outer(np.arange(n_taps), 2.0 * np.pi * f / fs)
+    return np.cos(phase), np.sin(phase)
+
+
 def _basis(plant: object, f: np.ndarray, fs: float, n_taps: int) -> np.ndarray:
     """``a = G(f) [1, z^-1, ..., z^-(n_taps-1)]``, complex, shape ``(f.size, n_taps)``."""
     g = frequency_response(plant, f, fs)
-    w = np.exp(-2j * np.pi * f / fs)
-    return g[:, None] * w[:, None] ** np.arange(n_taps)
+    cos, sin = _powers(f, fs, n_taps)
+    return g[:, None] * (cos.T - 1j * sin.T)
 
 
 def _objective_grid(freqs: np.ndarray, fs: float, degree: int) -> np.ndarray:
@@ -618,13 +634,13 @@ def constrained_bound(
         n_con = check_int("n_constraint", n_constraint, minimum=2)
     con = _SGrid(plant, fs_, n_con - 1, freqs, n_taps)
     n_uniform = _VERIFY_FACTOR * (n_con - 1)
-    ver = _SGrid(plant, fs_, n_uniform, freqs, n_taps)
+    ver = _SGrid(plant, fs_, n_uniform, freqs, n_taps, a_extra=con.a_extra)
     problem = _Problem(mu, n_taps)
     f_obj = _objective_grid(freqs, fs_, degree or (n_taps + 8))
-    if f_obj is freqs:
-        a_obj = con.a_extra
-    else:
-        a_obj = _basis(plant, f_obj, fs_, n_taps)
+    g_obj = frequency_response(plant, f_obj, fs_)
+    cos, sin = _powers(f_obj, fs_, n_taps)  # (n_taps, n_freqs): the basis and the Gram sums
+    a_obj = con.a_extra if f_obj is freqs else g_obj[:, None] * (cos.T - 1j * sin.T)
+    if f_obj is not freqs:
         psd2 = np.array([np.interp(f_obj, freqs, row) for row in psd2])
         noise2 = np.array([np.interp(f_obj, freqs, row) for row in noise2])
         logger.info(
@@ -636,9 +652,6 @@ def constrained_bound(
         )
     w = _trapezoid_weights(f_obj)
     m_rows = np.vstack([a_obj.real, a_obj.imag])
-    g_obj = frequency_response(plant, f_obj, fs_)
-    phase = np.outer(np.arange(n_taps), 2.0 * np.pi * f_obj / fs_)  # (n_taps, n_freqs)
-    cos, sin = np.cos(phase), np.sin(phase)
 
     n_modes = psd2.shape[0]
     variance = np.full(n_modes, np.nan)
