@@ -272,3 +272,157 @@ def test_least_squares_factor_without_forming_u_equals_the_thin_qr(rows):
     assert np.max(np.abs(r - U.T @ y)) < tol
     # Twin: a wrong right-hand side is seen.
     assert np.max(np.abs(_constrained._qr_least_squares(M, -y)[1] - U.T @ y)) > 1e-3
+
+
+EPS = np.finfo(float).eps
+
+
+def _steep_case(noise: float, n_taps: int):
+    """Turbulence-like f^-11/3 spectrum over a white floor, 1 kHz, half-frame latency: the
+    floor sets M's condition number (measured cond(M): 6.8e3 at noise 1e-4 and 32 taps,
+    1.7e5 at 1e-6 and 64 taps, 5e11 with no floor and a steeper spectrum)."""
+    f = np.linspace(0.0, FS / 2, 1001)
+    return loop_plant(FS, 0.5), f, 1e2 / (1 + (f / 2.0) ** 2) ** (11 / 6), noise, n_taps
+
+
+_GRAM_CASES = {
+    "well conditioned": (
+        loop_plant(FS, 1.0),
+        np.linspace(0.0, FS / 2, 1001),
+        _ar1_psd(np.linspace(0.0, FS / 2, 1001), 0.9),
+        0.02 / FS,
+        32,
+    ),  # fmt: skip
+    "ill conditioned": _steep_case(1e-4, 32),
+}
+
+
+def _rows(plant, f, psd, noise, n_taps):
+    """``M`` and ``y`` as the module docstring defines them (the oracle: built row by row from
+    ``a_jk = G(f_j) exp(-2 pi i f_j k / fs)``, not by the library's Gram sums)."""
+    from aocontrol.plant import frequency_response
+
+    w = _constrained._trapezoid_weights(f)
+    total = psd + noise
+    a = frequency_response(plant, f, FS)[:, None] * np.exp(
+        -2j * np.pi * np.outer(f, np.arange(n_taps)) / FS
+    )
+    sw = np.sqrt(w * total)
+    M = np.vstack([sw[:, None] * a.real, sw[:, None] * a.imag])
+    y = np.concatenate([sw * psd / total, np.zeros_like(sw)])
+    return M, y
+
+
+def _gram_factor(plant, f, psd, noise, n_taps):
+    from aocontrol.plant import frequency_response
+
+    w = _constrained._trapezoid_weights(f)
+    phase = np.outer(np.arange(n_taps), 2 * np.pi * f / FS)
+    g = frequency_response(plant, f, FS)
+    t, mty = _constrained._gram_terms(np.cos(phase), np.sin(phase), g, w * (psd + noise), w * psd)
+    return _constrained._gram_least_squares(t, mty)
+
+
+@pytest.mark.parametrize("case", sorted(_GRAM_CASES))
+def test_the_gram_factor_equals_the_qr_factor(case):
+    # Oracle: the least-squares factor of M from its QR (M = U R, r = U^T y). The Cholesky
+    # factor of the Toeplitz Gram matrix must give R^T R = M^T M and R^T r = M^T y to rounding,
+    # R and r equal to the QR's up to the signs of R's rows, and the same unconstrained optimum
+    # to the normal equations' accuracy eps cond(M)^2.
+    M, y = _rows(*_GRAM_CASES[case])
+    kappa = np.linalg.cond(M)
+    assert (kappa < 50) if case == "well conditioned" else (kappa > 3e3)  # as its name says
+    factors = _gram_factor(*_GRAM_CASES[case])
+    assert factors is not None  # below the guard: the Gram path
+    R, r = factors
+    R_qr, r_qr = _constrained._qr_least_squares(M, y)
+    gram, mty = M.T @ M, M.T @ y
+    # Rounding of sums of 1,001 terms, of the Cholesky factorisation and of the triangular
+    # solve, relative to the largest entry (measured 1e-15 to 3e-15).
+    assert np.max(np.abs(R.T @ R - gram)) < 1e-13 * np.max(np.abs(gram))
+    assert np.max(np.abs(R.T @ r - mty)) < 1e-13 * np.max(np.abs(mty))
+    # The QR's R has rows of either sign, Cholesky's a positive diagonal.
+    sign = np.sign(np.diag(R_qr))
+    # Forward error of a Cholesky factor and of the normal equations: eps cond(M^T M) (measured
+    # at most 0.35 times that).
+    bound = 10 * EPS * kappa**2
+    assert np.max(np.abs(R - sign[:, None] * R_qr)) < bound * np.max(np.abs(R))
+    assert np.max(np.abs(r - sign * r_qr)) < bound * np.linalg.norm(r)
+    q = np.linalg.solve(R, r)
+    q_qr = np.linalg.lstsq(R_qr, r_qr, rcond=None)[0]
+    assert np.linalg.norm(q - q_qr) < bound * np.linalg.norm(q_qr)
+    # Twin: the Gram factor of another mode's weights is not this one's.
+    other = _gram_factor(*_GRAM_CASES[case][:2], 2 * _GRAM_CASES[case][2], *_GRAM_CASES[case][3:])
+    assert np.max(np.abs(other[0].T @ other[0] - gram)) > 1e-3 * np.max(np.abs(gram))
+
+
+def _count_qr(monkeypatch) -> list:
+    """Calls of the QR factorisation (the fallback of the Gram path), recorded as ``M.shape``."""
+    calls: list = []
+    real = _constrained._qr_least_squares
+
+    def counting(M, y):
+        calls.append(M.shape)
+        return real(M, y)
+
+    monkeypatch.setattr(_constrained, "_qr_least_squares", counting)
+    return calls
+
+
+@pytest.mark.parametrize("case", sorted(_GRAM_CASES) + ["resonant"])
+def test_the_gram_and_qr_paths_give_the_same_bound(case, resonant, monkeypatch):
+    # Two paths: the bound with the least-squares factor from the Gram matrix (default, no QR
+    # taken) and from the QR of M (the guard's threshold set to 0 forces it for every mode):
+    # the same value, Q and verified margin, with and without cutting planes.
+    plant, f, psd, noise, n_taps = (*resonant, 32) if case == "resonant" else _GRAM_CASES[case]
+    calls = _count_qr(monkeypatch)
+    gram = constrained_bound(plant, f, psd, noise, 0.5, n_taps=n_taps)
+    assert calls == []
+    monkeypatch.setattr(_constrained, "_GRAM_MAX_COND", 0.0)
+    qr = constrained_bound(plant, f, psd, noise, 0.5, n_taps=n_taps)
+    assert len(calls) == 1
+    assert gram.ok.all() and qr.ok.all()
+    assert gram.solves[0] == qr.solves[0]
+    if case == "resonant":
+        assert gram.solves[0] > 0  # the margin binds: cutting planes on both paths
+    # The value's error is first order in the Gram matrix's, eps ||M||^2 ||q||^2 (measured
+    # 1e-15 relative without cuts); the SOCP's gap tolerance 1e-9 (relative, on an objective
+    # scaled to O(1)) with cuts.
+    assert gram.variance[0] == pytest.approx(qr.variance[0], rel=1e-9)
+    assert gram.unconstrained[0] == pytest.approx(qr.unconstrained[0], rel=1e-12)
+    # Q: eps cond(M)^2 (at most 1e-8 here) without cuts; with cuts the SOCP's gap 1e-9 leaves
+    # Q free to about sqrt(1e-9) where the objective is flat (measured 1.3e-6 relative, and
+    # the verified margin 3e-9).
+    tol = 1e-4 if gram.solves[0] else 1e-8
+    assert np.linalg.norm(gram.q[0] - qr.q[0]) < tol * np.linalg.norm(qr.q[0])
+    assert gram.verified_margin[0] == pytest.approx(qr.verified_margin[0], rel=tol)
+
+
+def test_an_ill_conditioned_mode_falls_back_to_the_qr(monkeypatch):
+    # The guard: a mode whose M is too ill-conditioned for the normal equations (cond(M) 1.7e5:
+    # eps cond^2 = 6e-6) is factored by QR, and so is one whose Gram matrix is singular to
+    # working precision (cond(M) 1.2e9: the Cholesky factorisation fails); a well-conditioned
+    # mode of the same call is not. Those modes get the QR path's result bit for bit.
+    plant, f, steep, _, _ = _steep_case(1e-6, 64)
+    steeper = 1e2 / (1 + f**2) ** 3
+    assert _gram_factor(plant, f, steep, 1e-6, 64) is None  # dtrcon's estimate: 1.7e5
+    with monkeypatch.context() as m:  # the estimate is what refuses it: the factor exists
+        m.setattr(_constrained, "_GRAM_MAX_COND", 1e6)
+        assert _gram_factor(plant, f, steep, 1e-6, 64) is not None
+        assert _gram_factor(plant, f, steeper, 0.0, 64) is None  # Cholesky fails
+    calls = _count_qr(monkeypatch)
+    # The margin with the first, none with the second (Clarabel stops with
+    # InsufficientProgress on the steeper spectrum, on either path).
+    for mu, psd, noise in ((0.5, steep, 1e-6), (0.0, steeper, 0.0)):
+        psds, noises = np.vstack([_ar1_psd(f, 0.9), psd]), np.array([0.02 / FS, noise])
+        calls.clear()
+        res = constrained_bound(plant, f, psds, noises, mu, n_taps=64)
+        assert calls == [(2 * f.size, 64)]  # mode 1 only
+        with monkeypatch.context() as m:
+            m.setattr(_constrained, "_GRAM_MAX_COND", 0.0)
+            qr = constrained_bound(plant, f, psds, noises, mu, n_taps=64)
+        assert len(calls) == 1 + 2
+        assert res.ok.all() and (res.solves[1] > 0) == (mu > 0)  # cuts on the first
+        assert res.variance[1] == qr.variance[1]
+        np.testing.assert_array_equal(res.q[1], qr.q[1])
+        assert res.variance[0] == pytest.approx(qr.variance[0], rel=1e-12)

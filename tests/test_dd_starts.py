@@ -50,6 +50,24 @@ def test_reduced_start_recovers_a_realisable_sensitivity(fixed):
     np.testing.assert_allclose(a, a0, atol=1e-9)
 
 
+@pytest.mark.parametrize("fixed", [np.array([1.0]), np.array([1.0, -1.0])])
+def test_reduced_start_of_a_degenerate_fit_is_the_minimum_norm_one(fixed):
+    # A bound whose Q is 0 (S = 1: the open loop) makes the fit degenerate: the columns of Y'
+    # are (1 - S) times powers of z^-1, all zero, and X fits (S G X) to 0. The least squares
+    # must keep its minimum-norm solution (singular values cut, as the SVD's rcond does) and
+    # give the open loop, X = 0 and Y = F. A driver without it fails here: numpy's QR and a
+    # triangular solve raise "singular matrix" (tried, issue 34).
+    G = loop_plant(FS, 1.0)
+    f = np.linspace(0.0, FS / 2, 400)
+    w = np.exp(-2j * np.pi * f / FS)
+    g = frequency_response(G, f, FS)
+    b, a = _dd_starts.reduced_start(
+        np.ones(f.size, complex), w, g, np.ones(f.size), 2, fixed, 0.9999
+    )
+    np.testing.assert_array_equal(b, np.zeros(3))
+    np.testing.assert_array_equal(a, fixed)
+
+
 def test_reduced_start_poles_inside_the_radius():
     # The free poles of an unconstrained fit of the bound's sensitivity lie outside the circle
     # (the bound's controller is unstable); the reduced start has them inside the radius.

@@ -18,11 +18,22 @@ n_taps)``) and ``P = psd + noise_psd``. Then
 
 so ``J(q) = ||y - M q||^2 + c`` with the rows ``M = sqrt(w P) [Re a; Im a]``,
 ``y = sqrt(w P) [psd / P; 0]`` (``w`` the trapezoid weights) and ``c = sum w psd noise / P``.
-A thin QR factorisation ``M = U R`` reduces the objective to ``||U^T y - R q||^2`` plus a
-constant: an ``n_taps``-dimensional least-squares term whatever the grid size (``R`` padded
-with zero rows to ``n_taps x n_taps`` when ``M`` has fewer rows), and no squared condition
-number. ``R`` and ``U^T y`` come from one triangular factorisation of ``[M, y]``
-(``U`` is never formed).
+Any ``R`` with ``R^T R = M^T M`` and ``r`` with ``R^T r = M^T y`` reduce the objective to
+``||r - R q||^2`` plus a constant: an ``n_taps``-dimensional least-squares term whatever the
+grid size. ``M^T M`` is symmetric Toeplitz, its entry ``(k, l)`` the trapezoid sum
+``t_{k-l} = sum_j w_j P_j |G_j|^2 cos(2 pi f_j (k - l) / fs)``, and ``M^T y`` is a sum of the
+same kind: products of a ``(n_taps, n_freqs)`` cosine (and sine) matrix, computed once per
+call, by the mode's weights. ``R`` is then the Cholesky factor of the Gram matrix and
+``r = R^{-T} M^T y``: about ``n_taps^3 / 3 + 6 n_freqs n_taps`` flops per mode, against
+``2 n_freqs n_taps^2`` for a QR of ``M``. The Gram matrix squares ``M``'s condition number:
+its Cholesky factor is used when its condition number, as LAPACK's ``dtrcon`` estimates it,
+is at most ``_GRAM_MAX_COND`` (argued there). Else, or when the Cholesky factorisation fails
+(a Gram matrix singular to working precision: fewer rows than taps, PSDs zero over a band),
+``R`` and ``r`` come from a thin QR factorisation ``M = U R``, ``r = U^T y``, which does not
+square it (one triangular factorisation of ``[M, y]``, ``U`` never formed; ``R`` padded with
+zero rows to ``n_taps x n_taps`` when ``M`` has fewer rows). On either path the objective's
+value at a solution is computed from ``M``'s rows, ``sum_j w_j P_j |psd_j / P_j - a_j q|^2 +
+c``, and every mode's figures are the same arithmetic whichever modes share the call.
 
 The objective's grid must resolve ``S``: the trapezoid on ``N`` equal intervals of [0, fs/2]
 sees ``|S|^2`` (a trigonometric polynomial of degree ``L``) only at its points, and an FIR of
@@ -52,6 +63,8 @@ from dataclasses import dataclass, field
 
 import control
 import numpy as np
+import scipy.linalg as sla
+from scipy.fft import next_fast_len
 
 from aocontrol._validation import (
     PerModeError,
@@ -77,7 +90,11 @@ _SOLVER_OPTS = {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9, "max
 _DIRECT_SOLVE_METHODS = ("faer", "qdldl")
 # Constraint grid: this many points per degree of S = 1 - G Q (linear in [0, fs/2]), and at
 # least _MIN_CONSTRAINT points. A trigonometric polynomial of degree L varies on a scale
-# pi / L rad: 16 points per degree keep its peak between grid points within ~0.5 %.
+# pi / L rad: 16 points per degree keep its peak between grid points within ~0.5 %. The
+# number of intervals is then rounded up to an 11-smooth one (scipy.fft.next_fast_len): |S|
+# on the grid is an FFT of twice that length, and of 8 times more on the verification grid;
+# 16 L - 1 is often a prime (2,063 at 128 taps, 4,111 at 256), where the FFT's chirp-z
+# fallback took 2-8 ms per mode, about 80 % of the bound of a mode without cuts.
 _CONSTRAINT_PER_DEGREE = 16
 _MIN_CONSTRAINT = 2048
 # Objective grid: at least this many intervals of [0, fs/2] per degree of S, else refined
@@ -96,6 +113,22 @@ _CUT_TOL = 1e-7
 # Objective scale floor relative to the disturbance-plus-noise variance (a mode whose
 # unconstrained FIR optimum is exactly zero keeps a finite scale).
 _SCALE_FLOOR = 1e-12
+# Least-squares factor from the Gram matrix (module docstring) only when the Cholesky factor's
+# condition number (that of M), as LAPACK's dtrcon estimates it in the 1-norm, is at most this;
+# else the QR of [M, y]. Forming and factoring M^T M perturbs it by about eps ||M||^2, as the
+# QR's backward error does, and the optimal value moves by about that times ||q||^2 on either
+# path. The squared condition number enters the solution q: its error is about
+# eps cond(M)^2 from the normal equations, against eps (cond(M) + cond(M)^2 rho) from the QR,
+# rho = ||y - M q|| / (||M|| ||q||) (Higham, Accuracy and Stability of Numerical Algorithms,
+# 2nd ed., 20.1 and 20.4; the bound's residual is not small, so the two differ by less than
+# 1 / rho). The estimate was 0.3-3.7 times the 2-norm condition number on the modes below, so
+# at 3e4 cond(M) <= 1e5 and eps cond(M)^2 <= 2e-6: the level at which the SOCP's own 1e-9 gap
+# moves q (1e-6 relative between two solves of one mode, measured), with the Cholesky far from
+# breaking down (cond(M^T M) = 1e10 << 1 / eps). Measured (2-norm): cond(M) 18-193 on the 540
+# modes estimated from telemetry at 3 kHz (their noise floor bounds it), 600-66,000 on the
+# synthetic resonant modes of bench_design_speed part (b) (turbulence over 10 decades);
+# docs/benchmarks.md has the differences between the two paths.
+_GRAM_MAX_COND = 3e4
 
 
 class ConstrainedBoundError(PerModeError):
@@ -298,12 +331,20 @@ def _solve(prob: _Problem) -> np.ndarray:
 class _SGrid:
     """``S = 1 - G Q`` on a uniform grid of ``[0, fs/2]`` (FFT) plus extra points (matrix)."""
 
-    def __init__(self, plant: object, fs: float, n_intervals: int, extra: np.ndarray, n_taps: int):
+    def __init__(
+        self,
+        plant: object,
+        fs: float,
+        n_intervals: int,
+        extra: np.ndarray,
+        n_taps: int,
+        a_extra: np.ndarray | None = None,
+    ):
         self.n = n_intervals
         self.freqs_uniform = np.linspace(0.0, fs / 2, n_intervals + 1)
         self.g = frequency_response(plant, self.freqs_uniform, fs)
         self.extra = extra
-        self.a_extra = _basis(plant, extra, fs, n_taps)
+        self.a_extra = _basis(plant, extra, fs, n_taps) if a_extra is None else a_extra
         self.plant, self.fs, self.n_taps = plant, fs, n_taps
 
     def abs_s(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -337,17 +378,18 @@ def _margin_solve(
     R: np.ndarray,
     r: np.ndarray,
     n_taps: int,
+    q_start: np.ndarray,
 ) -> tuple[np.ndarray, int]:
     """Cutting planes: impose the margin at the worst grid points until it holds everywhere.
 
-    The first problem has the cones at the unconstrained optimum's worst violators; each
-    round adds the local maxima of ``|S|`` on the fine constraint grid that violate the
-    margin. Each solve is a relaxation of the problem on the whole constraint grid; the first
-    whose solution meets the margin on it (to ``_CUT_TOL``) solves it. Returns ``q`` and the
-    number of solves.
+    The first problem has the cones at the worst violators of the unconstrained optimum
+    ``q_start``; each round adds the local maxima of ``|S|`` on the fine constraint grid that
+    violate the margin. Each solve is a relaxation of the problem on the whole constraint
+    grid; the first whose solution meets the margin on it (to ``_CUT_TOL``) solves it. Returns
+    ``q`` and the number of solves.
     """
     cuts = np.zeros((0, n_taps), complex)
-    q = np.linalg.lstsq(R, r, rcond=None)[0]
+    q = q_start
     for it in range(_MAX_ROUNDS + 1):
         new = sgrid.cut_rows(q, mu, _CUTS_PER_ROUND)
         if new.shape[0] == 0:
@@ -374,11 +416,55 @@ def _qr_least_squares(M: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.ascontiguousarray(Ra[:k, :-1]), np.array(Ra[:k, -1])
 
 
+def _gram_terms(
+    cos: np.ndarray, sin: np.ndarray, g: np.ndarray, wp: np.ndarray, wpt: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """First column ``t`` of the Toeplitz Gram matrix ``M^T M`` and the vector ``M^T y``.
+
+    ``cos`` and ``sin`` are ``cos(k theta_j)`` and ``sin(k theta_j)``, ``theta = 2 pi f / fs``
+    on the objective grid, shape ``(n_taps, n_freqs)`` (one pair per call); ``g`` the plant
+    there, ``wp = w P`` (trapezoid weight times disturbance plus noise) and ``wpt = w P psd /
+    P``, shape ``(n_freqs,)``. Returns ``t_m = sum_j wp_j |g_j|^2 cos(m theta_j)`` and
+    ``(M^T y)_k = sum_j wpt_j Re(g_j e^{-i k theta_j})``, each ``(n_taps,)``. One mode at a
+    time (three matrix-vector products, about 0.5 ms at 256 taps and 2,061 frequencies): a
+    product over the modes of a call would be 7x faster but its rounding would depend on which
+    modes share the call, and a mode's bound must not depend on the chunking.
+    """
+    t = cos @ (wp * (g.real**2 + g.imag**2))
+    mty = cos @ (wpt * g.real) + sin @ (wpt * g.imag)
+    return t, mty
+
+
+def _gram_least_squares(t: np.ndarray, mty: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(R, r)`` with ``R^T R = toeplitz(t)`` (Cholesky) and ``R^T r = mty``, or None.
+
+    None when the Gram matrix is not numerically positive definite or its Cholesky factor's
+    estimated condition number (``dtrcon``, 1-norm) exceeds ``_GRAM_MAX_COND``: the caller
+    then factors ``M`` itself (:func:`_qr_least_squares`).
+    """
+    try:
+        R = sla.cholesky(sla.toeplitz(t), lower=False, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    rcond, info = sla.lapack.dtrcon(R, norm="1", uplo="U", diag="N")
+    if info != 0 or not rcond * _GRAM_MAX_COND >= 1.0:  # also a nan rcond
+        return None
+    return R, sla.solve_triangular(R, mty, trans="T", check_finite=False)
+
+
+def _powers(f: np.ndarray, fs: float, n_taps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``cos(k theta_j)`` and ``sin(k theta_j)``, ``theta = 2 pi f / fs``, ``k < n_taps``:
+    shape ``(n_taps, f.size)`` each (``z^-k = cos - i sin`` on the circle; each entry from its
+    own phase: 5x faster than complex powers of ``z^-1``, and no error growing with ``k``)."""
+    phase = np.outer(np.arange(n_taps), 2.0 * np.pi * f / fs)
+    return np.cos(phase), np.sin(phase)
+
+
 def _basis(plant: object, f: np.ndarray, fs: float, n_taps: int) -> np.ndarray:
     """``a = G(f) [1, z^-1, ..., z^-(n_taps-1)]``, complex, shape ``(f.size, n_taps)``."""
     g = frequency_response(plant, f, fs)
-    w = np.exp(-2j * np.pi * f / fs)
-    return g[:, None] * w[:, None] ** np.arange(n_taps)
+    cos, sin = _powers(f, fs, n_taps)
+    return g[:, None] * (cos.T - 1j * sin.T)
 
 
 def _objective_grid(freqs: np.ndarray, fs: float, degree: int) -> np.ndarray:
@@ -446,8 +532,8 @@ def constrained_bound(
         \min_Q \int_0^{f_s/2} \left(|S|^2 \Phi_d + |T|^2 \Phi_n\right) df
         \quad \text{s.t.} \quad |S(f_j)| \le 1/\mu \ \text{on the constraint grid}
 
-    (cvxpy + Clarabel; one problem compiled per call with ``Parameter``\ s and re-solved per
-    mode). The integral is the trapezoid on ``freqs``, exactly the residual of
+    (Clarabel, given the problem directly; cutting planes: module docstring). The integral is
+    the trapezoid on ``freqs``, exactly the residual of
     :func:`aocontrol.analysis.residual_variance` for the returned controllers, when ``freqs``
     resolves ``S`` (no interval wider than ``fs / (4 L)``, ``L`` about ``n_taps``); otherwise
     on ``freqs`` refined to ``fs / 4096``, the PSDs interpolated linearly
@@ -489,8 +575,9 @@ def constrained_bound(
     n_taps : int, default 128
         FIR length of ``Q`` (>= 1).
     n_constraint : int, optional
-        Points of the (linear) constraint grid over [0, fs/2]; default
-        ``max(2048, 16 L)`` with ``L`` the degree of ``S`` for an FIR plant.
+        Points of the (linear) constraint grid over [0, fs/2]; default ``max(2048, 16 L)``
+        with ``L`` the degree of ``S`` for an FIR plant, a few more when that makes the number
+        of intervals a fast FFT length (11-smooth).
     raise_on_failure : bool, default True
         Raise :class:`ConstrainedBoundError` (holding every mode) if a mode fails; if False,
         return the result with ``ok == False`` and ``nan`` for the failed modes.
@@ -542,17 +629,18 @@ def constrained_bound(
     degree = n_taps - 1 + np.trim_zeros(bg, "b").size - 1 if fir_plant else None
     if n_constraint is None:
         n_con = max(_MIN_CONSTRAINT, _CONSTRAINT_PER_DEGREE * (degree or (n_taps + 8)))
+        n_con = next_fast_len(n_con - 1) + 1
     else:
         n_con = check_int("n_constraint", n_constraint, minimum=2)
     con = _SGrid(plant, fs_, n_con - 1, freqs, n_taps)
     n_uniform = _VERIFY_FACTOR * (n_con - 1)
-    ver = _SGrid(plant, fs_, n_uniform, freqs, n_taps)
+    ver = _SGrid(plant, fs_, n_uniform, freqs, n_taps, a_extra=con.a_extra)
     problem = _Problem(mu, n_taps)
     f_obj = _objective_grid(freqs, fs_, degree or (n_taps + 8))
-    if f_obj is freqs:
-        a_obj = con.a_extra
-    else:
-        a_obj = _basis(plant, f_obj, fs_, n_taps)
+    g_obj = frequency_response(plant, f_obj, fs_)
+    cos, sin = _powers(f_obj, fs_, n_taps)  # (n_taps, n_freqs): the basis and the Gram sums
+    a_obj = con.a_extra if f_obj is freqs else g_obj[:, None] * (cos.T - 1j * sin.T)
+    if f_obj is not freqs:
         psd2 = np.array([np.interp(f_obj, freqs, row) for row in psd2])
         noise2 = np.array([np.interp(f_obj, freqs, row) for row in noise2])
         logger.info(
@@ -580,19 +668,28 @@ def constrained_bound(
         with np.errstate(divide="ignore", invalid="ignore"):
             target = np.where(total > 0, sd / total, 0.0)
             floor_term = float(np.sum(w * np.where(total > 0, sd * sn / total, 0.0)))
-        sw = np.sqrt(w * total)
-        M = np.concatenate([sw, sw])[:, None] * m_rows
-        y = np.concatenate([sw * target, np.zeros_like(sw)])
+        wp = w * total
 
-        def value(q: np.ndarray, M: np.ndarray = M, y: np.ndarray = y, c: float = floor_term):
-            return float(np.sum((y - M @ q) ** 2) + c)
+        def value(
+            q: np.ndarray, wp: np.ndarray = wp, t: np.ndarray = target, c: float = floor_term
+        ):
+            # ||y - M q||^2 + c from M's rows: sum_j w_j P_j |psd_j / P_j - a_j q|^2 + c.
+            aq = m_rows @ q
+            return float(np.sum(wp * ((t - aq[: t.size]) ** 2 + aq[t.size :] ** 2)) + c)
 
         try:
-            R, r = _qr_least_squares(M, y)
-            if R.shape[0] < n_taps:  # fewer rows than taps: the same objective, square R
-                R = np.vstack([R, np.zeros((n_taps - R.shape[0], n_taps))])
-                r = np.concatenate([r, np.zeros(n_taps - r.size)])
-            q_unc = np.linalg.lstsq(R, r, rcond=None)[0]
+            factors = _gram_least_squares(*_gram_terms(cos, sin, g_obj, wp, wp * target))
+            if factors is not None:
+                R, r = factors
+                q_unc = sla.solve_triangular(R, r, check_finite=False)
+            else:
+                sw = np.sqrt(wp)
+                M = np.concatenate([sw, sw])[:, None] * m_rows
+                R, r = _qr_least_squares(M, np.concatenate([sw * target, np.zeros_like(sw)]))
+                if R.shape[0] < n_taps:  # fewer rows than taps: the same objective, square R
+                    R = np.vstack([R, np.zeros((n_taps - R.shape[0], n_taps))])
+                    r = np.concatenate([r, np.zeros(n_taps - r.size)])
+                q_unc = np.linalg.lstsq(R, r, rcond=None)[0]  # R may be singular here
             unconstrained[i] = value(q_unc)
             if mu == 0:
                 q = q_unc
@@ -600,7 +697,7 @@ def constrained_bound(
                 scale = np.sqrt(
                     max(unconstrained[i], _SCALE_FLOOR * float(np.sum(w * total)), 1e-300)
                 )
-                q, solves[i] = _margin_solve(problem, con, mu, R / scale, r / scale, n_taps)
+                q, solves[i] = _margin_solve(problem, con, mu, R / scale, r / scale, n_taps, q_unc)
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             messages[i] = f"{exc}"
             logger.warning("constrained_bound: mode %d failed: %s", i, exc)
