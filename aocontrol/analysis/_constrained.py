@@ -247,6 +247,13 @@ class _Problem:
     * one 3-dimensional second-order cone per point,
       ``(1, mu - mu Re(a_j) q, -mu Im(a_j) q)``: ``|mu (1 - a_j q)| <= 1``.
 
+    With a well-conditioned ``R`` (the Gram path: ``cond(R) <= _GRAM_MAX_COND``) the variable
+    is ``t`` alone (``whitened``): ``q = R^{-1} (r + t)``, ``P = 2 I``, no zero cone and no
+    ``q``, the cone rows ``mu a_j R^{-1}`` and their offsets at ``q_ls = R^{-1} r``. The same
+    problem with ``n_taps`` variables instead of ``2 n_taps`` plus ``n_taps`` equality rows:
+    0.65-0.75x the solver time per solve at 128-256 taps (``docs/benchmarks.md``). The QR
+    path keeps the zero-cone form (``R`` may be ill-conditioned or singular there).
+
     The cuts (the worst points of the fine constraint grid) and the least-squares term change
     per solve. Nothing is compiled: cvxpy's DPP compilation of parameter cut rows
     (``slots x n_taps`` parameters times ``q``) took about 30 s and 4.3 GB at 256 taps, once
@@ -260,6 +267,7 @@ class _Problem:
         self.cuts = np.zeros((0, n_taps), complex)
         self.R: np.ndarray | None = None
         self.r: np.ndarray | None = None
+        self.whitened = False
 
     def set_cuts(self, a_cut: np.ndarray, mu: float) -> None:
         """Margin cones at the rows ``a_cut`` (complex, ``(n_cut, n_taps)``)."""
@@ -275,6 +283,12 @@ class _Problem:
         n = self.n_taps
         cone_rows, cone_b = _cone_rows(self.cuts, self.mu)
         m = cone_rows.shape[0]
+        socs = [clarabel.SecondOrderConeT(3)] * (m // 3)
+        if self.whitened:
+            q_ls = sla.solve_triangular(self.R, self.r, check_finite=False)
+            rows = sla.solve_triangular(self.R, cone_rows.T, trans="T", check_finite=False).T
+            P = sp.diags_array(np.full(n, 2.0), format="csc")
+            return P, np.zeros(n), sp.csc_array(rows), cone_b - cone_rows @ q_ls, socs
         A = sp.vstack(
             [
                 sp.hstack([sp.csc_array(self.R), -sp.identity(n, format="csc")]),
@@ -284,13 +298,16 @@ class _Problem:
         )
         b = np.concatenate([self.r, cone_b])
         P = sp.block_diag([sp.csc_array((n, n)), 2.0 * sp.identity(n)], format="csc")
-        cones = [clarabel.ZeroConeT(n)] + [clarabel.SecondOrderConeT(3)] * (m // 3)
-        return P, np.zeros(2 * n), A, b, cones
+        return P, np.zeros(2 * n), A, b, [clarabel.ZeroConeT(n)] + socs
 
-    def solve(self, R: np.ndarray, r: np.ndarray) -> np.ndarray:
+    def solve(self, R: np.ndarray, r: np.ndarray, whitened: bool = False) -> np.ndarray:
         """Solve with the least-squares term ``(R, r)``; raises ``RuntimeError`` on failure."""
         self.R, self.r = np.asarray(R, dtype=float), np.asarray(r, dtype=float)
-        return _solve(self)
+        self.whitened = bool(whitened)
+        x = _solve(self)
+        if self.whitened:
+            return sla.solve_triangular(self.R, self.r + x, check_finite=False)
+        return x[: self.n_taps]
 
 
 def _cone_rows(a: np.ndarray, mu: float) -> tuple[np.ndarray, np.ndarray]:
@@ -325,7 +342,7 @@ def _solve(prob: _Problem) -> np.ndarray:
     x = np.array(solution.x, dtype=float)
     if status not in ("Solved", "AlmostSolved") or not np.all(np.isfinite(x)):
         raise RuntimeError(f"Clarabel returned status {status!r}")
-    return x[: prob.n_taps]
+    return x
 
 
 class _SGrid:
@@ -379,6 +396,7 @@ def _margin_solve(
     r: np.ndarray,
     n_taps: int,
     q_start: np.ndarray,
+    whitened: bool = False,
 ) -> tuple[np.ndarray, int]:
     """Cutting planes: impose the margin at the worst grid points until it holds everywhere.
 
@@ -396,7 +414,7 @@ def _margin_solve(
             return q, it
         cuts = np.vstack([cuts, new])
         problem.set_cuts(cuts, mu)
-        q = problem.solve(R, r)
+        q = problem.solve(R, r, whitened)
     raise RuntimeError(
         f"the margin still fails on the constraint grid after {_MAX_ROUNDS} cutting-plane "
         f"rounds ({cuts.shape[0]} constraint points; max mu |S| = {mu * sgrid.peak(q):.6g})"
@@ -697,7 +715,9 @@ def constrained_bound(
                 scale = np.sqrt(
                     max(unconstrained[i], _SCALE_FLOOR * float(np.sum(w * total)), 1e-300)
                 )
-                q, solves[i] = _margin_solve(problem, con, mu, R / scale, r / scale, n_taps, q_unc)
+                q, solves[i] = _margin_solve(
+                    problem, con, mu, R / scale, r / scale, n_taps, q_unc, factors is not None
+                )
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             messages[i] = f"{exc}"
             logger.warning("constrained_bound: mode %d failed: %s", i, exc)
