@@ -152,18 +152,24 @@ def test_quick_case_prediction_standard_errors(quick_comparison):
         assert rel_m == pytest.approx(rel_p * length, rel=1e-9)
 
 
+# Issue 15, linear stage 2: the dCAO data-driven cell's prediction is pessimistic, 1.085 of
+# its measured residual on seed 0 (seeds 1, 2: 1.145, 0.975), a bias left in that cell; the
+# standalone cells' bias (1.050-1.084) went with the extended noise band. Its 3-s.e. interval
+# ends within 1e-3 of 1 (from 1.000 on 2 Dec, from 0.9995 after issue 34's design changes moved
+# the design's last digits): a strict xfail on that edge flipped with the arithmetic, so the
+# cell is checked against the bias it has.
+_BIASED_CELLS = {("dcao", "datadriven"): 1.15}  # the largest ratio seen over seeds 0-2, 1.145
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 15, linear stage 2: dCAO data-driven predicted 1.085 of its measured "
-    "residual (3-s.e. interval from 1.000; seeds 1, 2: 1.145, 0.975), a bias left in that "
-    "cell; the standalone cells' bias (1.050-1.084, the noise floor's scatter made one-sided) "
-    "went with the extended noise band (0.994-1.040, every interval holding 1)",
-)
 def test_quick_case_prediction_within_its_interval(quick_comparison):
     for c in quick_comparison.cells:
         r, lo, hi = c.ratio_interval(z=3)
-        assert lo <= 1 <= hi, (c.scheme, c.controller, r, lo, hi)
+        bias_limit = _BIASED_CELLS.get((c.scheme, c.controller))
+        if bias_limit is None:
+            assert lo <= 1 <= hi, (c.scheme, c.controller, r, lo, hi)
+        else:  # never optimistic beyond 3 s.e., and no more pessimistic than the seeds showed
+            assert hi >= 1 and r <= bias_limit, (c.scheme, c.controller, r, lo, hi)
 
 
 @pytest.mark.slow
