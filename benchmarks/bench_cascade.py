@@ -192,20 +192,11 @@ def _load() -> str:
 def _compare_with_reference(rev: str, rounds: int, argv: list[str]) -> None:
     """The same command on revision ``rev`` and on this checkout, fresh processes,
     alternating (reference first); prints each run and the CPU ratios (module docstring)."""
+    # the worktree, its bytecode compiled first as this checkout's already is (not timed)
+    from bench_design_speed import _reference_worktree  # this script's directory is on sys.path
+
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    folder = tempfile.mkdtemp(prefix="aocontrol-bench-cascade-")
-    ref = os.path.join(folder, "reference")
-    subprocess.run(
-        ["git", "-C", root, "worktree", "add", "--detach", ref, rev],
-        check=True,
-        capture_output=True,
-    )
-    # its bytecode compiled first, as this checkout's already is (not timed)
-    subprocess.run(
-        [sys.executable, "-m", "compileall", "-q", os.path.join(ref, "aocontrol")],
-        check=True,
-        capture_output=True,
-    )
+    ref = _reference_worktree(rev, tempfile.mkdtemp(prefix="aocontrol-bench-cascade-"))
     print(
         f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; "
         f"this checkout {root} vs reference {rev}; {rounds} round(s), alternating"

@@ -195,6 +195,18 @@ class LoopTelemetry:
         return self.measurements.shape[1]
 
 
+def _check_telemetry_pair(measurements: object, commands: object) -> tuple[np.ndarray, np.ndarray]:
+    """Both records checked (:func:`_check_telemetry`) and of the same shape."""
+    m = _check_telemetry("measurements", measurements)
+    u = _check_telemetry("commands", commands)
+    if m.shape != u.shape:
+        raise ValueError(
+            f"measurements and commands must have the same shape (n_frames, "
+            f"n_modes), got {m.shape} and {u.shape}"
+        )
+    return m, u
+
+
 def _check_telemetry(name: str, value: object) -> np.ndarray:
     arr = check_finite_array(name, value, ndim=(1, 2))
     return arr[:, None] if arr.ndim == 1 else arr
@@ -242,13 +254,7 @@ def pseudo_open_loop(
             f"loop (z^-1 coefficients), got {type(plant).__name__}"
         )
     plant_fs(plant, fs)
-    m = _check_telemetry("measurements", measurements)
-    u = _check_telemetry("commands", commands)
-    if m.shape != u.shape:
-        raise ValueError(
-            f"measurements and commands must have the same shape (n_frames, "
-            f"n_modes), got {m.shape} and {u.shape}"
-        )
+    m, u = _check_telemetry_pair(measurements, commands)
     b, a = z_inverse_coefficients(plant, "plant")
     return m / _check_optical_gain(optical_gain, m.shape[1]) + signal.lfilter(b, a, u, axis=0)
 
@@ -452,13 +458,7 @@ def disturbance_from_telemetry(
     fs_ = plant_fs(plant, fs)
     if not isinstance(plant, control.TransferFunction):
         pseudo_open_loop(measurements, commands, plant, fs=fs_)  # its TypeError
-    m = _check_telemetry("measurements", measurements)
-    u = _check_telemetry("commands", commands)
-    if m.shape != u.shape:
-        raise ValueError(
-            f"measurements and commands must have the same shape (n_frames, "
-            f"n_modes), got {m.shape} and {u.shape}"
-        )
+    m, u = _check_telemetry_pair(measurements, commands)
     n_frames, n_modes = m.shape
     og = _check_optical_gain(optical_gain, n_modes)
     # The telemetry is checked before the segment length it implies: a short or transposed
