@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from aocontrol._jit import ENV_NO_NUMBA
 from aocontrol.controllers import IIRBank, Integrator
 from aocontrol.sim import _fused, _stage_run
 from aocontrol.sim.loop import LinearModalSensor, ModalTimeSeries, Stage, run_loop
@@ -32,9 +33,9 @@ def _run(path, monkeypatch, controller, *, latency, og=1.0, noise=0.5, n_frames=
 
             mp.setattr(_stage_run._StageRun, "__init__", init)
         if path == "numpy":
-            mp.setenv(_fused.ENV_NO_NUMBA, "1")
+            mp.setenv(ENV_NO_NUMBA, "1")
         else:
-            mp.delenv(_fused.ENV_NO_NUMBA, raising=False)
+            mp.delenv(ENV_NO_NUMBA, raising=False)
         n = controller.n_modes
         if d is None:
             rng = np.random.default_rng(11)

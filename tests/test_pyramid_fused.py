@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from aocontrol.sim._fused import ENV_NO_NUMBA
+from aocontrol._jit import ENV_NO_NUMBA
 from aocontrol.sim.pupil import vlt_pupil
 from aocontrol.sim.wfs import PyramidWFS, _pyramid_fused
 from aocontrol.sim.wfs import pyramid as pyramid_module

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from aocontrol._jit import ENV_NO_NUMBA
 from aocontrol.analysis import residual_psd
 from aocontrol.controllers import IIRBank
 from aocontrol.plant import frequency_response, loop_plant
@@ -120,3 +121,30 @@ def test_fine_residual_is_each_modes_trapezoid_on_its_own_refined_grid(monkeypat
     for k in range(2):
         np.testing.assert_array_equal(two[k], one[k])
         np.testing.assert_allclose(two[k], fine[k], rtol=1e-12)
+
+
+def test_fine_residual_compiled_loop_equals_the_numpy_path(monkeypatch):
+    # Two paths that must agree: the compiled trapezoids (numba) and numpy's np.trapezoid of
+    # the integrand, on well-conditioned loops (|1 + G K| far from cancelling) with numerator
+    # and denominator of different lengths, a resonant PSD and a noise floor; to rounding
+    # (the two sum in different orders). A twin: a wrong coefficient is seen.
+    rng = np.random.default_rng(7)
+    G = loop_plant(FS, 0.8)
+    f = np.linspace(0.0, FS / 2, 301)
+    psd = 1.0 / (1.0 + (f / 20.0) ** (11 / 3)) + 50.0 * np.exp(-(((f - 87.0) / 0.7) ** 2))
+    psd = psd[None, :] * rng.uniform(0.5, 2.0, (5, 1))
+    noise = np.full_like(psd, 1e-2) * rng.uniform(0.5, 2.0, (5, 1))
+    b = np.column_stack([rng.uniform(0.2, 0.5, 5), rng.uniform(-0.1, 0.1, (5, 3))])
+    a = np.column_stack([np.ones(5), -np.ones(5), rng.uniform(-0.05, 0.05, 5)])
+    banks = (IIRBank(b, a, FS), IIRBank(0.6 * b, a, FS))
+    peaks = [np.array([87.0])] + [np.empty(0)] * 4
+    compiled = _dd_grids.fine_residual(G, banks, f, psd, noise, FS, peaks)
+    b2 = b.copy()
+    b2[2, 1] += 1e-6
+    twin = _dd_grids.fine_residual(G, (IIRBank(b2, a, FS),), f, psd, noise, FS, peaks)[0]
+    monkeypatch.setenv(ENV_NO_NUMBA, "1")
+    plain = _dd_grids.fine_residual(G, banks, f, psd, noise, FS, peaks)
+    for k in range(2):
+        np.testing.assert_allclose(compiled[k], plain[k], rtol=QUAD_RTOL)
+    assert abs(twin[2] / plain[0][2] - 1) > 100 * QUAD_RTOL
+    np.testing.assert_allclose(twin[[0, 1, 3, 4]], plain[0][[0, 1, 3, 4]], rtol=QUAD_RTOL)

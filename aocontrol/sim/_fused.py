@@ -19,17 +19,12 @@ its compiled code is cached on disk (``cache=True``). Without numba (import erro
 
 from __future__ import annotations
 
-import logging
-import os
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-logger = logging.getLogger(__name__)
-
-#: Environment variable: set (non-empty) to run the numpy loop instead of the compiled one.
-ENV_NO_NUMBA = "AOCONTROL_NO_NUMBA"
+from aocontrol._jit import compile_once
 
 # The fused loop needs no check of the measurement's finiteness when the residual guard and
 # the noise are below this bound: their sum is then finite.
@@ -39,24 +34,6 @@ _FUSED_BOUND = 1e150
 DONE, GUARD, NOT_FINITE = 0, 1, 2
 
 _KERNEL: list = []  # [(the compiled function,) or None], filled on first use
-
-
-def compile_once(store: list, functions: tuple, fallback: str) -> tuple | None:
-    """The ``functions`` compiled by numba (``cache=True, nogil=True``) on first use and kept
-    in ``store`` (a module's one-item list), or ``None`` without numba (logging
-    ``fallback``, what runs instead) or with ``$AOCONTROL_NO_NUMBA`` set."""
-    if os.environ.get(ENV_NO_NUMBA):
-        return None
-    if not store:
-        try:
-            import numba
-        except ImportError:  # pragma: no cover - numba is a dependency
-            logger.info("numba is not installed: %s", fallback)
-            store.append(None)
-        else:
-            jit = numba.njit(cache=True, nogil=True)
-            store.append(tuple(jit(f) for f in functions))
-    return store[0]
 
 
 def kernel() -> Callable | None:

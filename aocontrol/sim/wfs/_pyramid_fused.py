@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aocontrol.sim._fused import compile_once
+from aocontrol._jit import compile_once
 
 #: [(tilt_rows, intensity_terms, front, bin_lines, bilinear_terms) compiled, or None], filled
 #: on first use
