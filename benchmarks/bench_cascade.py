@@ -60,8 +60,8 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
+from aocontrol._blas import blas_threads
 from aocontrol.controllers import IIRBank, Integrator, MultiModeBank
-from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._fused import warm_up
 from aocontrol.sim.dm import SAXO_N_ACTUATORS, SAXO_PLUS_N_ACTUATORS, DeformableMirror
 from aocontrol.sim.loop import (

@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from aocontrol._blas import blas_threads
 from aocontrol._validation import check_int
-from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._phase_maps import shape_synthesizer
 from aocontrol.sim._result import TELEMETRY, LoopResult
 from aocontrol.sim._sources import DisturbanceSource, check_rate

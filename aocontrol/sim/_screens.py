@@ -209,7 +209,7 @@ class Extruder:
         (each column conditions the next), cheaper than ``numpy.einsum``; small and
         sequential, they want one BLAS thread (a multithreaded BLAS waking its threads for
         each is slower on a loaded machine): the atmosphere extrudes under
-        ``aocontrol.sim._blas.blas_threads(1)``. The noise terms ``B w`` are matrix-vector
+        ``aocontrol._blas.blas_threads(1)``. The noise terms ``B w`` are matrix-vector
         products too, one per column (the same sums whatever ``k``). Figures in
         ``docs/benchmarks.md``.
         """

@@ -65,8 +65,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aocontrol._blas import blas_threads
 from aocontrol._validation import check_int, check_nonnegative, check_positive
-from aocontrol.sim._blas import blas_threads
 from aocontrol.sim._screens import Extruder, fft_screens
 from aocontrol.sim.drift import Drift
 from aocontrol.sim.pupil import Pupil

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from aocontrol._blas import blas_threads
 from aocontrol._validation import check_finite_array
-from aocontrol.sim._blas import blas_threads
 
 __all__ = ["blas_threads", "bin_matrix", "check_opd", "opd_to_phase"]
 

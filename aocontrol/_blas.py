@@ -1,5 +1,6 @@
-"""The BLAS thread limit of the simulator (private): one owner for the engine's runs and the
-wavefront sensors' products (:mod:`aocontrol.sim.wfs`), so that nested limits cost nothing."""
+"""The BLAS thread limit (private): one owner for the simulator's engine runs, the wavefront
+sensors' products (:mod:`aocontrol.sim.wfs`) and the synthesis layer's small least-squares
+fits, so that nested limits cost nothing."""
 
 from __future__ import annotations
 
@@ -25,9 +26,9 @@ def blas_threads(n: int):
     """Context: at most ``n`` BLAS threads (process-wide while it runs; a nested context with
     the same ``n`` costs nothing).
 
-    The WFS products (pyramid propagation, reconstructor) are small enough that a
-    multi-threaded OpenBLAS stalls on them on a machine shared with other jobs (see
-    ``docs/benchmarks.md``).
+    The WFS products (pyramid propagation, reconstructor) and the telemetry check's
+    least-squares fits are small enough that a multi-threaded OpenBLAS stalls on them on a
+    machine shared with other jobs (see ``docs/benchmarks.md``).
     """
     if _blas_limit and _blas_limit[-1] == n:
         yield
