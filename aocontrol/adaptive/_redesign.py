@@ -261,7 +261,11 @@ def certify(
 
 
 def _subset(tel: TelemetryPSD, modes: np.ndarray) -> TelemetryPSD:
-    """The modes ``modes`` of a telemetry estimate."""
+    """The modes ``modes`` of a telemetry estimate (``tel`` itself for all of them, in order:
+    no copy of its pseudo-open-loop record, 66 MB for 540 modes of 15,300 frames)."""
+    n = tel.psd.shape[0]
+    if modes.size == n and np.array_equal(modes, np.arange(n)):
+        return tel
     return dataclasses.replace(
         tel,
         psd=tel.psd[modes],
