@@ -232,9 +232,8 @@ def datadriven(
     n_jobs : int, optional
         Worker processes (joblib); ``None`` uses every core this process may use
         (``joblib.cpu_count()``: CPU affinity, cgroup limits and ``LOKY_MAX_CPU_COUNT``, which
-        a sweep's workers set to their share), 1 runs in this process. This process is one
-        of the ``n_jobs`` workers (beside ``n_jobs - 1`` joblib/loky processes). Ignored
-        with ``client``.
+        a sweep's workers set to their share), 1 runs in this process. Ignored with
+        ``client``.
     progress : bool, default True
         Show a tqdm progress bar over modes.
     fs : float, optional
