@@ -215,25 +215,6 @@ def test_bank_in_parallel_matches_serial(plant):
     assert np.all(serial.residual_variance < serial.initial_residual_variance)
 
 
-def test_chunks_shared_by_the_pool_and_this_process_match_serial(plant, monkeypatch):
-    # Invariant: the chunks, not who designs them, decide each mode's start, so the bank is
-    # the same bit for bit whether this process designs every chunk or shares them with a
-    # pool process (one mode per chunk here: five chunks, the first ones running side by
-    # side on both).
-    import aocontrol.synthesis._dd_mode as dd_mode
-
-    monkeypatch.setattr(dd_mode, "_CHUNK", 1)
-    f = _grid(151)
-    psd = np.stack([_lowpass_psd(f, fc) for fc in (5.0, 10.0, 15.0, 25.0, 40.0)])
-    kw = dict(order=3, noise_psd=1e-4, progress=False)
-    serial = datadriven(plant, f, psd, n_jobs=1, **kw)
-    shared = datadriven(plant, f, psd, n_jobs=2, **kw)
-    np.testing.assert_array_equal(shared.controller.b, serial.controller.b)
-    np.testing.assert_array_equal(shared.controller.a, serial.controller.a)
-    assert [r.mode for r in shared.reports] == list(range(5))
-    assert [r.start for r in shared.reports] == [r.start for r in serial.reports]
-
-
 def test_failing_mode_is_named_and_others_kept(plant):
     # Mode 1 starts from an integrator with almost no modulus margin (g = 0.9 on z^-2) and
     # must reach margin 0.9 with an integrator structure: the convexified problem around it is

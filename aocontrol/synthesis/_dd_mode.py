@@ -386,66 +386,16 @@ def _run(
                 results.extend(_design_chunk(ctx, chunk))
                 bar.update(len(chunk))
         else:
+            from joblib import Parallel, delayed
+
             # Longest first (the chunks and so the bank are unchanged, the results sorted
             # by mode below): the last chunk to finish is a short one, less idle time
-            for part in _shared_run(ctx, _longest_first(parts), n_workers):
+            gen = Parallel(n_jobs=n_workers, return_as="generator_unordered")(
+                delayed(_design_chunk)(ctx, chunk) for chunk in _longest_first(parts)
+            )
+            for part in gen:
                 results.extend(part)
                 bar.update(len(part))
     finally:
         bar.close()
     return sorted(results, key=lambda r: r["mode"])
-
-
-def _shared_run(ctx: DesignContext, parts: list, n_workers: int):
-    """Design the chunks ``parts`` on ``n_workers - 1`` pool processes and this one.
-
-    Each takes the next chunk, in order, when it is free; the results come as the chunks
-    finish (a generator of lists of outcomes). This process is the ``n_workers``-th worker:
-    while a fresh pool process starts (its imports take about 2 s) this one already
-    designs, and one process fewer is started (``docs/benchmarks.md``, issue 34). The chunks
-    are those of every path (:func:`chunks`), so the bank does not depend on who designs
-    which chunk.
-    """
-    import threading
-
-    from joblib.externals.loky import get_reusable_executor
-
-    queue = list(reversed(parts))  # pop(): the next chunk in order
-    lock = threading.Lock()
-    futures: list = []
-    executor = get_reusable_executor(max_workers=n_workers - 1)
-
-    def feed(_done: object = None) -> None:
-        # The next chunk to the pool process that just became free (a future's callback).
-        with lock:
-            if queue:
-                future = executor.submit(_design_chunk, ctx, queue.pop())
-                futures.append(future)
-            else:
-                return
-        future.add_done_callback(feed)
-
-    try:
-        for _ in range(n_workers - 1):
-            feed()
-        while True:
-            with lock:
-                chunk = queue.pop() if queue else None
-            if chunk is None:
-                break
-            yield _design_chunk(ctx, chunk)
-        # The queue is empty: no chunk is submitted any more; the pool's last ones.
-        seen = 0
-        while True:
-            with lock:
-                pending = futures[seen:]
-            if not pending:
-                break
-            for future in pending:
-                yield future.result()
-            seen += len(pending)
-    finally:
-        with lock:
-            queue.clear()  # an error: nothing more is submitted
-            for future in futures:
-                future.cancel()
