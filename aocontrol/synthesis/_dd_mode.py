@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from aocontrol._validation import is_programming_error
-from aocontrol.analysis import modulus_certificate
+from aocontrol.analysis import ModulusCertificate, modulus_certificate
 from aocontrol.plant import frequency_response, tf_from_z_inverse
 from aocontrol.synthesis._ccp import PATIENCE, ccp
 from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
@@ -253,7 +253,7 @@ def _design_orders(
     return chosen
 
 
-def _initial_certificate(ctx: DesignContext, b0: np.ndarray, a0: np.ndarray):
+def _initial_certificate(ctx: DesignContext, b0: np.ndarray, a0: np.ndarray) -> ModulusCertificate:
     """The modulus certificate of a mode's initial controller (the initial bank's row
     ``b0, a0``), the call :func:`~aocontrol.synthesis._dd_assemble._assemble` makes for a
     design it rejects: ``modulus_certificate`` of the bank's ``transfer_function`` of the row."""
