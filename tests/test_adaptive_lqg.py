@@ -117,6 +117,24 @@ def test_certify_checks_the_recursion_gain_argument():
     assert recursion_gain(plant, np.array([0.3]), np.array([1.0, -1.0])) < MAX_RECURSION_GAIN
 
 
+def test_certify_gives_every_mode_the_recursion_gain_of_its_own_row():
+    # Two paths that must agree: certify computes the plant's part of the gain once for the
+    # bank, recursion_gain once per call. Three integrators of different gains (three
+    # different recursion gains): with the threshold between two of them, exactly the modes
+    # whose own recursion_gain exceeds it fail, and the reason quotes that gain.
+    plant = loop_plant(FS, LATENCY)
+    gains = np.array([0.2, 0.4, 0.6])
+    bank = IIRBank(gains[:, None], np.tile([1.0, -1.0], (3, 1)), FS)
+    own = np.array([recursion_gain(plant, bank.b[i], bank.a[i]) for i in range(3)])
+    low, mid, high = np.sort(own)
+    assert low < mid < high
+    for limit in (0.5 * (low + mid), 0.5 * (mid + high)):  # the twin moves the threshold
+        ok, _, reasons = certify(plant, bank, modulus_margin=0.0, max_recursion_gain=limit)
+        np.testing.assert_array_equal(ok, own <= limit)
+        for i in np.flatnonzero(~ok):
+            assert reasons[i].startswith(f"recursion gain {own[i]:.3g} >")
+
+
 def test_lqg_designer_logs_the_short_windows_low_frequency_note(caplog):
     # Issue 33: a W-second window resolves its PSD down to its Welch resolution only, so the
     # LQG fit notes at every redesign that a steep spectrum keeps rising below it. The adaptive

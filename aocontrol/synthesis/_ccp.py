@@ -342,12 +342,13 @@ def ccp(
         history.append(J)
         iterates.append(v)
         v_best, J_best, Pc = v, J, P
-        problem.set_winding(cert.winding(v))
         if not free and len(history) > patience:
             past = history[-1 - patience]
             if past - J <= tol * abs(past):
                 converged = True
                 break
+        if it < max_iter:  # the next solve's winding rows (none after the last one)
+            problem.set_winding(cert.winding(v))
     if v_best is None:
         raise SolveFailure("without an iterate that passes the certificates", it)
     return CcpOutcome(

@@ -82,7 +82,11 @@ def _assemble(setup, outcomes: list, threads: int = 1) -> DataDrivenResult:
         margin, method, start = r["margin"], r["certificate"], r["start"]
         robust = r.get("robust_margin", np.nan)
         if worse[i]:
-            cert = modulus_certificate(plant, init_bank, fs=fs, mode=i)
+            # Computed by the mode's worker where its design was worse on the input grid
+            # (the same call, _dd_mode._initial_certificate), here otherwise.
+            cert = r.get("initial_certificate")
+            if cert is None:
+                cert = modulus_certificate(plant, init_bank, fs=fs, mode=i)
             margin, method, start = cert.value, cert.method, REJECTED_WORSE
             if ctx.uncertainty is not None:
                 robust = robust_margin(plant, init_bank, ctx.uncertainty, fs=fs, mode=i).value

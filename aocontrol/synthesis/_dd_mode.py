@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 from aocontrol._validation import is_programming_error
-from aocontrol.plant import frequency_response
+from aocontrol.analysis import ModulusCertificate, modulus_certificate
+from aocontrol.plant import frequency_response, tf_from_z_inverse
 from aocontrol.synthesis._ccp import PATIENCE, ccp
 from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
 from aocontrol.synthesis._dd_context import DesignContext
@@ -252,6 +253,14 @@ def _design_orders(
     return chosen
 
 
+def _initial_certificate(ctx: DesignContext, b0: np.ndarray, a0: np.ndarray) -> ModulusCertificate:
+    """The modulus certificate of a mode's initial controller (the initial bank's row
+    ``b0, a0``), the call :func:`~aocontrol.synthesis._dd_assemble._assemble` makes for a
+    design it rejects: ``modulus_certificate`` of the bank's ``transfer_function`` of the row."""
+    K = tf_from_z_inverse(b0, a0, 1.0 / ctx.fs)
+    return modulus_certificate(ctx.plant, K, fs=ctx.fs)
+
+
 def _design_chunk(ctx: DesignContext, items: list) -> list:
     """Design a chunk of modes in one worker; failures are returned, not raised.
 
@@ -279,6 +288,17 @@ def _design_items(ctx: DesignContext, items: list) -> list:
                 order = ctx.free_order + ctx.fixed_factor.size - 1
                 ctx_m = ctx.with_structure(fixed, order)
             res = _design_orders(ctx_m, g, psd, noise, b0, a0, warm, target)
+            if _mode_residual(ctx, g, psd, noise, res["b"], res["a"]) > _mode_residual(
+                ctx, g, psd, noise, b0, a0
+            ):
+                # The assembly will most likely keep the start (worse on the input grid) and
+                # report its certificate: computed here, on the workers, by the very call the
+                # assembly makes (it computes those it is not given, and any that fails here).
+                try:
+                    res["initial_certificate"] = _initial_certificate(ctx, b0, a0)
+                except Exception as exc:
+                    if is_programming_error(exc):
+                        raise
             res["fixed"] = fixed
             res["mode"], res["error"] = mode, ""
             res["bound_error"] = bound_error
