@@ -341,3 +341,23 @@ def test_warm_design_settings_are_checked():
         datadriven_designer(warm_n_grid=4)
     with pytest.raises(ValueError, match="warm_max_iter"):
         datadriven_designer(warm_max_iter=0)
+
+
+def test_joined_proposals_keep_each_parts_kept_modes_in_bank_numbering():
+    # The warm data-driven designer designs the integrating and the other modes apart and
+    # joins the two proposals: the modes each part kept (indices into the part) must come
+    # out as the bank's mode numbers, so that Update.kept counts them (it was empty).
+    from aocontrol.adaptive._redesign import _join
+
+    fs = 1000.0
+    current = IIRBank(np.full((4, 2), 0.3), np.tile([1.0, -1.0], (4, 1)), fs)
+    part = IIRBank(np.full((2, 2), 0.4), np.tile([1.0, -1.0], (2, 1)), fs)
+    joined = _join(
+        current,
+        [
+            (np.array([0, 2]), Proposal(part, kept=(1,))),
+            (np.array([1, 3]), Proposal(part, kept=(0,))),
+        ],
+    )
+    assert joined.kept == (1, 2)
+    assert _join(current, [(np.array([0, 2]), Proposal(part))]).kept == ()

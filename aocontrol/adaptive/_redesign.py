@@ -280,12 +280,14 @@ def _join(current: IIRBank, parts: list[tuple[np.ndarray, Proposal]]) -> Proposa
     bank = current
     failed: dict[int, str] = {}
     margin = np.full(current.n_modes, np.nan)
+    kept: list[int] = []
     for modes, p in parts:
         bank = bank.with_rows(modes, p.controller)
         failed.update({int(modes[i]): msg for i, msg in p.failed.items()})
         if p.margin is not None:
             margin[modes] = p.margin
-    return Proposal(bank, failed, margin)
+        kept.extend(int(modes[i]) for i in p.kept)
+    return Proposal(bank, failed, margin, kept=tuple(sorted(kept)))
 
 
 def residual_shift(
