@@ -218,3 +218,33 @@ def test_margins_and_bounds_on_workers_equal_one_process(telemetry, monkeypatch)
         assert dataclasses.astuple(a) == dataclasses.astuple(b) or repr(a) == repr(b)
     # Twin: a changed bound is seen by the same comparison.
     assert not np.array_equal(one.constrained_variance, one.constrained_variance * (1 + 1e-15))
+
+
+def test_modes_sharing_a_filter_get_its_margins(telemetry):
+    # Steps 3 and 4 certify a filter that several modes share once (a data-driven bank gives
+    # neighbouring modes one controller). Oracle: every mode's margins are those of
+    # analysis.margins on its own row, bit for bit, on a bank where modes 0 and 2, 1 and 4
+    # share filters and the three filters' margins differ (a wrong mode-to-filter map is
+    # seen).
+    est = disturbance_from_telemetry(
+        telemetry.measurements, telemetry.commands, loop_plant(FS, LATENCY)
+    )
+    idx = [0, 1, 0, 2, 1]
+    dup = dataclasses.replace(
+        est,
+        psd=est.psd[idx],
+        noise_psd=np.asarray(est.noise_psd)[idx],
+        pol_psd=est.pol_psd[idx],
+        pseudo_open_loop=est.pseudo_open_loop[:, idx],
+    )
+    plant = loop_plant(FS, LATENCY)
+    rep = design_from_telemetry(dup, "omgi", plant=plant, bounds=(), n_jobs=1)
+    bank_b, bank_a = rep.controller.b, rep.controller.a
+    rows = {(bank_b[i].tobytes(), bank_a[i].tobytes()) for i in range(len(idx))}
+    assert len(rows) == 3
+    for name in ("margins", "reference_margins"):
+        bank = rep.controller if name == "margins" else rep.reference
+        got = getattr(rep, name)
+        for i in range(len(idx)):
+            assert repr(got[i]) == repr(margins(plant, bank, mode=i)), (name, i)
+        assert len({repr(m) for m in got}) == 3

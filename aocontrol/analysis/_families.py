@@ -41,7 +41,7 @@ from numpy.polynomial import chebyshev as cheb
 from numpy.polynomial import polynomial as poly
 from scipy import optimize
 
-from aocontrol.analysis._certificate import pole_refined_grid
+from aocontrol.analysis._certificate import pole_refined_grid, trim_back
 
 # Roots of the polynomial in x within this imaginary part are candidates (a double root split
 # by round-off); a spurious candidate costs one pole computation, a lost one a wrong verdict.
@@ -60,7 +60,7 @@ _SAME = 1e-12
 def poly_stable(c: np.ndarray) -> bool:
     """Whether every root ``z`` of ``c`` (powers of ``w = z^-1``, lowest first) has
     ``|z| < 1 - POLE_TOL``; trailing zero coefficients are poles at ``z = 0``."""
-    c = np.trim_zeros(np.asarray(c, dtype=float), "b")
+    c = trim_back(np.asarray(c, dtype=float))
     if c.size <= 1:
         return True
     # z^N C(1/z) has the coefficients of C, highest power of z first.

@@ -35,6 +35,7 @@ from aocontrol.analysis._certificate import (
     _cheb_of_abs2,
     _controller_tf,
     modulus_certificate,
+    polynomial_certificate,
     rational_modulus_minima,
 )
 from aocontrol.analysis._families import (
@@ -43,7 +44,12 @@ from aocontrol.analysis._families import (
     horner,
     stability_pieces,
 )
-from aocontrol.analysis._stability import is_stable, winding_zeros
+from aocontrol.analysis._stability import (
+    characteristic_roots,
+    is_stable,
+    poles_stable,
+    winding_zeros,
+)
 from aocontrol.plant import (
     check_frd_coverage,
     plant_fs,
@@ -282,16 +288,22 @@ def margins(
             "margins needs a transfer-function controller (its closed-loop stability comes "
             f"from its polynomials), got {type(K).__name__}"
         )
-    stable = is_stable(plant, K, fs=fs_)
-    if not stable:
-        logger.info("margins computed for an unstable closed loop")
-    # Modulus margin: the certificate (exact for rational systems, not a grid minimum).
-    cert = modulus_certificate(plant, K, fs=fs_)
     hz = fs_ / (2 * np.pi)
     if isinstance(plant, control.TransferFunction):
-        parts = _exact_margins(plant, K, stable)
+        # Both checked once: the verdict, the certificate and the families from the same
+        # coefficients (is_stable and modulus_certificate compute these from them too).
+        bg, ag = z_inverse_coefficients(plant, "plant")
+        bk, ak = z_inverse_coefficients(K, "controller")
+        stable = poles_stable(characteristic_roots(bg, ag, bk, ak))
+        # Modulus margin: the certificate (exact for rational systems, not a grid minimum).
+        cert = polynomial_certificate(bg, ag, bk, ak, fs_)
+        parts = _exact_margins(bg, ag, bk, ak, stable)
     else:
+        stable = is_stable(plant, K, fs=fs_)
+        cert = modulus_certificate(plant, K, fs=fs_)
         parts = _measured_margins(plant, K, fs_, stable)
+    if not stable:
+        logger.info("margins computed for an unstable closed loop")
     gain, crossings, delay = parts
     (k_down, k_up, t_up) = gain
     theta_c, pm_c = crossings
@@ -344,10 +356,9 @@ def _gain_interval(pieces: Pieces, stable: bool) -> tuple[float, float, float]:
     return float(pieces.edges[lo]), float(pieces.edges[hi + 1]), float(pieces.theta[hi + 1])
 
 
-def _exact_margins(plant: control.TransferFunction, K: control.TransferFunction, stable: bool):
-    """Gain interval, crossovers and delay interval of a rational loop (exact)."""
-    bg, ag = z_inverse_coefficients(plant, "plant")
-    bk, ak = z_inverse_coefficients(K, "controller")
+def _exact_margins(bg, ag, bk, ak, stable: bool):
+    """Gain interval, crossovers and delay interval of a rational loop (exact), from the
+    plant's and the controller's coefficients in powers of ``z^-1``."""
     A = npoly.polymul(ag, ak)
     B = npoly.polymul(bg, bk)
     gain = _gain_interval(stability_pieces(A, B, 0.0, np.inf), stable)
@@ -396,11 +407,25 @@ def _exact_margins(plant: control.TransferFunction, K: control.TransferFunction,
     return gain, (theta_c, pm_c), delay
 
 
+# An end of the circle where |den / num| is below 1 by more than this (relative) decides
+# _small_gain at once: the certificate's minimum is at most its value there.
+_END_WITNESS = 1e-9
+
+
 def _small_gain(num: np.ndarray, den: np.ndarray) -> bool:
     """Whether ``|num / den| < 1`` on the whole circle (exact: the certificate's minima of
-    ``|den / num|``)."""
+    ``|den / num|``).
+
+    The ends ``w = +-1`` are among the certificate's candidates and its polish never raises
+    a value, so its minimum is at most ``|den / num|`` there: an end clearly below 1 (an
+    integrator's ``den(1) = 0``) gives the certificate's verdict without computing it.
+    """
     if not np.any(num):
         return True
+    for w in (1.0, -1.0):
+        d, n = abs(npoly.polyval(w, den)), abs(npoly.polyval(w, num))
+        if n > 0 and d <= (1.0 - _END_WITNESS) * n:
+            return False
     _, vals = rational_modulus_minima(den, num)
     return bool(np.min(vals) > 1.0)
 
@@ -417,11 +442,18 @@ def _latency_interval(ag, ak, bk, core, latency: float) -> tuple[float, float]:
     """``(added, removed)`` [frames]: the stable latency interval around ``latency``."""
     k0, f0 = split_latency(latency)
     tau0 = k0 + f0
+    families: dict[int, Pieces] = {}
+
+    def pieces(k: int) -> Pieces:
+        # The nominal frame's family serves both searches.
+        if k not in families:
+            families[k] = stability_pieces(*_latency_family(ag, ak, bk, core, k), 0.0, 1.0)
+        return families[k]
 
     # Up: whole frame by whole frame, from the nominal point.
     added, k, start = float(DELAY_SEARCH_FRAMES), k0, f0
     while k - k0 < DELAY_SEARCH_FRAMES:
-        p = stability_pieces(*_latency_family(ag, ak, bk, core, k), 0.0, 1.0)
+        p = pieces(k)
         i = p.piece_of(start)
         if not p.stable[i]:
             added = k + start - tau0
@@ -437,7 +469,7 @@ def _latency_interval(ag, ak, bk, core, latency: float) -> tuple[float, float]:
     if f0 == 0.0:
         k, start = k0 - 1, 1.0
     while k >= 0:
-        p = stability_pieces(*_latency_family(ag, ak, bk, core, k), 0.0, 1.0)
+        p = pieces(k)
         i = p.piece_of(start) if start < 1.0 else p.stable.size - 1
         if not p.stable[i]:
             removed = tau0 - (k + start)

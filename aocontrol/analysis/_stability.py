@@ -14,7 +14,7 @@ import control
 import numpy as np
 
 from aocontrol._validation import check_frequency_grid
-from aocontrol.analysis._certificate import _controller_tf
+from aocontrol.analysis._certificate import _controller_tf, trim_back
 from aocontrol.analysis._families import POLE_TOL
 from aocontrol.plant import check_frd_coverage, plant_fs, z_inverse_coefficients
 from aocontrol.plant import frequency_response_unchecked as _response
@@ -59,14 +59,28 @@ def closed_loop_poles(
         raise TypeError("closed_loop_poles needs a transfer-function controller")
     bg, ag = z_inverse_coefficients(plant, "plant")
     bk, ak = z_inverse_coefficients(K, "controller")
+    return characteristic_roots(bg, ag, bk, ak)
+
+
+def characteristic_roots(
+    bg: np.ndarray, ag: np.ndarray, bk: np.ndarray, ak: np.ndarray
+) -> np.ndarray:
+    """Closed-loop poles (z-plane) of ``G = bg / ag`` and ``K = bk / ak`` (powers of ``z^-1``,
+    lowest first): the roots of ``Ag Ak + Bg Bk``, unreduced. What
+    :func:`closed_loop_poles` computes, from coefficients already checked."""
     # In powers of z^-1: char(z^-1) = Ag Ak + Bg Bk; multiply by z^N to get z-plane roots.
     p = np.polynomial.polynomial.polyadd(
         np.polynomial.polynomial.polymul(ag, ak), np.polynomial.polynomial.polymul(bg, bk)
     )
-    p = np.trim_zeros(p, "b")
+    p = trim_back(p)
     # p(w) with w = z^-1: z-plane roots are 1/w-roots; zero w-degree terms are poles at 0.
     # Equivalently, the z-polynomial has coefficients p (highest power of z first).
     return np.roots(p)
+
+
+def poles_stable(poles: np.ndarray) -> bool:
+    """The verdict of :func:`is_stable` on closed-loop poles: every ``|z| < 1 - POLE_TOL``."""
+    return bool(poles.size == 0 or np.max(np.abs(poles)) < 1.0 - POLE_TOL)
 
 
 def winding_stability(
@@ -228,5 +242,4 @@ def is_stable(
     fs_ = plant_fs(plant, fs)
     if isinstance(plant, control.FRD):
         return winding_stability(plant, controller, fs=fs_, mode=mode)
-    poles = closed_loop_poles(plant, controller, fs=fs_, mode=mode)
-    return bool(poles.size == 0 or np.max(np.abs(poles)) < 1.0 - POLE_TOL)
+    return poles_stable(closed_loop_poles(plant, controller, fs=fs_, mode=mode))
