@@ -188,8 +188,11 @@ def _design_telemetry(args: argparse.Namespace) -> Any:
             )
     factor = nm_per_unit(unit)
     if factor is not None:
-        m, u, unit = m * factor, u * factor, NM
-    return LoopTelemetry(m, float(args.command_sign) * u, fs, latency, source=path, unit=unit)
+        if factor != 1.0:  # (x * 1.0 is x: no copies of a 66-MB record for nothing)
+            m, u = m * factor, u * factor
+        unit = NM
+    sign = float(args.command_sign)
+    return LoopTelemetry(m, u if sign == 1.0 else sign * u, fs, latency, source=path, unit=unit)
 
 
 def _design(args: argparse.Namespace) -> int:
