@@ -25,13 +25,24 @@ FS = 1000.0
 # slowly (8.6e-4 per frame of latency, measured on an LQG): 1e-6 from an end it is inside by
 # less than is_stable's 1e-9 tolerance.
 EDGE = 1e-6
+# A lower gain end below this is a crossing the spectral radius cannot resolve: an integrator
+# whose pole a zero nearly cancels (a zero at 0.999, a draw hypothesis favours) moves its
+# closed-loop pole by about k (1 - 0.999) |residue| ~ 1e-16 from the circle at k ~ 1e-11,
+# where margins reports the round-off crossing it finds (3e-11, -210 dB) and the oracle's
+# radius is 1 to rounding on both sides. The scan covers every gain above 1e-3.
+RESOLVABLE_DOWN = 1e-8
 # Brute-force scans: loop-gain factors (log) and latency steps [frames].
 GAINS = np.geomspace(1e-3, 1e3, 241)
 LATENCY_STEP = 0.01
 
 
 def _radius(plant, K):
-    """Spectral radius of the closed loop (the oracle at an interval's end)."""
+    """Spectral radius of the closed loop: the oracle inside the intervals and at their ends.
+
+    Not :func:`is_stable` inside them: it calls a pole within 1e-9 of the circle not stable,
+    which an integrator nearly cancelled by a zero at 0.999 is (1 - 7e-10 at a gain factor
+    1e-3, with the interval's exact lower end at 7e-11), where the intervals are exact.
+    """
     return np.max(np.abs(closed_loop_poles(plant, K)))
 
 
@@ -40,10 +51,10 @@ def _check_gain_interval(plant, K, m):
     radius crosses 1."""
     down, up = m.gain_interval
     inside = GAINS[(GAINS > down * 1.001) & (GAINS < up / 1.001)]
-    assert all(is_stable(plant, k * K) for k in inside)
+    assert all(_radius(plant, k * K) < 1.0 for k in inside)
     if np.isfinite(up):
         assert _radius(plant, up * (1 - EDGE) * K) < 1.0 < _radius(plant, up * (1 + EDGE) * K)
-    if down > 0:
+    if down > RESOLVABLE_DOWN:
         assert _radius(plant, down * (1 + EDGE) * K) < 1.0
         assert _radius(plant, down * (1 - EDGE) * K) > 1.0
 
@@ -54,7 +65,7 @@ def _check_delay_interval(K, latency, m, fs=FS):
     top = min(hi, latency + 6.0)
     taus = np.arange(lo, top + LATENCY_STEP, LATENCY_STEP)
     for tau in taus[(taus > lo + 1e-3) & (taus < top - 1e-3)]:
-        assert is_stable(loop_plant(fs, tau), K), tau
+        assert _radius(loop_plant(fs, tau), K) < 1.0, tau
     if np.isfinite(hi) and hi < latency + 30:
         assert _radius(loop_plant(fs, hi - EDGE), K) < 1.0 < _radius(loop_plant(fs, hi + EDGE), K)
     if lo > 0:
