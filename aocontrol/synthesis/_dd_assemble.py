@@ -11,8 +11,9 @@ import warnings
 
 import numpy as np
 
-from aocontrol.analysis import modulus_certificate, residual_psd, robust_margin
+from aocontrol.analysis import residual_psd, robust_margin
 from aocontrol.controllers import IIRBank
+from aocontrol.synthesis._dd_certify import start_certificate
 from aocontrol.synthesis._dd_context import DesignContext, exact_quotient
 from aocontrol.synthesis._dd_grids import fine_residual
 from aocontrol.synthesis._dd_results import (
@@ -83,10 +84,10 @@ def _assemble(setup, outcomes: list, threads: int = 1) -> DataDrivenResult:
         robust = r.get("robust_margin", np.nan)
         if worse[i]:
             # Computed by the mode's worker where its design was worse on the input grid
-            # (the same call, _dd_mode._initial_certificate), here otherwise.
+            # (the same call, start_certificate), here otherwise.
             cert = r.get("initial_certificate")
             if cert is None:
-                cert = modulus_certificate(plant, init_bank, fs=fs, mode=i)
+                cert = start_certificate(ctx, init_bank.b[i], init_bank.a[i])
             margin, method, start = cert.value, cert.method, REJECTED_WORSE
             if ctx.uncertainty is not None:
                 robust = robust_margin(plant, init_bank, ctx.uncertainty, fs=fs, mode=i).value

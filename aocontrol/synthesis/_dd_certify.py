@@ -74,6 +74,15 @@ _PEAK_FACTOR, _PEAK_MIN_S = 2.0, 1.2
 _MAX_SEEDS = 4
 
 
+def start_certificate(ctx: DesignContext, b: np.ndarray, a: np.ndarray) -> ModulusCertificate:
+    """The modulus certificate of a mode's starting controller ``b / a`` (the initial bank's
+    row), reported for a design rejected as worse than its start: the one call for it, made
+    by the mode's worker where its design is worse on the input grid and by the assembly for
+    any other (:func:`aocontrol.analysis.modulus_certificate` of the row's transfer function).
+    """
+    return modulus_certificate(ctx.plant, tf_from_z_inverse(b, a, 1.0 / ctx.fs), fs=ctx.fs)
+
+
 class _ModeCertifier(Certifier):
     """Certificates, grid rows and objective weights of one mode (see :func:`ccp`)."""
 

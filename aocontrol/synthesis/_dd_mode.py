@@ -17,10 +17,9 @@ from typing import Any
 import numpy as np
 
 from aocontrol._validation import is_programming_error
-from aocontrol.analysis import ModulusCertificate, modulus_certificate
-from aocontrol.plant import frequency_response, tf_from_z_inverse
+from aocontrol.plant import frequency_response
 from aocontrol.synthesis._ccp import PATIENCE, ccp
-from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of
+from aocontrol.synthesis._dd_certify import _ModeCertifier, _p_of, start_certificate
 from aocontrol.synthesis._dd_context import DesignContext
 from aocontrol.synthesis._dd_grids import _interp_matrix
 from aocontrol.synthesis._dd_starts import bound_candidate, bound_targets, start_certified
@@ -253,14 +252,6 @@ def _design_orders(
     return chosen
 
 
-def _initial_certificate(ctx: DesignContext, b0: np.ndarray, a0: np.ndarray) -> ModulusCertificate:
-    """The modulus certificate of a mode's initial controller (the initial bank's row
-    ``b0, a0``), the call :func:`~aocontrol.synthesis._dd_assemble._assemble` makes for a
-    design it rejects: ``modulus_certificate`` of the bank's ``transfer_function`` of the row."""
-    K = tf_from_z_inverse(b0, a0, 1.0 / ctx.fs)
-    return modulus_certificate(ctx.plant, K, fs=ctx.fs)
-
-
 def _design_chunk(ctx: DesignContext, items: list) -> list:
     """Design a chunk of modes in one worker; failures are returned, not raised.
 
@@ -295,7 +286,7 @@ def _design_items(ctx: DesignContext, items: list) -> list:
                 # report its certificate: computed here, on the workers, by the very call the
                 # assembly makes (it computes those it is not given, and any that fails here).
                 try:
-                    res["initial_certificate"] = _initial_certificate(ctx, b0, a0)
+                    res["initial_certificate"] = start_certificate(ctx, b0, a0)
                 except Exception as exc:
                     if is_programming_error(exc):
                         raise
