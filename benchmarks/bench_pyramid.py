@@ -9,7 +9,12 @@ integrator (gain 0.4, one frame of delay), one frozen-flow layer (r0 = 0.15 m at
 
 Measured for each code, in separate processes (so peak memory is each code's own):
 frames/s of the closed loop (atmosphere + DM + pyramid + reconstruction + integrator),
-frames/s of the pyramid alone, calibration time (modal basis + interaction matrix) and peak
+each code's own way (``--loop engine``, the default: our engine's DM shape through the
+mirror's separable influences, float32, and its atmosphere generated in blocks of frames, the
+block's time counted in the timed frames; ``--loop dense``: the loop measured before 6 Dec,
+the phase frame by frame and the DM shape as one product with the float32 modes; OOPAO's
+``atm.update()`` and its DM's influence-function product either way), frames/s of the
+pyramid alone, calibration time (modal basis + interaction matrix) and peak
 resident memory. Ratios are printed from this one run (the machine is shared: absolute times
 are noisy, ratios less so). Rates are given from wall-clock time and from the process's CPU
 time (``time.process_time``, which does not count time spent waiting for a core on a busy
@@ -148,6 +153,8 @@ def print_flops(wfs) -> None:
 def run_ours(args: argparse.Namespace) -> dict:
     import numpy as np
 
+    from aocontrol.sim._cascade import default_chunk
+    from aocontrol.sim._phase_maps import shape_synthesizer
     from aocontrol.sim.atmosphere import Atmosphere, Layer
     from aocontrol.sim.dm import DeformableMirror
     from aocontrol.sim.modes import kl_basis
@@ -184,18 +191,39 @@ def run_ours(args: argparse.Namespace) -> dict:
     imat_rel_diff = float(np.linalg.norm(imat_lin - imat) / np.linalg.norm(imat))
 
     atm = Atmosphere(pupil, r0=0.15, layers=[Layer(0.0, 1.0, 10.0, 0.0)], fs=fs, rng=1)
-    # the DM shape in the FFT precision, like OOPAO's DM under OOPAO_PRECISION=32 (float32
-    # influence functions); the reconstructor in float64 on both sides
-    modes = basis.modes.astype(np.float32 if args.precision == "single" else np.float64)
     coeffs = np.zeros(basis.n_modes)
     meas = np.zeros(basis.n_modes)
     res_rms = []
     n_frames, warm = c["frames"], args.warmup
+    if args.loop == "engine":
+        # the simulator's own paths (aocontrol.sim's engine): the DM shape through the
+        # mirror's separable influences in float32 (sim._phase_maps, what a diffractive
+        # sensor's stage synthesises each frame) and the atmosphere in blocks of frames (the
+        # frames do not depend on the split), the block's time counted in its frames' loop
+        synth = shape_synthesizer(basis)
+        block = min(n_frames, default_chunk(pupil.n_valid))
+
+        def dm_shape(x):
+            return synth(x)
+    else:
+        # the former loop: the atmosphere frame by frame and the DM shape as the product with
+        # the modes in the FFT precision (like OOPAO's float32 influence functions)
+        modes = basis.modes.astype(np.float32 if args.precision == "single" else np.float64)
+        block = 1
+
+        def dm_shape(x):
+            return x.astype(modes.dtype) @ modes
+
     t_loop = c_loop = 0.0
+    turbs, j = None, 0
     for k in range(n_frames + warm):
         t0, c0 = time.perf_counter(), time.process_time()
-        turb = atm.phase_vectors(1)[0]
-        res = turb - coeffs.astype(modes.dtype) @ modes
+        if k < warm:  # the timed frames' blocks start at the first timed frame
+            turbs, j = atm.phase_vectors(1), 0
+        elif (j := (k - warm) % block) == 0:
+            turbs = atm.phase_vectors(min(block, n_frames + warm - k))
+        turb = turbs[j]
+        res = turb - dm_shape(coeffs)
         coeffs += gain * meas  # command from the previous frame's measurement
         s = wfs.signals(pupil.to_map(res))
         meas = recon @ s
@@ -227,6 +255,7 @@ def run_ours(args: argparse.Namespace) -> dict:
         n_points=wfs.n_points,
         push_pull=True,
         precision=args.precision,
+        loop=args.loop,
     )
 
 
@@ -463,6 +492,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument(
+        "--loop",
+        choices=["engine", "dense"],
+        default="engine",
+        help="our closed loop's DM shape and atmosphere: the engine's (separable influences, "
+        "frames in blocks; default) or the former dense product and frame-by-frame phase",
+    )
     parser.add_argument("--quick", action="store_true")
     parser.add_argument(
         "--flops",
