@@ -151,8 +151,8 @@ def part_a(args, folder: str, path: str) -> dict:
             f"{r['load'][0]} / {r['load'][1]}"
         )
         for line in r["out"].splitlines():
-            if line.startswith(("predicted residual", "min ", "median ")):
-                print("    " + line[:150])
+            if line.startswith(("predicted residual", "min ", "median ", "wall time:")):
+                print("    " + line[:200])
     if "reference" in runs:
         new, old = runs["this"], runs["reference"]
         print(

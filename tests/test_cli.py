@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+import time
 from unittest import mock
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 import aocontrol
 from aocontrol.controllers import Integrator
 from aocontrol.sim import LinearModalSensor, ModalTimeSeries, Stage, run_loop
+from aocontrol.study import _cli_design
 from aocontrol.study.cli import main, read_telemetry
 from aocontrol.study.demo import run_demo
 from aocontrol.study.results import save_result
@@ -187,10 +189,30 @@ def test_design_from_npz_writes_a_reloadable_controller(tmp_path, capsys):
     # 64-tap bound here (the same path; the library's 256 taps made this test 2.5x slower:
     # 356 vs 144 s for the command at load 17).
     with mock.patch.object(_dd_starts, "BOUND_TAPS", 64):
+        t0 = time.perf_counter()
         assert main(argv) == 0
+        elapsed = time.perf_counter() - t0
     text = capsys.readouterr().out
     bank = aocontrol.load_controller(out)
     assert bank.n_modes == 2 and bank.fs == FS
+    # The last line splits the command's wall time by step: the steps add up to the total
+    # (to the printed 0.1 s), which the clock around the call bounds.
+    last = text.splitlines()[-1]
+    assert last.startswith("wall time: reading ")
+    steps = {
+        part.rsplit(" ", 2)[0]: float(part.rsplit(" ", 2)[1])
+        for part in last.removeprefix("wall time: ").split("; ")[0].split(", ")
+    }
+    assert list(steps) == [
+        "reading",
+        "check and estimate",
+        "design",
+        "certificates and bounds",
+        "files and report",
+    ]
+    total = float(last.split("; ")[1].split(" s")[0])
+    assert abs(sum(steps.values()) - total) <= 0.05 * len(steps) + 0.05
+    assert 0 < steps["design"] and total <= elapsed + 0.05
     # Every mode's row says stable with a modulus margin >= the required 0.5 (to the
     # design's verification tolerance of 1 %).
     rows = [line.split() for line in text.splitlines() if line[:1].isdigit()]
@@ -204,6 +226,17 @@ def test_design_from_npz_writes_a_reloadable_controller(tmp_path, capsys):
     assert (tmp_path / "ctrl" / "dd_sensitivity.png").stat().st_size > 10_000
     assert (tmp_path / "ctrl" / "dd_margins.png").stat().st_size > 10_000
     assert f"report: {tmp_path / 'ctrl' / 'dd_report.html'}" in text  # content: test_report.py
+
+
+def test_design_time_line_counts_every_certificate_step():
+    # reference, margins, the robust margins and the bounds are the certificates' share.
+    timings = {"estimate": 1.0, "design": 10.0, "reference": 0.25, "margins": 2.0}
+    timings |= {"robust": 0.5, "bounds": 0.25}
+    line = _cli_design._time_line(timings, 0.5, 3.0)
+    assert "reading 0.5 s, check and estimate 1.0 s, design 10.0 s" in line
+    assert "certificates and bounds 3.0 s, files and report 3.0 s" in line
+    assert "; 17.5 s in all" in line
+    assert timings["robust"] == 0.5  # not consumed
 
 
 def test_design_reads_a_results_file_with_telemetry(tmp_path, capsys):

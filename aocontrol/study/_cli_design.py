@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import time
 from typing import Any
 
 import numpy as np
@@ -236,7 +237,9 @@ def _design_with(args: argparse.Namespace, controller: str, out_format: str, cli
     from aocontrol.controllers import save_controller
     from aocontrol.synthesis import design_from_telemetry, get_controller
 
+    t_start = time.perf_counter()
     telemetry = _design_telemetry(args)
+    t_read = time.perf_counter() - t_start
     given = {
         "order": args.order,
         "control_weight": args.control_weight,
@@ -269,6 +272,7 @@ def _design_with(args: argparse.Namespace, controller: str, out_format: str, cli
         )
     except MemoryError as exc:  # the cluster's workers refused before designing
         raise UserError(str(exc)) from None
+    t_files = time.perf_counter()
     n_modes = rep.n_modes
     unit = unit_label(rep.unit)
     print(
@@ -425,7 +429,27 @@ def _design_with(args: argparse.Namespace, controller: str, out_format: str, cli
         print(f"plot: {margins_path}")
     info = {"telemetry": args.telemetry, "frames": telemetry.n_frames, "unit": unit}
     print(f"report: {_design_report(rep, stem + '_report.html', info=info)}")
+    print(_time_line(rep.timings, t_read, time.perf_counter() - t_files))
     return 0
+
+
+def _time_line(timings: dict, read: float, files: float) -> str:
+    """One line: the command's wall time by step (:attr:`TelemetryDesign.timings` and the
+    CLI's own reading and output), the interpreter's start and imports not counted."""
+    t = dict(timings)
+    steps = [
+        ("reading", read),
+        ("check and estimate", t.pop("estimate", 0.0)),
+        ("design", t.pop("design", 0.0)),
+        ("certificates and bounds", sum(t.values())),  # reference, margins, robust, bounds
+        ("files and report", files),  # tables, controller file, plots, HTML
+    ]
+    total = sum(v for _, v in steps)
+    return (
+        "wall time: "
+        + ", ".join(f"{label} {v:.1f} s" for label, v in steps)
+        + f"; {total:.1f} s in all (the interpreter's start and imports not counted)"
+    )
 
 
 def _uncertainty(args: argparse.Namespace) -> Any:
