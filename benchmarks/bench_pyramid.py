@@ -10,8 +10,9 @@ integrator (gain 0.4, one frame of delay), one frozen-flow layer (r0 = 0.15 m at
 Measured for each code, in separate processes (so peak memory is each code's own):
 frames/s of the closed loop (atmosphere + DM + pyramid + reconstruction + integrator),
 each code's own way (``--loop engine``, the default: our engine's DM shape through the
-mirror's separable influences, float32, and its atmosphere generated in blocks of frames, the
-block's time counted in the timed frames; ``--loop dense``: the loop measured before 6 Dec,
+mirror's separable influences, float32 (with ``--precision double``, the float64 product with
+the modes), and its atmosphere generated in blocks of frames, the block's time counted in the
+timed frames; ``--loop dense``: the loop measured before 6 Dec,
 the phase frame by frame and the DM shape as one product with the float32 modes; OOPAO's
 ``atm.update()`` and its DM's influence-function product either way), frames/s of the
 pyramid alone, calibration time (modal basis + interaction matrix) and peak
@@ -195,21 +196,17 @@ def run_ours(args: argparse.Namespace) -> dict:
     meas = np.zeros(basis.n_modes)
     res_rms = []
     n_frames, warm = c["frames"], args.warmup
-    if args.loop == "engine":
-        # the simulator's own paths (aocontrol.sim's engine): the DM shape through the
-        # mirror's separable influences in float32 (sim._phase_maps, what a diffractive
-        # sensor's stage synthesises each frame) and the atmosphere in blocks of frames (the
-        # frames do not depend on the split), the block's time counted in its frames' loop
-        synth = shape_synthesizer(basis)
-        block = min(n_frames, default_chunk(pupil.n_valid))
-
-        def dm_shape(x):
-            return synth(x)
+    # the atmosphere: the engine's blocks of frames (the frames do not depend on the split;
+    # a block's time counted in the timed frames) or, the former loop, frame by frame
+    block = min(n_frames, default_chunk(pupil.n_valid)) if args.loop == "engine" else 1
+    if args.loop == "engine" and args.precision == "single":
+        # the DM shape as the engine synthesises it for a diffractive sensor: through the
+        # mirror's separable influences, in float32 (sim._phase_maps)
+        dm_shape = shape_synthesizer(basis)
     else:
-        # the former loop: the atmosphere frame by frame and the DM shape as the product with
-        # the modes in the FFT precision (like OOPAO's float32 influence functions)
+        # the product with the modes in the FFT precision (like OOPAO's influence functions
+        # under OOPAO_PRECISION); the engine's synthesiser is float32 only
         modes = basis.modes.astype(np.float32 if args.precision == "single" else np.float64)
-        block = 1
 
         def dm_shape(x):
             return x.astype(modes.dtype) @ modes
